@@ -34,6 +34,7 @@ class TemplateBank:
     extents_mm: np.ndarray  # (3,) float64
     diameter_mm: float
     symmetry_axis_obj: np.ndarray | None  # (3,) unit, object frame; None = no continuous symmetry
+    symmetry_point_obj: np.ndarray | None  # (3,) mm, object frame: a point on that axis (None with it)
     grid: dict = field(default_factory=dict)  # the grid options the bank was built with (steps, ranges)
 
     @property
@@ -46,12 +47,13 @@ class TemplateBank:
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Flat dict of arrays (for ``np.savez``); ``from_arrays`` inverts it exactly."""
         d = asdict(self)
-        out = {k: np.asarray(v) for k, v in d.items() if k not in ("grid", "symmetry_axis_obj",
+        out = {k: np.asarray(v) for k, v in d.items() if k not in ("grid", "symmetry_axis_obj", "symmetry_point_obj",
                                                                    "reference_distance_mm", "diameter_mm")}
         out["reference_distance_mm"] = np.float64(self.reference_distance_mm)
         out["diameter_mm"] = np.float64(self.diameter_mm)
-        out["symmetry_axis_obj"] = (np.zeros(0) if self.symmetry_axis_obj is None
-                                    else np.asarray(self.symmetry_axis_obj, float))
+        for k in ("symmetry_axis_obj", "symmetry_point_obj"):
+            v = getattr(self, k)
+            out[k] = np.zeros(0) if v is None else np.asarray(v, float)
         import json
 
         out["grid_json"] = np.frombuffer(json.dumps(self.grid, sort_keys=True).encode(), np.uint8)
@@ -63,6 +65,7 @@ class TemplateBank:
         import json
 
         axis = np.asarray(a["symmetry_axis_obj"], float)
+        point = np.asarray(a["symmetry_point_obj"], float)
         return cls(
             R_tpl_obj=np.asarray(a["R_tpl_obj"]), view_params_deg=np.asarray(a["view_params_deg"]),
             offsets=np.asarray(a["offsets"]), xy_n=np.asarray(a["xy_n"]),
@@ -71,5 +74,6 @@ class TemplateBank:
             vertices_mm=np.asarray(a["vertices_mm"]), faces=np.asarray(a["faces"]),
             extents_mm=np.asarray(a["extents_mm"]), diameter_mm=float(a["diameter_mm"]),
             symmetry_axis_obj=None if axis.size == 0 else axis,
+            symmetry_point_obj=None if point.size == 0 else point,
             grid=json.loads(bytes(np.asarray(a["grid_json"], np.uint8)).decode()),
         )
