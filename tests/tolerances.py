@@ -5,8 +5,13 @@ ROUND_TRIP_ATOL = 1e-9  # pure float round trips: euler <-> R <-> quat, project 
 DISTORTION_ROUND_TRIP_PX = 1e-3  # undistort(distort(uv)) against uv
 DATASET_ANGLE_ATOL_DEG = 1e-6  # our euler / alpha-gamma against the numbers stored in gt.jsonl
 RESIZE_CENTROID_PX = 0.02  # blob centroid after cv2.resize against Intrinsics.scaled's pixel-centre rule
+METRIC_ATOL = 1e-6  # pose-error metrics (mm, px, deg) that are exactly 0 by construction
+SYM_DISCRETISATION_DEG = 0.1  # spacing of the brute-force spin grid the closed-form axis error is checked on
 
 # --- rendering and templates ---
+RENDER_EXTENT_PX = 0.5  # silhouette width/height (from anti-aliased coverage) against the closed form
+RENDER_CENTRE_PX = 0.05  # coverage centroid of a symmetric patch about the origin against (cx, cy)
+RENDER_DEPTH_MM = 0.05  # z-buffer depth against the closed form (tessellated sphere, r = 100 mm)
 
 # --- coarse matching ---
 
