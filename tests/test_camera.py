@@ -154,10 +154,6 @@ def test_no_distortion_is_pinhole():
     np.testing.assert_allclose(undistort_points(uv, INTR), uv, atol=ROUND_TRIP_ATOL)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "camera.py undistort_points: cv2.undistortPoints stops after its default 5 iterations, leaving up to "
-    "0.05 px at the corners with k1=-0.2; needs a termination criterion (criteria= on OpenCV 5, "
-    "cv2.undistortPointsIter on 4.x). Remove this mark when fixed."))
 def test_distortion_round_trip_k1_minus_0p2():
     """undistort_points(project_distorted(p)) gives back the pinhole projection over the whole image."""
     rng = np.random.default_rng(SEED + 5)
