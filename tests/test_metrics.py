@@ -241,4 +241,5 @@ def test_paper_errors_non_symmetric_euler():
 
 
 def test_wrap_deg():
-    np.testing.assert_allclose(m.wrap_deg([0.0, 190.0, -190.0, 360.0, 540.0]), [0.0, -170.0, 170.0, 0.0, -180.0])
+    np.testing.assert_allclose(m.wrap_deg([0.0, 190.0, -190.0, 360.0, 540.0]),
+                               [0.0, -170.0, 170.0, 0.0, -180.0])

@@ -18,10 +18,11 @@ Hinterstoisser et al., ACCV 2012 (ADD, ADD-S).
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.spatial import ConvexHull, cKDTree
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 from scipy.spatial.distance import pdist
 from scipy.spatial.transform import Rotation
 
@@ -140,7 +141,8 @@ def mssd_mm(R_e, t_e, R_g, t_g, pts_obj, syms: Symmetries = None) -> float:
 
 def add_mm(R_e, t_e, R_g, t_g, pts_obj) -> float:
     """ADD: mean distance between corresponding model points, mm."""
-    return float(np.mean(np.linalg.norm(_transform(R_e, t_e, pts_obj) - _transform(R_g, t_g, pts_obj), axis=1)))
+    d = _transform(R_e, t_e, pts_obj) - _transform(R_g, t_g, pts_obj)
+    return float(np.mean(np.linalg.norm(d, axis=1)))
 
 
 def add_s_mm(R_e, t_e, R_g, t_g, pts_obj) -> float:
@@ -155,10 +157,8 @@ def diameter_mm(pts_obj) -> float:
     """Largest distance between two model points, mm (BOP's object diameter)."""
     pts = np.asarray(pts_obj, float)
     if len(pts) > 4:
-        try:
+        with contextlib.suppress(QhullError):  # degenerate (flat) point sets: use all points
             pts = pts[ConvexHull(pts).vertices]
-        except Exception:  # degenerate (flat) point sets: fall back to all points
-            pass
     return float(pdist(pts).max()) if len(pts) > 1 else 0.0
 
 
@@ -205,8 +205,8 @@ def paper_errors(R_e, t_e, R_g, t_g, axis_obj=None, point_obj=None) -> dict[str,
         a = _unit(axis_obj)
         al_e, ga_e = axis_alpha_gamma_deg(R_e @ a)
         al_g, ga_g = axis_alpha_gamma_deg(R_g @ a)
-        out.update(rx_deg=float(abs(wrap_deg(al_e - al_g))), ry_deg=float("nan"), rz_deg=float(abs(ga_e - ga_g)),
-                   re_deg=axis_error_deg(R_e, R_g, a), symmetric=True)
+        out.update(rx_deg=float(abs(wrap_deg(al_e - al_g))), ry_deg=float("nan"),
+                   rz_deg=float(abs(ga_e - ga_g)), re_deg=axis_error_deg(R_e, R_g, a), symmetric=True)
     else:
         d = np.abs(wrap_deg(euler_xyz_deg_from_R(R_e) - euler_xyz_deg_from_R(R_g)))
         out.update(rx_deg=float(d[0]), ry_deg=float(d[1]), rz_deg=float(d[2]), re_deg=re_deg(R_e, R_g),
