@@ -12,11 +12,9 @@ SYM_DISCRETISATION_DEG = 0.1  # spacing of the brute-force spin grid the closed-
 RENDER_EXTENT_PX = 0.5  # silhouette width/height (from anti-aliased coverage) against the closed form
 RENDER_CENTRE_PX = 0.05  # coverage centroid of a symmetric patch about the origin against (cx, cy)
 RENDER_DEPTH_MM = 0.05  # z-buffer depth against the closed form (tessellated sphere, r = 100 mm)
-RENDER_EXTENT_PX = 0.5  # silhouette width/height (from anti-aliased coverage) against the closed form
-RENDER_CENTRE_PX = 0.05  # coverage centroid of a symmetric patch about the origin against (cx, cy)
-RENDER_DEPTH_MM = 0.05  # z-buffer depth against the closed form (tessellated sphere, r = 100 mm)
 
 # --- coarse matching ---
+DT_EXACT_ATOL = 1e-4  # DT3 against the brute-force directional chamfer minimum (exact EDT)
 
 # --- refinement ---
 
