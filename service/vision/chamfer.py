@@ -1,0 +1,201 @@
+"""Directional chamfer distance: the distance tensor DT3 (paper eqs. 11-13), the integral distance
+transform (eqs. 15-16) and template costs read from them.
+
+DT3 has shape (C, H, W): channel c holds, for every pixel, the distance in pixels to the nearest
+image edge of orientation channel c, relaxed across channels by ``lambda_px`` per channel step
+(cyclically: orientation pi equals 0) and truncated at ``tau_px``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from service.vision.edges import Segments, channel_of, edge_channels
+
+DEFAULT_CHANNELS = 16
+DEFAULT_TAU_PX = 20.0  # truncation: an edge further than this is as bad as no edge (robust to clutter)
+DEFAULT_LAMBDA_PX_PER_RAD = 6.0  # orientation penalty: 11.25 deg of mismatch costs ~1.2 px
+
+
+@dataclass(frozen=True)
+class DistanceTensor:
+    dt: np.ndarray  # (C, H, W) float32, pixels of this tensor's grid
+    scale: float  # this grid's pixels per full-resolution pixel
+    origin_uv: tuple[float, float]  # full-resolution uv of this grid's pixel (0, 0) centre... see to_grid
+    tau_px: float
+    lambda_px: float  # per channel step, pixels of this grid
+
+    @property
+    def n_channels(self) -> int:
+        return int(self.dt.shape[0])
+
+    def to_grid(self, uv_full: np.ndarray) -> np.ndarray:
+        """Full-resolution uv -> this grid's pixel coordinates."""
+        return (np.asarray(uv_full, float) - np.asarray(self.origin_uv) + 0.5) * self.scale - 0.5
+
+    def to_full(self, uv_grid: np.ndarray) -> np.ndarray:
+        return (np.asarray(uv_grid, float) + 0.5) / self.scale - 0.5 + np.asarray(self.origin_uv)
+
+
+def orientation_relax(dt: np.ndarray, lambda_px: float) -> np.ndarray:
+    """Eqs. 12-13 in place: DT3[c] = min(DT3[c], DT3[c -/+ 1] + lambda), cyclic over channels.
+
+    Two sweeps each way reach every channel from every other one on the cycle.
+    """
+    C = dt.shape[0]
+    for _ in range(2):
+        for c in range(C):  # forward recursion (eq. 13)
+            np.minimum(dt[c], dt[c - 1] + lambda_px, out=dt[c])
+        for c in range(C - 1, -1, -1):  # backward recursion (eq. 12)
+            np.minimum(dt[c], dt[(c + 1) % C] + lambda_px, out=dt[c])
+    return dt
+
+
+def distance_tensor_from_edges(edges: np.ndarray, *, tau_px: float = DEFAULT_TAU_PX,
+                               lambda_px: float | None = None, scale: float = 1.0,
+                               origin_uv: tuple[float, float] = (0.0, 0.0)) -> DistanceTensor:
+    """(C, H, W) uint8 edge masks -> DistanceTensor (eq. 11 by 2D DTs + orientation recursion)."""
+    C, h, w = edges.shape
+    if lambda_px is None:
+        lambda_px = DEFAULT_LAMBDA_PX_PER_RAD * (np.pi / C) * scale
+    dt = np.empty((C, h, w), np.float32)
+    for c in range(C):
+        if not edges[c].any():
+            dt[c] = tau_px
+            continue
+        d = cv2.distanceTransform((edges[c] == 0).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        np.minimum(d, tau_px, out=dt[c])
+    orientation_relax(dt, lambda_px)
+    return DistanceTensor(dt, scale, origin_uv, tau_px, float(lambda_px))
+
+
+def distance_tensor(seg: Segments, *, n_channels: int = DEFAULT_CHANNELS, scale: float = 1.0,
+                    roi: tuple[int, int, int, int] | None = None, tau_px: float | None = None,
+                    lambda_px: float | None = None) -> DistanceTensor:
+    """Segments -> DT3 on the full image (or ``roi = (u0, v0, w, h)``) resized by ``scale``."""
+    H, W = seg.image_shape
+    u0, v0, w, h = roi if roi is not None else (0, 0, W, H)
+    s = seg.crop(u0, v0, w, h) if roi is not None else seg
+    shape = (max(int(round(h * scale)), 1), max(int(round(w * scale)), 1))
+    edges = edge_channels(s, n_channels, shape, scale=scale)
+    tau = DEFAULT_TAU_PX * scale if tau_px is None else tau_px
+    return distance_tensor_from_edges(edges, tau_px=tau, lambda_px=lambda_px, scale=scale,
+                                      origin_uv=(float(u0), float(v0)))
+
+
+# --- reading costs ---------------------------------------------------------------------------------
+
+
+def sample(dtt: DistanceTensor, uv_grid: np.ndarray, theta_rad: np.ndarray) -> np.ndarray:
+    """Directional chamfer distance at sub-pixel grid points, bilinear in space and linear, cyclic
+    across orientation channels; outside the grid the cost is tau. (..., 2), (...) -> (...)."""
+    dt = dtt.dt
+    C, h, w = dt.shape
+    uv = np.asarray(uv_grid, np.float64)
+    u, v = uv[..., 0], uv[..., 1]
+    inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+    uc = np.clip(u, 0, w - 1.0001)
+    vc = np.clip(v, 0, h - 1.0001)
+    u0 = np.floor(uc).astype(np.int64)
+    v0 = np.floor(vc).astype(np.int64)
+    fu = uc - u0
+    fv = vc - v0
+    cf = np.mod(np.asarray(theta_rad, np.float64) * (C / np.pi), C)
+    c0 = np.floor(cf).astype(np.int64) % C
+    c1 = (c0 + 1) % C
+    fc = cf - np.floor(cf)
+    flat = dt.reshape(-1)
+    base0 = c0 * (h * w) + v0 * w + u0
+    base1 = c1 * (h * w) + v0 * w + u0
+
+    def bil(base):
+        return ((1 - fv) * ((1 - fu) * flat[base] + fu * flat[base + 1])
+                + fv * ((1 - fu) * flat[base + w] + fu * flat[base + w + 1]))
+
+    val = (1 - fc) * bil(base0) + fc * bil(base1)
+    return np.where(inside, val, dtt.tau_px)
+
+
+def sample_nearest(dtt: DistanceTensor, uv_grid: np.ndarray, theta_rad: np.ndarray) -> np.ndarray:
+    """Like ``sample`` but at the nearest pixel and nearest channel (the paper's eq. 14 read-out)."""
+    dt = dtt.dt
+    C, h, w = dt.shape
+    uv = np.rint(np.asarray(uv_grid)).astype(np.int64)
+    u, v = uv[..., 0], uv[..., 1]
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    c = channel_of(theta_rad, C)
+    val = dt[c, np.clip(v, 0, h - 1), np.clip(u, 0, w - 1)]
+    return np.where(inside, val, dtt.tau_px)
+
+
+def chamfer_cost(dtt: DistanceTensor, uv_grid: np.ndarray, theta_rad: np.ndarray) -> float:
+    """Eq. 14: mean directional chamfer distance of template points (grid pixels)."""
+    return float(np.mean(sample_nearest(dtt, uv_grid, theta_rad)))
+
+
+# --- integral distance transform (eqs. 15-16) ------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class IntegralDT:
+    """Per channel, cumulative sums of DT3 along that channel's direction on digital lines.
+
+    For a channel whose direction is closer to horizontal, line k through pixel (u, v) is the set
+    {(u', v + round(u' * m) - round(u * m))} with m = tan(theta_c); the sum over a run of that line
+    from u_a to u_b is ``cum[v - round(u_a m) + pad, u_b + 1] - cum[..., u_a]`` (two look-ups).
+    Closer-to-vertical channels are the same with u and v swapped.
+    """
+
+    cum: list  # per channel: (rows, major + 1) float64 sheared cumulative sums
+    slope: np.ndarray  # (C,) m = tan or cot of the channel angle, |m| <= 1
+    vertical: np.ndarray  # (C,) bool: major axis is v
+    pad: np.ndarray  # (C,) row offset added in the sheared frame
+    shape: tuple[int, int]
+
+
+def integral_dt(dtt: DistanceTensor) -> IntegralDT:
+    C, h, w = dtt.dt.shape
+    cums, slopes, verts, pads = [], [], [], []
+    for c in range(C):
+        th = c * np.pi / C
+        vertical = abs(np.sin(th)) > abs(np.cos(th))
+        img = dtt.dt[c].T if vertical else dtt.dt[c]  # rows = minor axis, cols = major axis
+        m = (np.cos(th) / np.sin(th)) if vertical else np.tan(th)
+        rows, cols = img.shape
+        shift = np.rint(np.arange(cols) * m).astype(np.int64)  # digital line offset per column
+        pad = int(max(0, shift.max()))
+        n_rows = rows + pad - int(min(0, shift.min()))
+        sheared = np.full((n_rows, cols), dtt.tau_px, np.float64)
+        r = np.arange(rows)[:, None]
+        # pixel (r, col) lies on sheared row r - shift[col] + pad
+        sheared[r - shift[None, :] + pad, np.arange(cols)[None, :]] = img
+        cum = np.zeros((n_rows, cols + 1), np.float64)
+        np.cumsum(sheared, axis=1, out=cum[:, 1:])
+        cums.append(cum)
+        slopes.append(m)
+        verts.append(vertical)
+        pads.append(pad)
+    return IntegralDT(cums, np.array(slopes), np.array(verts), np.array(pads), (h, w))
+
+
+def line_cost_idt(idt: IntegralDT, c: int, uv_start: tuple[int, int], n_steps: int) -> float:
+    """Eq. 16 for one template line: the DT3 sum over ``n_steps + 1`` pixels of channel c's digital
+    line starting at pixel ``uv_start`` and running towards increasing major coordinate."""
+    u, v = uv_start
+    major, minor = (v, u) if idt.vertical[c] else (u, v)
+    row = minor - int(np.rint(major * idt.slope[c])) + int(idt.pad[c])
+    cum = idt.cum[c]
+    return float(cum[row, major + n_steps + 1] - cum[row, major])
+
+
+def line_pixels(idt: IntegralDT, c: int, uv_start: tuple[int, int], n_steps: int) -> np.ndarray:
+    """The (n_steps + 1, 2) integer uv pixels ``line_cost_idt`` sums over."""
+    u, v = uv_start
+    major0, minor0 = (v, u) if idt.vertical[c] else (u, v)
+    majors = major0 + np.arange(n_steps + 1)
+    m = idt.slope[c]
+    minors = minor0 + np.rint(majors * m).astype(np.int64) - int(np.rint(major0 * m))
+    return np.stack([minors, majors], 1) if idt.vertical[c] else np.stack([majors, minors], 1)

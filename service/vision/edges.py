@@ -1,0 +1,131 @@
+"""Image edges: LSD line segments, binned by orientation.
+
+Segments are in full-resolution pixels ``uv`` (centre of the top-left pixel at (0, 0)) whatever
+resolution LSD ran at; orientations are undirected, ``theta_rad`` in [0, pi), measured from +u
+towards +v (image rows grow downwards).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+DEFAULT_LSD_SCALE = 0.5  # LSD on the half-size image: ~2x faster, segments still sub-pixel
+MIN_SEGMENT_PX = 4.0  # full-resolution length below which LSD segments are mostly noise
+
+
+@dataclass(frozen=True)
+class Segments:
+    uv0: np.ndarray  # (S, 2) float32, full-resolution pixels
+    uv1: np.ndarray  # (S, 2) float32
+    theta_rad: np.ndarray  # (S,) float32 in [0, pi)
+    image_shape: tuple[int, int]  # (h, w) of the full-resolution image
+
+    @property
+    def lengths_px(self) -> np.ndarray:
+        return np.linalg.norm(self.uv1 - self.uv0, axis=1)
+
+    def __len__(self) -> int:
+        return int(len(self.uv0))
+
+    def crop(self, u0: int, v0: int, w: int, h: int) -> Segments:
+        """Segments touching the window [u0, u0 + w) x [v0, v0 + h), in the window's pixels."""
+        lo = np.minimum(self.uv0, self.uv1)
+        hi = np.maximum(self.uv0, self.uv1)
+        keep = (hi[:, 0] >= u0 - 1) & (lo[:, 0] <= u0 + w) & (hi[:, 1] >= v0 - 1) & (lo[:, 1] <= v0 + h)
+        shift = np.array([u0, v0], np.float32)
+        return Segments(self.uv0[keep] - shift, self.uv1[keep] - shift, self.theta_rad[keep], (h, w))
+
+
+def to_grey_u8(image: np.ndarray) -> np.ndarray:
+    """(H, W[, 3|4]) uint8/uint16/float image -> (H, W) uint8 grey (BGR order for colour)."""
+    img = np.asarray(image)
+    if img.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        img = cv2.cvtColor(img, code) if img.shape[2] in (3, 4) else img[..., 0]
+    if img.dtype == np.uint8:
+        return img
+    if img.dtype == np.uint16:
+        # Stretch what the sensor used, not the whole 16-bit range: 12-bit cameras store 0..4095.
+        hi = max(int(img.max()), 1)
+        return (img.astype(np.float32) * (255.0 / hi)).round().clip(0, 255).astype(np.uint8)
+    f = img.astype(np.float32)
+    lo, hi = float(f.min()), float(f.max())
+    return ((f - lo) * (255.0 / max(hi - lo, 1e-6))).round().clip(0, 255).astype(np.uint8)
+
+
+_LSD = None
+
+
+def _lsd():
+    global _LSD
+    if _LSD is None:
+        _LSD = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD)
+    return _LSD
+
+
+def detect_segments(grey: np.ndarray, *, scale: float = DEFAULT_LSD_SCALE, blur_sigma: float = 0.0,
+                    min_length_px: float = MIN_SEGMENT_PX, roi: tuple[int, int, int, int] | None = None
+                    ) -> Segments:
+    """LSD on ``grey`` (H, W) uint8 resized by ``scale``; ``roi = (u0, v0, w, h)`` restricts the
+    detection to a window (coordinates stay those of the full image)."""
+    h, w = grey.shape[:2]
+    u0 = v0 = 0
+    img = grey
+    if roi is not None:
+        u0, v0, rw, rh = roi
+        img = grey[v0:v0 + rh, u0:u0 + rw]
+    if blur_sigma > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur_sigma)
+    if scale != 1.0:
+        img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    lines = _lsd().detect(img)[0]
+    if lines is None or len(lines) == 0:
+        z = np.zeros((0, 2), np.float32)
+        return Segments(z, z.copy(), np.zeros(0, np.float32), (h, w))
+    xy = lines.reshape(-1, 4).astype(np.float32)
+    # Pixel-centre convention: u_full = (u_scaled + 0.5) / scale - 0.5.
+    p0 = (xy[:, :2] + 0.5) / scale - 0.5 + np.array([u0, v0], np.float32)
+    p1 = (xy[:, 2:] + 0.5) / scale - 0.5 + np.array([u0, v0], np.float32)
+    keep = np.linalg.norm(p1 - p0, axis=1) >= min_length_px
+    p0, p1 = p0[keep], p1[keep]
+    d = p1 - p0
+    theta = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi).astype(np.float32)
+    return Segments(p0, p1, theta, (h, w))
+
+
+def channel_of(theta_rad: np.ndarray, n_channels: int) -> np.ndarray:
+    """Orientation channel (bins centred on k * pi / C) of undirected angles, int64."""
+    return np.mod(np.floor(np.asarray(theta_rad) * (n_channels / np.pi) + 0.5), n_channels).astype(np.int64)
+
+
+def sample_segments(seg: Segments, *, step_px: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Points every ``step_px`` along every segment: ((M, 2) uv float32, (M,) segment index)."""
+    n = np.maximum(np.ceil(seg.lengths_px / step_px).astype(np.int64), 1) + 1
+    idx = np.repeat(np.arange(len(seg)), n)
+    start = np.repeat(np.cumsum(n) - n, n)
+    frac = ((np.arange(int(n.sum())) - start) / np.repeat(n - 1, n)).astype(np.float32)
+    uv = seg.uv0[idx] + (seg.uv1[idx] - seg.uv0[idx]) * frac[:, None]
+    return uv, idx
+
+
+def edge_channels(seg: Segments, n_channels: int, shape_hw: tuple[int, int], *, scale: float = 1.0
+                  ) -> np.ndarray:
+    """Rasterise segments into per-channel edge masks at ``scale`` x the full resolution.
+
+    Returns (C, H, W) uint8 with 1 on edge pixels; H, W = ``shape_hw`` (already scaled).
+    """
+    h, w = shape_hw
+    out = np.zeros((n_channels, h, w), np.uint8)
+    if len(seg) == 0:
+        return out
+    uv, idx = sample_segments(seg, step_px=0.5 / max(scale, 1e-6))
+    uv_s = (uv + 0.5) * scale - 0.5
+    u = np.rint(uv_s[:, 0]).astype(np.int64)
+    v = np.rint(uv_s[:, 1]).astype(np.int64)
+    c = channel_of(seg.theta_rad, n_channels)[idx]
+    ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    out[c[ok], v[ok], u[ok]] = 1
+    return out

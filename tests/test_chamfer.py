@@ -1,0 +1,91 @@
+"""DT3 (eqs. 11-13) against brute force; the integral DT (eqs. 15-16) against point sums."""
+
+import numpy as np
+
+from service.vision.chamfer import (
+    distance_tensor_from_edges,
+    integral_dt,
+    line_cost_idt,
+    line_pixels,
+    sample,
+    sample_nearest,
+)
+from tests.tolerances import DT_EXACT_ATOL
+
+
+def _random_edges(rng, C=8, h=17, w=23, n=12):
+    edges = np.zeros((C, h, w), np.uint8)
+    edges[rng.integers(0, C, n), rng.integers(0, h, n), rng.integers(0, w, n)] = 1
+    return edges
+
+
+def _brute_dt3(edges, lam, tau):
+    C, h, w = edges.shape
+    cs, vs, us = np.nonzero(edges)
+    out = np.full((C, h, w), tau)
+    for c in range(C):
+        cyc = np.minimum(np.abs(cs - c), C - np.abs(cs - c))
+        for v in range(h):
+            for u in range(w):
+                d = np.hypot(us - u, vs - v) + lam * cyc
+                out[c, v, u] = min(tau, d.min()) if len(d) else tau
+    return out
+
+
+def test_dt3_equals_brute_force_directional_chamfer():
+    rng = np.random.default_rng(3)
+    edges = _random_edges(rng)
+    dtt = distance_tensor_from_edges(edges, tau_px=9.0, lambda_px=1.7)
+    np.testing.assert_allclose(dtt.dt, _brute_dt3(edges, 1.7, 9.0), atol=DT_EXACT_ATOL)
+
+
+def test_dt3_empty_channel_is_tau_plus_nothing_closer():
+    edges = np.zeros((4, 9, 9), np.uint8)
+    edges[0, 4, 4] = 1
+    dtt = distance_tensor_from_edges(edges, tau_px=5.0, lambda_px=1.0)
+    assert dtt.dt[0, 4, 4] == 0.0
+    assert dtt.dt[2, 4, 4] == 2.0  # two channel steps away, either way round the cycle
+    assert dtt.dt[3, 4, 4] == 1.0  # channel 3 neighbours channel 0 cyclically
+    assert dtt.dt[0, 0, 0] == 5.0  # truncated
+
+
+def test_integral_dt_line_cost_equals_point_by_point_sum():
+    rng = np.random.default_rng(7)
+    C = 12
+    dtt = distance_tensor_from_edges(_random_edges(rng, C=C, h=40, w=50, n=60), tau_px=10.0, lambda_px=1.0)
+    idt = integral_dt(dtt)
+    checked = 0
+    for c in range(C):
+        for _ in range(20):
+            u, v = int(rng.integers(0, 50)), int(rng.integers(0, 40))
+            n = int(rng.integers(0, 15))
+            pix = line_pixels(idt, c, (u, v), n)
+            if not ((pix[:, 0] >= 0) & (pix[:, 0] < 50) & (pix[:, 1] >= 0) & (pix[:, 1] < 40)).all():
+                continue
+            # the digital line really runs along channel c's direction
+            if n >= 8:
+                d = pix[-1] - pix[0]
+                ang = np.mod(np.arctan2(d[1], d[0]), np.pi)
+                diff = abs(ang - c * np.pi / C)
+                assert min(diff, np.pi - diff) < np.pi / C
+            expect = dtt.dt[c, pix[:, 1], pix[:, 0]].sum()
+            assert abs(line_cost_idt(idt, c, (u, v), n) - expect) < 1e-6 * max(1.0, expect)
+            checked += 1
+    assert checked > 100
+
+
+def test_bilinear_sample_is_exact_at_pixel_centres_and_channel_centres():
+    rng = np.random.default_rng(11)
+    C = 8
+    dtt = distance_tensor_from_edges(_random_edges(rng, C=C), tau_px=9.0, lambda_px=1.0)
+    v, u = np.meshgrid(np.arange(1, 16), np.arange(1, 22), indexing="ij")
+    uv = np.stack([u.ravel(), v.ravel()], 1).astype(float)
+    for c in range(C):
+        theta = np.full(len(uv), c * np.pi / C)
+        np.testing.assert_allclose(sample(dtt, uv, theta), dtt.dt[c, v.ravel(), u.ravel()], atol=1e-5)
+        np.testing.assert_allclose(sample_nearest(dtt, uv, theta), dtt.dt[c, v.ravel(), u.ravel()])
+    # half way between two channels: the mean of both
+    theta = np.full(len(uv), 0.5 * np.pi / C)
+    np.testing.assert_allclose(sample(dtt, uv, theta),
+                               0.5 * (dtt.dt[0, v.ravel(), u.ravel()] + dtt.dt[1, v.ravel(), u.ravel()]),
+                               atol=1e-5)
