@@ -96,6 +96,32 @@ def test_symmetry_rotations_about_axis_through_point():
         assert d.max() < 1e-9
 
 
+def test_best_spin_deg_recovers_a_spin():
+    rng = np.random.default_rng(SEED + 3)
+    for R_g in Rotation.random(10, random_state=rng).as_matrix():
+        for phi in (0.0, 12.345, -170.0, 95.5):
+            assert m.best_spin_deg(R_g @ spin(Y, phi), R_g, Y) == pytest.approx(phi, abs=1e-7)
+    # with the axis also off by a tilt, it is still the minimiser of the geodesic error
+    R_g = Rx(20) @ Rz(10)
+    R_e = Rx(23) @ R_g @ spin(Y, 40.0)
+    phis = np.arange(0.0, 80.0, 0.01)
+    brute = phis[np.argmin([m.re_deg(R_e, R_g @ spin(Y, p)) for p in phis])]
+    assert m.best_spin_deg(R_e, R_g, Y) == pytest.approx(brute, abs=0.01)
+
+
+def test_pose_symmetries_make_an_off_grid_spin_exact():
+    pts = cylinder_points(n_ring=72)
+    R_g, t_g = Rx(-30) @ Rz(40), np.array([20.0, -10.0, 300.0])
+    R_e = R_g @ spin(Y, 37.4321)  # off the 1 deg grid
+    coarse = m.symmetry_rotations(Y, n=360)
+    fine = m.pose_symmetries(R_e, R_g, Y)
+    assert m.mspd_px(R_e, t_g, R_g, t_g, K, pts, coarse) > 0.05
+    assert m.mspd_px(R_e, t_g, R_g, t_g, K, pts, fine) < 0.01
+    assert m.mssd_mm(R_e, t_g, R_g, t_g, pts, fine) < 0.01
+    Rs, ts = m.pose_symmetries(R_e, R_g, None)
+    assert Rs.shape == (1, 3, 3)
+
+
 # --- MSPD, MSSD, ADD, ADD-S ---------------------------------------------------------------------------
 
 

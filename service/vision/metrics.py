@@ -72,23 +72,57 @@ def axis_error_deg(R_est, R_gt, axis_obj) -> float:
 # --- symmetries --------------------------------------------------------------------------------
 
 
-def symmetry_rotations(axis_obj=None, point_obj=None, n: int = 360) -> tuple[np.ndarray, np.ndarray]:
+def symmetry_rotations(axis_obj=None, point_obj=None, n: int = 360,
+                       spins_deg=None) -> tuple[np.ndarray, np.ndarray]:
     """Discretised spins about a continuous symmetry axis as rigid transforms ``p -> R p + t``.
 
     axis_obj : (3,) direction in the object frame, or None for no symmetry (identity only).
     point_obj : (3,) mm, object frame, a point on the axis; None = the origin.
     n : number of spins, ``phi_k = 360 k / n`` degrees, k = 0..n-1 (k = 0 is the identity).
+    spins_deg : (M,) degrees, explicit spins used instead of the ``n`` grid (e.g. a coarse grid plus a
+        fine one around ``best_spin_deg``).
     Returns ``Rs`` (M, 3, 3) float64 and ``ts`` (M, 3) float64 mm, with M = n (1 without symmetry).
     """
     if axis_obj is None:
         return np.eye(3)[None], np.zeros((1, 3))
     a = _unit(axis_obj)
-    phis = np.deg2rad(np.arange(n) * (360.0 / n))
+    if spins_deg is None:
+        spins_deg = np.arange(n) * (360.0 / n)
+    phis = np.deg2rad(np.asarray(spins_deg, float).ravel())
     Rs = Rotation.from_rotvec(phis[:, None] * a[None]).as_matrix()
     if point_obj is None:
         return Rs, np.zeros((len(Rs), 3))
     c = np.asarray(point_obj, float)
     return Rs, c[None] - Rs @ c
+
+
+def best_spin_deg(R_est, R_gt, axis_obj) -> float:
+    """The spin ``phi`` about ``axis_obj`` that brings ``R_gt @ S(phi)`` closest to ``R_est``, degrees.
+
+    Closed form: ``trace(R_est^T R_gt S(phi)) = c + A cos(phi) + B sin(phi)`` (Rodrigues), maximised at
+    ``atan2(B, A)``. Used to centre a fine spin grid for the symmetry-aware point errors.
+    """
+    a = _unit(axis_obj)
+    M = np.asarray(R_est, float).T @ np.asarray(R_gt, float)
+    ax = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    A = np.trace(M) - a @ M @ a
+    B = np.trace(M @ ax)
+    return float(np.degrees(np.arctan2(B, A)))
+
+
+def pose_symmetries(R_est, R_gt, axis_obj=None, point_obj=None, n: int = 360, *,
+                    fine_half_width_deg: float = 1.0, fine_step_deg: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """Spins for comparing one estimate: the ``n`` grid plus a fine grid around ``best_spin_deg``.
+
+    Removes most of the grid's discretisation from MSPD/MSSD (a 0.5 deg spin moves a point 30 mm off
+    the axis by 0.26 mm, about 1 px at 300 mm). Identity only without symmetry.
+    """
+    if axis_obj is None:
+        return symmetry_rotations(None)
+    phi = best_spin_deg(R_est, R_gt, axis_obj)
+    fine = phi + np.arange(-fine_half_width_deg, fine_half_width_deg + fine_step_deg / 2, fine_step_deg)
+    spins = np.concatenate([np.arange(n) * (360.0 / n), fine])
+    return symmetry_rotations(axis_obj, point_obj, spins_deg=spins)
 
 
 def _as_syms(syms: Symmetries) -> tuple[np.ndarray, np.ndarray]:
