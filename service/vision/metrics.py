@@ -111,7 +111,8 @@ def best_spin_deg(R_est, R_gt, axis_obj) -> float:
 
 
 def pose_symmetries(R_est, R_gt, axis_obj=None, point_obj=None, n: int = 360, *,
-                    fine_half_width_deg: float = 1.0, fine_step_deg: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+                    fine_half_width_deg: float = 1.0,
+                    fine_step_deg: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
     """Spins for comparing one estimate: the ``n`` grid plus a fine grid around ``best_spin_deg``.
 
     Removes most of the grid's discretisation from MSPD/MSSD (a 0.5 deg spin moves a point 30 mm off
