@@ -32,13 +32,13 @@ def as_intrinsics(K_or_intr) -> Intrinsics:
 
 
 @numba.njit(cache=True, nogil=True)
-def _zbuffer(uv, z, faces, depth, fid, eps):  # pragma: no cover - compiled
-    """Rasterise triangles into ``depth`` (H, W) float32 (init inf) and ``fid`` (H, W) int32 (init -1).
+def _zbuffer(uv, z, faces, invz, fid, eps):  # pragma: no cover - compiled
+    """Rasterise triangles into ``invz`` (H, W) float64 (init 0) and ``fid`` (H, W) int32 (init -1).
 
-    uv (V, 2) float64 in buffer pixel coordinates; z (V,) float64 camera depth, mm.
-    Depth is interpolated perspective-correctly (1/z is affine in the image).
+    uv (V, 2) float64 in buffer pixel coordinates; z (V,) float64 camera depth, mm. ``invz`` gets
+    1 / depth of the nearest surface (perspective-correct: 1/z is affine in the image).
     """
-    H, W = depth.shape
+    H, W = invz.shape
     for f in range(faces.shape[0]):
         i0 = faces[f, 0]
         i1 = faces[f, 1]
@@ -67,16 +67,50 @@ def _zbuffer(uv, z, faces, depth, fid, eps):  # pragma: no cover - compiled
         iz0 = 1.0 / z0
         iz1 = 1.0 / z1
         iz2 = 1.0 / z2
+        # Barycentric w_i(u, v) = (a_i * u + b_i * v + c_i) * inv_area; per row, each w_i >= -eps
+        # bounds u from one side, so only the covered span of the row is visited.
+        a0 = (y1 - y2) * inv_area
+        b0 = (x2 - x1) * inv_area
+        c0 = (x1 * y2 - x2 * y1) * inv_area
+        a1 = (y2 - y0) * inv_area
+        b1 = (x0 - x2) * inv_area
+        c1 = (x2 * y0 - x0 * y2) * inv_area
         for v in range(vmin, vmax + 1):
-            for u in range(umin, umax + 1):
-                w0 = ((x1 - u) * (y2 - v) - (x2 - u) * (y1 - v)) * inv_area
-                w1 = ((x2 - u) * (y0 - v) - (x0 - u) * (y2 - v)) * inv_area
-                w2 = 1.0 - w0 - w1
-                if w0 >= -eps and w1 >= -eps and w2 >= -eps:
-                    zz = 1.0 / (w0 * iz0 + w1 * iz1 + w2 * iz2)
-                    if zz < depth[v, u]:
-                        depth[v, u] = zz
-                        fid[v, u] = f
+            lo = -1e30
+            hi = 1e30
+            r0 = b0 * v + c0
+            r1 = b1 * v + c1
+            # w2 = 1 - w0 - w1
+            a2 = -a0 - a1
+            r2 = 1.0 - r0 - r1
+            if a0 > 0.0:
+                lo = max(lo, (-eps - r0) / a0)
+            elif a0 < 0.0:
+                hi = min(hi, (-eps - r0) / a0)
+            elif r0 < -eps:
+                continue
+            if a1 > 0.0:
+                lo = max(lo, (-eps - r1) / a1)
+            elif a1 < 0.0:
+                hi = min(hi, (-eps - r1) / a1)
+            elif r1 < -eps:
+                continue
+            if a2 > 0.0:
+                lo = max(lo, (-eps - r2) / a2)
+            elif a2 < 0.0:
+                hi = min(hi, (-eps - r2) / a2)
+            elif r2 < -eps:
+                continue
+            ulo = max(int(np.ceil(lo - 1e-9)), umin)
+            uhi = min(int(np.floor(hi + 1e-9)), umax)
+            # 1/z is affine along the row: compare inverse depths, no division per pixel.
+            iza = a0 * (iz0 - iz2) + a1 * (iz1 - iz2)
+            izb = r0 * (iz0 - iz2) + r1 * (iz1 - iz2) + iz2
+            for u in range(ulo, uhi + 1):
+                iz = iza * u + izb
+                if iz > invz[v, u]:
+                    invz[v, u] = iz
+                    fid[v, u] = f
 
 
 @dataclass
@@ -160,10 +194,12 @@ def rasterise_roi(vertices_mm, faces, pose: Pose, K_or_intr, image_size, *, marg
         u1, v1 = u1 + (align - 1 - u1 % align), v1 + (align - 1 - v1 % align)
     if u1 < u0 or v1 < v0:
         return np.zeros((0, 0), np.float32), np.zeros((0, 0), np.int32), (0, 0)
-    depth = np.full((v1 - v0 + 1, u1 - u0 + 1), np.inf, np.float32)
-    fid = np.full(depth.shape, -1, np.int32)
+    invz = np.zeros((v1 - v0 + 1, u1 - u0 + 1), np.float64)
+    fid = np.full(invz.shape, -1, np.int32)
     uv_roi = np.ascontiguousarray(uv - np.array([u0, v0], float))
-    _zbuffer(uv_roi, z, F, depth, fid, _EDGE_EPS)
+    _zbuffer(uv_roi, z, F, invz, fid, _EDGE_EPS)
+    with np.errstate(divide="ignore"):
+        depth = (1.0 / invz).astype(np.float32)
     return depth, fid, (u0, v0)
 
 
