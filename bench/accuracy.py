@@ -19,7 +19,8 @@ Counting: targets with ``visible_fraction >= 0.5`` are evaluated (the others are
 recalls and is left out of the mean errors (the ``n est`` column says how many are averaged).
 
 Templates are built once per model with ``service.pipeline.build_templates(mesh, symmetry="auto")`` and
-cached in ``bench/out/banks/<model>-<key>.npz`` (key: hash of grid options, mesh bytes, bank format).
+cached in ``bench/out/banks/<model>-<key>.npz`` (key: hash of the grid options, the mesh bytes, the bank
+format and the source of the modules that build a bank; ``--rebuild-banks`` forces a rebuild).
 
 ``--selftest`` feeds the ground truth (spun by a random angle about the axis of a symmetric part) as
 the estimate, which checks the metric and table code without the estimator: every error is 0 (up to
@@ -189,11 +190,18 @@ def load_model_info(set_dir: Path, model: str, meta: dict, cache: dict) -> Model
     return info
 
 
+BANK_SOURCES = ("templates", "render", "symmetry", "bank")
+
+
 def bank_path(model: str, mesh_path: Path, grid: dict | None) -> Path:
     h = hashlib.sha1()
     h.update(json.dumps(grid or {}, sort_keys=True).encode())
     h.update(hashlib.sha1(mesh_path.read_bytes()).digest())
     h.update(str(BANK_FORMAT_VERSION).encode())
+    for mod in BANK_SOURCES:  # the code that builds a bank: a change invalidates the cache
+        src = ROOT / "service" / "vision" / f"{mod}.py"
+        if src.exists():
+            h.update(src.read_bytes())
     return OUT_DIR / "banks" / f"{model}-{h.hexdigest()[:12]}.npz"
 
 
