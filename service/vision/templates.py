@@ -187,14 +187,15 @@ def _contours_ss(mask: np.ndarray) -> list[np.ndarray]:
     return [c.reshape(-1, 2).astype(np.float64) for c, k in zip(cs, keep, strict=True) if k and len(c) >= 3]
 
 
-def extract_border(depth_ss: np.ndarray, fid_ss: np.ndarray, origin_ss: tuple[int, int], s: int,
+def extract_border(invz_ss: np.ndarray, fid_ss: np.ndarray, origin_ss: tuple[int, int], s: int,
                    intr: Intrinsics, pose: Pose, image_size, spacing_px: float):
     """Border of a rasterised silhouette (see ``rasterise_roi``) in the image of ``intr``.
 
-    depth_ss, fid_ss : the ROI buffers at s times the resolution (``intr.scaled(s)``), whose top-left
-    sub-pixel is ``origin_ss`` of the supersampled image. Returns ``uv (M, 2)``, ``theta_rad (M,)``,
-    ``p_obj (M, 3)`` (float64; pixels of ``intr``, radians, mm object frame). Points on the image
-    frame (where the silhouette is cut by the image border) are dropped.
+    invz_ss, fid_ss : the ROI buffers (inverse depth, face id) at s times the resolution
+    (``intr.scaled(s)``), whose top-left sub-pixel is ``origin_ss`` of the supersampled image.
+    Returns ``uv (M, 2)``, ``theta_rad (M,)``, ``p_obj (M, 3)`` (float64; pixels of ``intr``,
+    radians, mm object frame). Points on the image frame (where the silhouette is cut by the image
+    border) are dropped.
     """
     empty = np.zeros((0, 2)), np.zeros(0), np.zeros((0, 3))
     if fid_ss.size == 0:
@@ -250,7 +251,7 @@ def extract_border(depth_ss: np.ndarray, fid_ss: np.ndarray, origin_ss: tuple[in
     dist2 = np.where(covered, dist2, np.inf)
     best = np.argmin(dist2, axis=1)
     ok = np.isfinite(dist2[np.arange(len(q)), best])
-    z = depth_ss[cj[np.arange(len(q)), best], ci[np.arange(len(q)), best]].astype(np.float64)
+    z = 1.0 / invz_ss[cj[np.arange(len(q)), best], ci[np.arange(len(q)), best]].astype(np.float64)
     uv, theta, z = uv[ok], theta[ok], z[ok]
     x = (uv[:, 0] - intr.cx) / intr.fx * z
     y = (uv[:, 1] - intr.cy) / intr.fy * z
@@ -260,19 +261,51 @@ def extract_border(depth_ss: np.ndarray, fid_ss: np.ndarray, origin_ss: tuple[in
 
 
 def border_at_pose(vertices_mm, faces, pose: Pose, intr_or_K, image_size, *, spacing_px: float = 1.0,
-                   supersample: int = 2):
+                   supersample: int = 2, closed: bool = False):
     """Outer silhouette border of the mesh at ``pose`` (T_cam_obj) in a real (pinhole) camera.
 
     Returns ``uv (M, 2)`` pixels, ``theta_rad (M,)`` in [0, pi), ``p_obj (M, 3)`` mm object frame,
     all float64; empty arrays when nothing is visible. Only the ROI of the projected mesh is
-    rasterised. Lens distortion is ignored (``intr_or_K``'s pinhole part is used).
+    rasterised. Lens distortion is ignored (``intr_or_K``'s pinhole part is used). ``closed=True``
+    (the mesh is watertight with outward normals, see ``is_closed_outward``) skips back faces.
     """
     intr = as_intrinsics(intr_or_K)
     s = int(supersample)
     w, h = int(image_size[0]), int(image_size[1])
     intr_s = intr.scaled(s) if s > 1 else intr
-    depth, fid, origin = rasterise_roi(vertices_mm, faces, pose, intr_s, (w * s, h * s))
-    return extract_border(depth, fid, origin, s, intr, pose, (w, h), spacing_px)
+    V = np.asarray(vertices_mm, np.float64)
+    F = np.asarray(faces, np.int32)
+    if closed:
+        F = F[front_facing(V, F, pose)]
+    invz, fid, origin = rasterise_roi(V, F, pose, intr_s, (w * s, h * s), inverse_depth=True)
+    return extract_border(invz, fid, origin, s, intr, pose, (w, h), spacing_px)
+
+
+def is_closed_outward(vertices_mm, faces) -> bool:
+    """True when every edge is shared by exactly two faces traversing it in opposite directions
+    and the enclosed volume is positive (normals point out): back faces can then be skipped."""
+    F = np.asarray(faces, np.int64)
+    if len(F) == 0:
+        return False
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    n = int(F.max()) + 1
+    fwd = e[:, 0] * n + e[:, 1]
+    rev = e[:, 1] * n + e[:, 0]
+    if len(np.unique(fwd)) != len(fwd):  # an edge used twice in the same direction
+        return False
+    if not np.array_equal(np.sort(fwd), np.sort(rev)):  # an edge without its opposite
+        return False
+    tri = np.asarray(vertices_mm, float)[F]
+    volume = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0
+    return bool(volume > 0.0)
+
+
+def front_facing(vertices_mm: np.ndarray, faces: np.ndarray, pose: Pose) -> np.ndarray:
+    """(F,) bool: faces whose (outward, counter-clockwise) normal points towards the camera."""
+    tri = np.asarray(vertices_mm, float)[faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    cam_obj = -np.asarray(pose.R, float).T @ np.asarray(pose.t_mm, float)
+    return np.einsum("ij,ij->i", n, cam_obj - tri[:, 0]) > 0.0
 
 
 # --- the bank -----------------------------------------------------------------------------------
@@ -355,13 +388,17 @@ def build_bank(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | No
     s = g["supersample"]
     intr_s = intr.scaled(s) if s > 1 else intr
     R_all, params = grid_rotations(g, axis)
+    closed = is_closed_outward(V, F)
 
     def one(R: np.ndarray):
         pose = Pose(R, np.array([0.0, 0.0, d_ref]) - R @ centre)
-        depth, fid, origin = rasterise_roi(V, F, pose, intr_s, (size * s, size * s))
-        uv, theta, p_obj = extract_border(depth, fid, origin, s, intr, pose, (size, size), g["spacing_px"])
+        Fv = F[front_facing(V, F, pose)] if closed else F
+        invz, fid, origin = rasterise_roi(V, Fv, pose, intr_s, (size * s, size * s), inverse_depth=True)
+        uv, theta, p_obj = extract_border(invz, fid, origin, s, intr, pose, (size, size), g["spacing_px"])
         xy = (uv - c) / f
-        return xy.astype(np.float32), theta.astype(np.float32), p_obj.astype(np.float32)
+        theta32 = theta.astype(np.float32)
+        theta32[theta32 >= np.float32(np.pi)] = 0.0  # pi rounds up in float32; [0, pi) is undirected
+        return xy.astype(np.float32), theta32, p_obj.astype(np.float32)
 
     results: list = [None] * len(R_all)
     workers = max(1, min(2, os.cpu_count() or 1))
