@@ -33,7 +33,7 @@ def as_intrinsics(K_or_intr) -> Intrinsics:
 
 @numba.njit(cache=True, nogil=True)
 def _zbuffer(uv, z, faces, invz, fid, eps):  # pragma: no cover - compiled
-    """Rasterise triangles into ``invz`` (H, W) float64 (init 0) and ``fid`` (H, W) int32 (init -1).
+    """Rasterise triangles into ``invz`` (H, W) float32 (init 0) and ``fid`` (H, W) int32 (init -1).
 
     uv (V, 2) float64 in buffer pixel coordinates; z (V,) float64 camera depth, mm. ``invz`` gets
     1 / depth of the nearest surface (perspective-correct: 1/z is affine in the image).
@@ -165,13 +165,14 @@ def face_normals_cam(vertices_mm: np.ndarray, faces: np.ndarray, R: np.ndarray,
 
 
 def rasterise_roi(vertices_mm, faces, pose: Pose, K_or_intr, image_size, *, margin_px: int = 2,
-                  align: int = 1):
+                  align: int = 1, inverse_depth: bool = False):
     """Z-buffer inside the ROI of the projected vertices (no full-image buffers).
 
     ``align``: the ROI's origin and size are multiples of it (image size must be too).
 
     Returns ``(depth (h_r, w_r) float32, face_id (h_r, w_r) int32, (u0, v0))`` where (u0, v0) is the
-    ROI's top-left pixel in the image; an empty ROI gives (0, 0)-shaped arrays.
+    ROI's top-left pixel in the image; an empty ROI gives (0, 0)-shaped arrays. With
+    ``inverse_depth`` the first array is ``1 / depth`` (1/mm, 0 off the object) and is not converted.
     """
     intr = as_intrinsics(K_or_intr)
     w, h = int(image_size[0]), int(image_size[1])
@@ -194,10 +195,12 @@ def rasterise_roi(vertices_mm, faces, pose: Pose, K_or_intr, image_size, *, marg
         u1, v1 = u1 + (align - 1 - u1 % align), v1 + (align - 1 - v1 % align)
     if u1 < u0 or v1 < v0:
         return np.zeros((0, 0), np.float32), np.zeros((0, 0), np.int32), (0, 0)
-    invz = np.zeros((v1 - v0 + 1, u1 - u0 + 1), np.float64)
+    invz = np.zeros((v1 - v0 + 1, u1 - u0 + 1), np.float32)
     fid = np.full(invz.shape, -1, np.int32)
     uv_roi = np.ascontiguousarray(uv - np.array([u0, v0], float))
     _zbuffer(uv_roi, z, F, invz, fid, _EDGE_EPS)
+    if inverse_depth:
+        return invz, fid, (u0, v0)
     with np.errstate(divide="ignore"):
         depth = (1.0 / invz).astype(np.float32)
     return depth, fid, (u0, v0)
