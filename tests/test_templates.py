@@ -248,3 +248,21 @@ def test_merge_grid_keeps_defaults_and_types():
     assert g["tilt_range_deg"] == [-30.0, 30.0]
     assert g["spacing_px"] == GRID_DEFAULTS["spacing_px"]
     assert merge_grid(None) == merge_grid({})
+
+
+def test_draw_template_shows_mesh_and_border(sprayer_bank):
+    from service.vision.templates import draw_template
+
+    bank, _ = sprayer_bank
+    intr, (w, h) = canonical_intrinsics(bank)
+    k = bank.n_templates // 2
+    img = draw_template(bank, k)
+    assert img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3
+    assert img.shape[1] == 2 * w + 4 and img.shape[0] > h
+    body = img[img.shape[0] - h:]
+    left, right = body[:, :w], body[:, w + 4:]
+    assert (left.max(axis=2) > 100).sum() > 1000  # the shaded mesh
+    uv = np.rint(bank.xy_n[bank.points(k)] * intr.fx + [intr.cx, intr.cy]).astype(int)
+    assert (right[uv[:, 1], uv[:, 0]].max(axis=1) > 100).mean() > 0.9  # the border is drawn where it is
+    with pytest.raises(IndexError):
+        draw_template(bank, bank.n_templates)

@@ -447,3 +447,52 @@ def canonical_intrinsics(bank: TemplateBank) -> tuple[Intrinsics, tuple[int, int
     size = int(g.get("canvas_px", math.ceil(1.4 * g["render_px"])))
     c = (size - 1) / 2.0
     return Intrinsics(f, f, c, c), (size, size)
+
+
+# --- pictures -----------------------------------------------------------------------------------
+
+
+def draw_template(bank: TemplateBank, k: int) -> np.ndarray:
+    """(H, W, 3) uint8 BGR picture of template ``k``, laid out as the paper's Tables I-III.
+
+    Left: the projected (Lambert-shaded) mesh in the canonical view; right: its extracted borderline,
+    points joined along each contour and coloured by edge orientation (hue = theta over [0, pi)).
+    A caption line above gives the view parameters and the number of points.
+    """
+    from service.vision.render import render_shaded
+
+    if not 0 <= k < bank.n_templates:
+        raise IndexError(f"template {k} out of range 0..{bank.n_templates - 1}.")
+    intr, (w, h) = canonical_intrinsics(bank)
+    pose = canonical_pose(bank, k)
+    left = render_shaded(np.asarray(bank.vertices_mm, float), np.asarray(bank.faces), pose, intr, (w, h),
+                         background=40)
+    left = cv2.cvtColor(left, cv2.COLOR_GRAY2BGR)
+    right = np.full((h, w, 3), 20, np.uint8)
+    sl = bank.points(k)
+    xy = np.asarray(bank.xy_n[sl], float)
+    uv = xy * [intr.fx, intr.fy] + [intr.cx, intr.cy]
+    theta = np.asarray(bank.theta_rad[sl], float)
+    hue = np.clip(theta / np.pi * 180.0, 0, 179).astype(np.uint8)
+    colours = cv2.cvtColor(np.stack([hue, np.full_like(hue, 255), np.full_like(hue, 255)], axis=1)[None],
+                           cv2.COLOR_HSV2BGR)[0]
+    gap = 3.0 * float(bank.grid.get("spacing_px", 1.5))
+    shift = 4
+    pts = np.rint(uv * (1 << shift)).astype(np.int32)
+    nxt = np.roll(np.arange(len(uv)), -1)
+    for i in range(len(uv)):
+        c = tuple(int(x) for x in colours[i])
+        j = nxt[i]
+        if np.linalg.norm(uv[j] - uv[i]) < gap:
+            cv2.line(right, tuple(pts[i]), tuple(pts[j]), c, 1, cv2.LINE_AA, shift)
+        else:
+            cv2.circle(right, tuple(pts[i]), 1 << shift, c, -1, cv2.LINE_AA, shift)
+    sep = np.full((h, 4, 3), 255, np.uint8)
+    body = np.hstack([left, sep, right])
+    a, b = bank.view_params_deg[k]
+    view = (f"tilt {a:+.1f} deg" if bank.symmetry_axis_obj is not None
+            else f"azimuth {a:+.1f} deg, elevation {b:+.1f} deg")
+    caption = np.full((30, body.shape[1], 3), 255, np.uint8)
+    cv2.putText(caption, f"template {k}: {view}, {sl.stop - sl.start} points", (8, 21),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.vstack([caption, body])
