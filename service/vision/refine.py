@@ -1,0 +1,662 @@
+"""Pose refinement (improves on the paper's section II.C): robust least squares on image edges.
+
+The paper refines with Levenberg-Marquardt on matched point pairs kept under a median threshold
+(eq. 18), and its Table VIII shows rotation getting worse. Here:
+
+- the model's **outer border at the current pose** (sub-pixel rim points with the 3D model point
+  each came from, ``templates.border_at_pose``) is projected with the pose being refined; each
+  point's image orientation is the projection of its 3D border tangent, so it moves continuously
+  with the pose;
+- **residual "dt"** (the issue's): per border point, the directional chamfer distance read from
+  DT3 of the image's LSD segments at the projected point, bilinear in the image and linear,
+  cyclic across orientation channels (smooth and sub-pixel, analytic Jacobian);
+- **residual "line"** (final iterations): the signed distance from the projected point to the
+  line of the nearest LSD segment of matching orientation, matched afresh every outer iteration
+  (point-to-line ICP). LSD endpoints are sub-pixel, so this is free of the DT's pixel
+  quantisation; ``bench/refine_from_gt.py`` measures both;
+- ``scipy.optimize.least_squares`` (trust region) over 6 DoF: a rotation increment (3-vector in the
+  camera frame, exact SO(3) Jacobian) about the model's centre and the centre's translation in mm;
+  for a part with continuous rotational symmetry the increment is perpendicular to the axis (the
+  spin is unobservable) and the result is reported for the canonical spin; with ``distance_mm``
+  the object origin's camera z is held at that value;
+- robust loss (``soft_l1`` default, ``huber``, ``linear``) or the paper's eq. 18 median threshold
+  (``loss="median"``, for comparison);
+- the border is re-extracted when the pose has moved more than ~2 px / 1 deg from where it was
+  extracted (outer loop);
+- never worse: the refined pose is kept only when its verification score (fraction of border
+  points within ``score_px`` of an edge of matching orientation) is at least the start pose's;
+- lens distortion: LSD runs on the image as taken; segment endpoints (split into short pieces)
+  are undistorted once and everything else works in the ideal pinhole camera.
+"""
+
+from __future__ import annotations
+
+import math
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+from scipy.optimize import least_squares
+
+from service.vision.bank import TemplateBank
+from service.vision.camera import Intrinsics, project_distorted, undistort_points
+from service.vision.chamfer import DEFAULT_LAMBDA_PX_PER_RAD, DEFAULT_TAU_PX, DistanceTensor
+from service.vision.edges import Segments, channel_of, detect_segments
+from service.vision.frames import Pose, canonical_symmetric_R, rotation_angle_deg
+
+ROI_MARGIN_PX = 30  # edges are detected in the bbox of the projected model plus this margin
+BORDER_SPACING_PX = 3.0  # spacing of the border points used in the residuals
+BORDER_SUPERSAMPLE = 1  # border_at_pose supersampling: 1 measured faster AND more accurate than 2
+TANGENT_STEP_MM = 1.0  # border tangent finite step (object frame) for the image orientation
+REEXTRACT_PX = 2.0  # re-extract the border once any point has moved this far ...
+REEXTRACT_DEG = 1.0  # ... or the rotation has changed this much since the extraction
+DT_SCALE = 1.0  # DT3 grid per full-resolution pixel (exact distances to segments at pixel centres)
+DT_TAU_PX = 12.0  # DT3 truncation for refinement (full-res px): the basin, not the coarse search
+DT_F_SCALE_PX = 4.0  # robust-loss scale of the DT stage (smaller scales converge much slower)
+DT_TOL = 1e-4  # least_squares ftol/xtol of the DT stage (the line stage polishes)
+LINE_TOL = 1e-6  # ... of the line stage
+LINE_MATCH_DEG = 20.0  # "line" residual: orientation gate between border point and LSD segment
+LINE_GATE_PX = 3.0  # ... and distance gate (full-resolution px)
+SPLIT_PX = 16.0  # segments are split into pieces this long before undistortion
+MEDIAN_CONST_PX = 2.0  # eq. 18: tr = max(median(residual), tr_const)
+LOSSES = ("soft_l1", "huber", "linear", "cauchy", "median")
+
+
+@dataclass(frozen=True)
+class RefineResult:
+    pose: Pose  # T_cam_obj (canonical spin for a symmetric part)
+    cost: float  # mean |residual| of the inliers, full-resolution px
+    score: float  # 0..1 fraction of border points within score_px of an edge of matching orientation
+    iterations: int  # least-squares iterations (function evaluations' Jacobians), all stages
+    inlier_ratio: float  # 0..1 fraction of border points counted as inliers at the end
+    converged: bool  # the solver stopped on a tolerance and the refined pose was kept
+
+
+# --- border points at a pose --------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Border:
+    """Outer silhouette border at ``pose``: 3D model points and their 3D border tangents."""
+
+    p_obj: np.ndarray  # (M, 3) float64 mm, object frame
+    tan_obj: np.ndarray  # (M, 3) float64 unit, object frame (direction of the border through p)
+    pose: Pose  # the pose it was extracted at
+
+
+def _tangents_from_order(p_obj: np.ndarray, uv: np.ndarray, spacing_px: float) -> np.ndarray:
+    """3D tangents of an ordered border from its neighbours (one-sided across gaps)."""
+    M = len(p_obj)
+    if M < 2:
+        return np.tile([1.0, 0.0, 0.0], (M, 1))
+    nxt = np.r_[np.arange(1, M), 0]
+    prv = np.r_[M - 1, np.arange(M - 1)]
+    gap = 3.0 * spacing_px
+    ok_n = np.linalg.norm(uv[nxt] - uv, axis=1) <= gap
+    ok_p = np.linalg.norm(uv[prv] - uv, axis=1) <= gap
+    a = np.where(ok_p[:, None], p_obj[prv], p_obj)
+    b = np.where(ok_n[:, None], p_obj[nxt], p_obj)
+    T = b - a
+    nrm = np.linalg.norm(T, axis=1, keepdims=True)
+    T = np.where(nrm > 1e-12, T / np.maximum(nrm, 1e-12), [1.0, 0.0, 0.0])
+    return T
+
+
+def border_points(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, *,
+                  spacing_px: float | None = None, supersample: int | None = None) -> Border:
+    """The outer border at ``pose`` (ideal pinhole ``intr``; ``image_size = (w, h)``) from
+    ``templates.border_at_pose``, with 3D tangents from the neighbouring border points."""
+    from service.vision.templates import border_at_pose
+
+    spacing_px = BORDER_SPACING_PX if spacing_px is None else spacing_px
+    supersample = BORDER_SUPERSAMPLE if supersample is None else supersample
+    ideal = Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy)
+    uv, _, p_obj = border_at_pose(bank.vertices_mm, bank.faces, pose, ideal, image_size,
+                                  spacing_px=spacing_px, supersample=supersample)
+    p_obj = np.asarray(p_obj, np.float64).reshape(-1, 3)
+    return Border(p_obj, _tangents_from_order(p_obj, np.asarray(uv, float).reshape(-1, 2), spacing_px), pose)
+
+
+# --- pose parametrisation -----------------------------------------------------------------------
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 3, 3) cross-product matrices."""
+    v = np.asarray(v, float)
+    z = np.zeros(v.shape[:-1])
+    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
+                     np.stack([v[..., 2], z, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+def _exp_so3(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation exp([w]x) and the left Jacobian J_l(w) (d exp(w) v = -[exp(w) v]x J_l dw)."""
+    th = float(np.linalg.norm(w))
+    W = _skew(w)
+    if th < 1e-8:
+        return np.eye(3) + W + 0.5 * W @ W, np.eye(3) + 0.5 * W + W @ W / 6.0
+    a = math.sin(th) / th
+    b = (1 - math.cos(th)) / th ** 2
+    c = (th - math.sin(th)) / th ** 3
+    return np.eye(3) + a * W + b * W @ W, np.eye(3) + b * W + c * W @ W
+
+
+class PoseParams:
+    """x -> pose about the start pose: R = exp([B x_r]) R0, centre c moves by the translation.
+
+    ``B`` is (3, 3) (free rotation) or (3, 2) (perpendicular to a symmetry axis, camera frame).
+    Translation parameters are the centre's camera-frame shift in mm: (dx, dy, dz), or (dx, dy)
+    with the object origin's camera z held at ``distance_mm``.
+    """
+
+    def __init__(self, pose0: Pose, centre_obj: np.ndarray, axis_obj: np.ndarray | None = None,
+                 distance_mm: float | None = None):
+        self.R0 = np.asarray(pose0.R, float)
+        self.t0 = np.asarray(pose0.t_mm, float)
+        self.c = np.asarray(centre_obj, float)
+        self.c0 = self.R0 @ self.c + self.t0
+        if axis_obj is None:
+            self.B = np.eye(3)
+        else:
+            a = self.R0 @ (np.asarray(axis_obj, float) / np.linalg.norm(axis_obj))
+            e = np.eye(3)[int(np.argmin(np.abs(a)))]
+            b1 = np.cross(a, e)
+            b1 /= np.linalg.norm(b1)
+            self.B = np.stack([b1, np.cross(a, b1)], 1)
+        self.nr = self.B.shape[1]
+        self.distance_mm = distance_mm
+        self.n = self.nr + (2 if distance_mm is not None else 3)
+
+    def pose(self, x: np.ndarray) -> Pose:
+        return self._pose_jac(x)[0]
+
+    def _pose_jac(self, x: np.ndarray):
+        """Pose at x; and, for the Jacobian, ``dR`` pieces: J_l @ B and the centre shift."""
+        x = np.asarray(x, float)
+        w = self.B @ x[:self.nr]
+        E, Jl = _exp_so3(w)
+        R = E @ self.R0
+        JB = Jl @ self.B  # (3, nr)
+        c_cam = self.c0.copy()
+        c_cam[0] += x[self.nr]
+        c_cam[1] += x[self.nr + 1]
+        Rc = R @ self.c
+        dz_dr = np.zeros(self.nr)
+        if self.distance_mm is None:
+            c_cam[2] += x[self.nr + 2]
+        else:
+            c_cam[2] = self.distance_mm + Rc[2]
+            dz_dr = (-_skew(Rc) @ JB)[2]
+        t = c_cam - Rc
+        return Pose(R, t), JB, dz_dr
+
+    def points_and_jac(self, x: np.ndarray, p_obj: np.ndarray):
+        """Camera-frame points (M, 3) and d p_cam / d x (M, 3, n)."""
+        pose, JB, dz_dr = self._pose_jac(x)
+        q = (p_obj - self.c) @ pose.R.T  # R (p - c)
+        pc = q + (pose.R @ self.c + pose.t_mm)
+        J = np.zeros((len(p_obj), 3, self.n))
+        # d(exp(w) v)/dw = -[v]x J_l: column k is (J_l B)[:, k] x q.
+        J[:, :, :self.nr] = np.cross(JB.T[None, :, :], q[:, None, :]).transpose(0, 2, 1)
+        J[:, 2, :self.nr] += dz_dr
+        J[:, 0, self.nr] = 1.0
+        J[:, 1, self.nr + 1] = 1.0
+        if self.distance_mm is None:
+            J[:, 2, self.nr + 2] = 1.0
+        return pc, J
+
+
+def _project_jac(pc: np.ndarray, intr: Intrinsics, Jp: np.ndarray | None = None):
+    """Ideal pinhole: uv (M, 2) and, given d p_cam / dx (M, 3, n), d uv / dx (M, 2, n)."""
+    x, y, z = pc[:, 0], pc[:, 1], pc[:, 2]
+    iz = 1.0 / z
+    uv = np.stack([intr.fx * x * iz + intr.cx, intr.fy * y * iz + intr.cy], 1)
+    if Jp is None:
+        return uv, None
+    J = np.empty((len(pc), 2, Jp.shape[2]))
+    J[:, 0] = (intr.fx * iz)[:, None] * Jp[:, 0] - (intr.fx * x * iz * iz)[:, None] * Jp[:, 2]
+    J[:, 1] = (intr.fy * iz)[:, None] * Jp[:, 1] - (intr.fy * y * iz * iz)[:, None] * Jp[:, 2]
+    return uv, J
+
+
+def project_border(params: PoseParams, x: np.ndarray, border: Border, intr: Intrinsics,
+                   with_jac: bool = True):
+    """uv (M, 2), theta (M,) rad in [0, pi) and, with ``with_jac``, d uv / dx (M, 2, n) and
+    d theta / dx (M, n). theta is the direction of the projected 3D border tangent."""
+    h = TANGENT_STEP_MM
+    P = border.p_obj
+    M = len(P)
+    allp = np.concatenate([P, P - h * border.tan_obj, P + h * border.tan_obj])
+    if with_jac:
+        pc, Jp = params.points_and_jac(x, allp)
+    else:
+        pose = params.pose(x)
+        pc, Jp = allp @ pose.R.T + pose.t_mm, None
+    uv_all, J_all = _project_jac(pc, intr, Jp)
+    uv, ua, ub = uv_all[:M], uv_all[M:2 * M], uv_all[2 * M:]
+    d = ub - ua
+    theta = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi)
+    if not with_jac:
+        return uv, theta, None, None
+    duv = J_all[:M]
+    dd = J_all[2 * M:] - J_all[M:2 * M]
+    n2 = np.maximum((d ** 2).sum(1), 1e-12)
+    dth = (d[:, 0, None] * dd[:, 1] - d[:, 1, None] * dd[:, 0]) / n2[:, None]
+    return uv, theta, duv, dth
+
+
+# --- DT3 read-out with derivatives --------------------------------------------------------------
+
+
+def sample_with_grad(dtt: DistanceTensor, uv_grid: np.ndarray, theta_rad: np.ndarray):
+    """``chamfer.sample`` and its partial derivatives: (val, d/du, d/dv, d/dtheta), grid units.
+
+    Bilinear in space, linear and cyclic across channels; outside the grid: tau, zero gradient.
+    """
+    dt = dtt.dt
+    C, h, w = dt.shape
+    uv = np.asarray(uv_grid, np.float64)
+    u, v = uv[..., 0], uv[..., 1]
+    inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+    uc = np.clip(u, 0, w - 1.0001)
+    vc = np.clip(v, 0, h - 1.0001)
+    u0 = np.floor(uc).astype(np.int64)
+    v0 = np.floor(vc).astype(np.int64)
+    fu = uc - u0
+    fv = vc - v0
+    cf = np.mod(np.asarray(theta_rad, np.float64) * (C / np.pi), C)
+    c0 = np.floor(cf).astype(np.int64) % C
+    c1 = (c0 + 1) % C
+    fc = cf - np.floor(cf)
+    flat = dt.reshape(-1)
+
+    def bil(base):
+        a, b = flat[base].astype(np.float64), flat[base + 1].astype(np.float64)
+        c, d = flat[base + w].astype(np.float64), flat[base + w + 1].astype(np.float64)
+        val = (1 - fv) * ((1 - fu) * a + fu * b) + fv * ((1 - fu) * c + fu * d)
+        du = (1 - fv) * (b - a) + fv * (d - c)
+        dv = (1 - fu) * (c - a) + fu * (d - b)
+        return val, du, dv
+
+    A0, Au0, Av0 = bil(c0 * (h * w) + v0 * w + u0)
+    A1, Au1, Av1 = bil(c1 * (h * w) + v0 * w + u0)
+    val = (1 - fc) * A0 + fc * A1
+    gu = (1 - fc) * Au0 + fc * Au1
+    gv = (1 - fc) * Av0 + fc * Av1
+    gth = (A1 - A0) * (C / np.pi)
+    val = np.where(inside, val, dtt.tau_px)
+    z = np.zeros_like(val)
+    return val, np.where(inside, gu, z), np.where(inside, gv, z), np.where(inside, gth, z)
+
+
+def dt_residuals(params: PoseParams, x: np.ndarray, border: Border, intr: Intrinsics, dtt: DistanceTensor,
+                 with_jac: bool = True):
+    """The issue's residual: directional chamfer distance (full-res px) per border point, and
+    its Jacobian (M, n)."""
+    uv, theta, duv, dth = project_border(params, x, border, intr, with_jac)
+    g = dtt.to_grid(uv)
+    val, gu, gv, gth = sample_with_grad(dtt, g, theta)
+    r = val / dtt.scale
+    if not with_jac:
+        return r, None
+    # d grid / d uv = scale; r = val / scale.
+    J = gu[:, None] * duv[:, 0] + gv[:, None] * duv[:, 1] + (gth / dtt.scale)[:, None] * dth
+    return r, J
+
+
+# --- DT3 from segments, exact in a band -------------------------------------------------------
+
+
+@nb.njit(cache=True, nogil=True)
+def _segment_dt(dt, p0, p1, chan, lam, tau):  # pragma: no cover - compiled
+    """dt (C, h, w) float32 initialised to tau: min over segments of the exact point-to-segment
+    distance plus ``lam`` per cyclic channel step (eq. 11 without rasterising the edges)."""
+    C, h, w = dt.shape
+    for s in range(p0.shape[0]):
+        ax = p0[s, 0]
+        ay = p0[s, 1]
+        dx = p1[s, 0] - ax
+        dy = p1[s, 1] - ay
+        L2 = dx * dx + dy * dy
+        u_lo = max(int(math.floor(min(ax, ax + dx) - tau)), 0)
+        u_hi = min(int(math.ceil(max(ax, ax + dx) + tau)), w - 1)
+        v_lo = max(int(math.floor(min(ay, ay + dy) - tau)), 0)
+        v_hi = min(int(math.ceil(max(ay, ay + dy) + tau)), h - 1)
+        cs = chan[s]
+        for v in range(v_lo, v_hi + 1):
+            for u in range(u_lo, u_hi + 1):
+                t = 0.0
+                if L2 > 0.0:
+                    t = ((u - ax) * dx + (v - ay) * dy) / L2
+                    t = min(max(t, 0.0), 1.0)
+                ex = u - (ax + t * dx)
+                ey = v - (ay + t * dy)
+                d = math.sqrt(ex * ex + ey * ey)
+                if d >= tau:
+                    continue
+                if d < dt[cs, v, u]:
+                    dt[cs, v, u] = d
+                reach = min(int((tau - d) / lam) if lam > 0 else C, C // 2)
+                for j in range(1, reach + 1):
+                    val = d + lam * j
+                    k = (cs + j) % C
+                    if val < dt[k, v, u]:
+                        dt[k, v, u] = val
+                    k = (cs - j) % C
+                    if val < dt[k, v, u]:
+                        dt[k, v, u] = val
+
+
+def segment_distance_tensor(seg: Segments, roi: tuple[int, int, int, int], *, n_channels: int = 16,
+                            scale: float = 1.0, tau_px: float | None = None,
+                            lambda_px: float | None = None) -> DistanceTensor:
+    """DT3 (eq. 11, same layout and meaning as ``chamfer.distance_tensor``) of the window
+    ``roi = (u0, v0, w, h)`` computed from the segments' exact geometry: the distance at each grid
+    pixel is to the nearest segment itself, not to its rasterised pixels (no quantisation), and
+    only a band of ``tau`` around each segment is visited (fast for the few segments of a ROI).
+    ``tau_px`` and ``lambda_px`` are in grid pixels, as in ``DistanceTensor``."""
+    u0, v0, w, h = roi
+    C = int(n_channels)
+    shape = (max(int(round(h * scale)), 1), max(int(round(w * scale)), 1))
+    tau = float(DEFAULT_TAU_PX * scale if tau_px is None else tau_px)
+    lam = float(DEFAULT_LAMBDA_PX_PER_RAD * (np.pi / C) * scale if lambda_px is None else lambda_px)
+    dt = np.full((C,) + shape, tau, np.float32)
+    if len(seg):
+        org = np.array([u0, v0], np.float64)
+        g0 = (seg.uv0.astype(np.float64) - org + 0.5) * scale - 0.5
+        g1 = (seg.uv1.astype(np.float64) - org + 0.5) * scale - 0.5
+        _segment_dt(dt, g0, g1, channel_of(seg.theta_rad, C).astype(np.int64), lam, tau)
+    return DistanceTensor(dt, float(scale), (float(u0), float(v0)), tau, lam)
+
+
+# --- point-to-LSD-line residual -----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LineMatch:
+    idx: np.ndarray  # (K,) border point indices with a matched segment
+    normal: np.ndarray  # (K, 2) unit normal of the matched segment's line
+    offset: np.ndarray  # (K,) normal . point_on_line
+
+
+def match_lines(uv: np.ndarray, theta: np.ndarray, seg: Segments, *, gate_px: float = LINE_GATE_PX,
+                gate_deg: float = LINE_MATCH_DEG, chunk: int = 512) -> LineMatch:
+    """Nearest segment (point-to-segment distance, endpoints extended by 1 px) of orientation
+    within ``gate_deg`` and distance within ``gate_px`` for each border point."""
+    if len(seg) == 0 or len(uv) == 0:
+        return LineMatch(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0))
+    p0 = seg.uv0.astype(np.float64)
+    p1 = seg.uv1.astype(np.float64)
+    d = p1 - p0
+    L = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
+    dirn = d / L[:, None]
+    st = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi)
+    cos_gate = math.cos(math.radians(gate_deg))
+    best_i = np.full(len(uv), -1, np.int64)
+    for s in range(0, len(uv), chunk):
+        q = uv[s:s + chunk]
+        rel = q[:, None, :] - p0[None]
+        tpar = np.einsum("msk,sk->ms", rel, dirn)
+        tcl = np.clip(tpar, -1.0, L[None] + 1.0)
+        perp = rel - tcl[..., None] * dirn[None]
+        dist = np.linalg.norm(perp, axis=2)
+        dth = np.abs(np.cos(theta[s:s + chunk, None] - st[None]))  # |cos| of the undirected difference
+        dist = np.where(dth >= cos_gate, dist, np.inf)
+        j = np.argmin(dist, axis=1)
+        ok = dist[np.arange(len(q)), j] <= gate_px
+        best_i[s:s + chunk] = np.where(ok, j, -1)
+    idx = np.flatnonzero(best_i >= 0)
+    j = best_i[idx]
+    nrm = np.stack([-dirn[j, 1], dirn[j, 0]], 1)
+    off = np.einsum("ij,ij->i", nrm, p0[j])
+    return LineMatch(idx, nrm, off)
+
+
+def line_residuals(params: PoseParams, x: np.ndarray, border: Border, intr: Intrinsics, match: LineMatch,
+                   with_jac: bool = True):
+    """Signed distance (full-res px) of each matched border point to its segment's line."""
+    P = border.p_obj[match.idx]
+    if with_jac:
+        pc, Jp = params.points_and_jac(x, P)
+    else:
+        pose = params.pose(x)
+        pc, Jp = P @ pose.R.T + pose.t_mm, None
+    uv, duv = _project_jac(pc, intr, Jp)
+    r = (match.normal * uv).sum(1) - match.offset
+    if not with_jac:
+        return r, None
+    J = match.normal[:, 0, None] * duv[:, 0] + match.normal[:, 1, None] * duv[:, 1]
+    return r, J
+
+
+# --- image side ---------------------------------------------------------------------------------
+
+
+def _roi(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, margin: int, *, distorted: bool):
+    w, h = int(image_size[0]), int(image_size[1])
+    pc = pose.apply(bank.vertices_mm)
+    pc = pc[pc[:, 2] > 1e-3]
+    if len(pc) == 0:
+        return None
+    uv = project_distorted(pc, intr) if distorted else project_distorted(
+        pc, Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy))
+    u0 = max(int(np.floor(uv[:, 0].min())) - margin, 0)
+    v0 = max(int(np.floor(uv[:, 1].min())) - margin, 0)
+    u1 = min(int(np.ceil(uv[:, 0].max())) + margin, w - 1)
+    v1 = min(int(np.ceil(uv[:, 1].max())) + margin, h - 1)
+    if u1 - u0 < 8 or v1 - v0 < 8:
+        return None
+    return (u0, v0, u1 - u0 + 1, v1 - v0 + 1)
+
+
+def undistort_segments(seg: Segments, intr: Intrinsics, *, split_px: float = SPLIT_PX) -> Segments:
+    """Segments of the distorted image -> segments of the ideal pinhole camera ``intr.K``.
+
+    Each segment is split into pieces of at most ``split_px`` (a straight line of the distorted
+    image is a curve of the ideal one) and the endpoints are undistorted once.
+    """
+    if intr.dist is None or len(seg) == 0:
+        return seg
+    L = seg.lengths_px
+    k = np.maximum(np.ceil(L / split_px).astype(np.int64), 1)
+    sid = np.repeat(np.arange(len(seg)), k)
+    start = np.repeat(np.cumsum(k) - k, k)
+    i = np.arange(int(k.sum())) - start
+    kk = np.repeat(k, k)
+    a = seg.uv0[sid] + (seg.uv1[sid] - seg.uv0[sid]) * (i / kk)[:, None]
+    b = seg.uv0[sid] + (seg.uv1[sid] - seg.uv0[sid]) * ((i + 1) / kk)[:, None]
+    ua = undistort_points(a, intr).astype(np.float32)
+    ub = undistort_points(b, intr).astype(np.float32)
+    d = ub - ua
+    theta = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi).astype(np.float32)
+    return Segments(ua, ub, theta, seg.image_shape)
+
+
+# --- the refinement -----------------------------------------------------------------------------
+
+
+def _rho(loss: str):
+    return "linear" if loss == "median" else loss
+
+
+def _symmetric_canonical(pose: Pose, bank: TemplateBank) -> Pose:
+    if bank.symmetry_axis_obj is None:
+        return pose
+    Rc = canonical_symmetric_R(pose.R, bank.symmetry_axis_obj)
+    q = np.zeros(3) if bank.symmetry_point_obj is None else np.asarray(bank.symmetry_point_obj, float)
+    return Pose(Rc, pose.t_mm + (pose.R - Rc) @ q)
+
+
+def _moved(border: Border, pose: Pose, intr: Intrinsics) -> tuple[float, float]:
+    """Largest image displacement (px) of the border points and rotation change (deg) since the
+    border was extracted."""
+    a = border.pose.apply(border.p_obj)
+    b = pose.apply(border.p_obj)
+    ua = np.stack([intr.fx * a[:, 0] / a[:, 2], intr.fy * a[:, 1] / a[:, 2]], 1)
+    ub = np.stack([intr.fx * b[:, 0] / b[:, 2], intr.fy * b[:, 1] / b[:, 2]], 1)
+    px = float(np.max(np.linalg.norm(ua - ub, axis=1))) if len(a) else 0.0
+    return px, rotation_angle_deg(border.pose.R, pose.R)
+
+
+def verify(border: Border, pose: Pose, intr: Intrinsics, dtt: DistanceTensor, *, score_px: float
+           ) -> tuple[float, float]:
+    """(score, cost) of ``border`` projected at ``pose``: the fraction of border points within
+    ``score_px`` of an image edge of matching orientation (DT3 read-out, full-res px) and the mean
+    DT3 distance of those points."""
+    if len(border.p_obj) == 0:
+        return 0.0, float("inf")
+    params = PoseParams(pose, np.zeros(3))
+    r, _ = dt_residuals(params, np.zeros(params.n), border, intr, dtt, with_jac=False)
+    ok = r <= score_px
+    cost = float(r[ok].mean()) if ok.any() else float(dtt.tau_px / dtt.scale)
+    return float(ok.mean()), cost
+
+
+def _solve(fun_jac, params: PoseParams, loss: str, f_scale: float, max_nfev: int, tol: float):
+    cache: dict = {}
+
+    def get(x):
+        key = x.tobytes()
+        if key not in cache:
+            cache.clear()
+            cache[key] = fun_jac(x)
+        return cache[key]
+
+    # Parameters scaled so that a unit step moves the model by ~1 px-ish amounts alike:
+    # 0.01 rad about the centre and 1 mm.
+    x_scale = np.r_[np.full(params.nr, 0.01), np.ones(params.n - params.nr)]
+    return least_squares(lambda x: get(x)[0], np.zeros(params.n), jac=lambda x: get(x)[1], method="trf",
+                         loss=loss, f_scale=f_scale, max_nfev=max_nfev, x_scale=x_scale,
+                         xtol=tol, ftol=tol, gtol=1e-8)
+
+
+def _dt_stage(border, pose, bank, distance_mm, ideal, dtt, loss, f_scale, max_iter):
+    params = PoseParams(pose, bank.centre_obj, bank.symmetry_axis_obj, distance_mm)
+    sub, thr = border, None
+    if loss == "median":  # eq. 18: keep the points under tr = max(median, tr_const), then LSQ
+        r0, _ = dt_residuals(params, np.zeros(params.n), border, ideal, dtt, with_jac=False)
+        thr = max(float(np.median(r0)), MEDIAN_CONST_PX)
+        keep = r0 <= thr
+        sub = Border(border.p_obj[keep], border.tan_obj[keep], border.pose)
+    res = _solve(lambda x: dt_residuals(params, x, sub, ideal, dtt), params, _rho(loss), f_scale, max_iter,
+                 DT_TOL)
+    return params.pose(res.x), res, thr
+
+
+def _line_stage(border, pose, bank, distance_mm, ideal, seg, loss, f_scale, max_iter, gate_px):
+    params = PoseParams(pose, bank.centre_obj, bank.symmetry_axis_obj, distance_mm)
+    uv, th, _, _ = project_border(params, np.zeros(params.n), border, ideal, with_jac=False)
+    match = match_lines(uv, th, seg, gate_px=gate_px)
+    thr = None
+    if loss == "median" and len(match.idx):
+        r0, _ = line_residuals(params, np.zeros(params.n), border, ideal, match, with_jac=False)
+        thr = max(float(np.median(np.abs(r0))), MEDIAN_CONST_PX / 2)
+        keep = np.abs(r0) <= thr
+        match = LineMatch(match.idx[keep], match.normal[keep], match.offset[keep])
+    if len(match.idx) < max(6, 0.2 * len(border.p_obj)):
+        return None
+    res = _solve(lambda x: line_residuals(params, x, border, ideal, match), params, _rho(loss), f_scale,
+                 max_iter, LINE_TOL)
+    return params.pose(res.x), res, thr
+
+
+def _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px):
+    """ROI (ideal camera), its segments (ideal camera, full image coords) and DT3, or None."""
+    H, W = grey.shape[:2]
+    size = (W, H)
+    distorted = intr.dist is not None
+    roi_img = _roi(bank, pose0, intr, size, ROI_MARGIN_PX, distorted=distorted)
+    if roi_img is None:
+        return None
+    if seg is None:
+        seg = detect_segments(grey, scale=1.0, roi=roi_img)
+    if distorted:
+        seg = undistort_segments(seg, intr)
+        roi = _roi(bank, pose0, intr, size, ROI_MARGIN_PX, distorted=False) or roi_img
+    else:
+        roi = roi_img
+    c = seg.crop(*roi)
+    off = np.array(roi[:2], np.float32)
+    seg_roi = Segments(c.uv0 + off, c.uv1 + off, c.theta_rad, seg.image_shape)
+    dtt = segment_distance_tensor(seg_roi, roi, n_channels=n_channels, scale=dt_scale,
+                                  tau_px=tau_px * dt_scale)
+    return roi, seg_roi, dtt
+
+
+def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrinsics,
+                seg: Segments | None = None, *, distance_mm: float | None = None, n_channels: int = 16,
+                score_px: float = 3.0, loss: str = "soft_l1", max_iter: int = 30, residual: str = "dt+line",
+                dt_scale: float = DT_SCALE, tau_px: float = DT_TAU_PX, f_scale_px: float = 0.5,
+                dt_f_scale_px: float = DT_F_SCALE_PX) -> RefineResult:
+    """Refine ``pose0`` (T_cam_obj) against the edges of ``grey`` (H, W) uint8.
+
+    ``seg``: LSD segments of the image at full resolution (None: detected here on the ROI around
+    the projected model). ``distance_mm``: hold the object origin's camera z at this value.
+    ``loss``: soft_l1 | huber | cauchy | linear | median (the paper's eq. 18 threshold).
+    ``residual``: "dt" (directional chamfer only), "line" (point-to-LSD-line only) or "dt+line"
+    (dt to convergence, then line for the final iterations). ``max_iter``: function evaluations
+    per least-squares run. The pose returned is ``pose0`` (canonicalised) with ``converged=False``
+    when the refined pose does not keep the verification score.
+    """
+    if loss not in LOSSES:
+        raise ValueError(f"loss must be one of {LOSSES}.")
+    if residual not in ("dt", "line", "dt+line"):
+        raise ValueError("residual must be 'dt', 'line' or 'dt+line'.")
+    H, W = grey.shape[:2]
+    size = (W, H)
+    ideal = Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy)
+    with ThreadPoolExecutor(max_workers=1) as pool:  # border rasterisation overlaps LSD + DT
+        fut = pool.submit(border_points, bank, pose0, ideal, size)
+        img = _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px)
+        border = fut.result()
+    if img is None or len(border.p_obj) < 6:
+        return RefineResult(_symmetric_canonical(pose0, bank), float("inf"), 0.0, 0, 0.0, False)
+    roi, seg_roi, dtt = img
+    score0, cost0 = verify(border, pose0, ideal, dtt, score_px=score_px)
+
+    pose, iterations, converged, thr, last = pose0, 0, False, None, None
+    kind = "dt"
+
+    def maybe_reextract(border, pose):
+        px, deg = _moved(border, pose, ideal)
+        if px > REEXTRACT_PX or deg > REEXTRACT_DEG:
+            return border_points(bank, pose, ideal, size), True
+        return border, False
+
+    if residual in ("dt", "dt+line"):
+        for _ in range(3):
+            pose, res, thr = _dt_stage(border, pose, bank, distance_mm, ideal, dtt, loss, dt_f_scale_px,
+                                       max_iter)
+            iterations += int(res.njev or 0)
+            converged, last = res.status > 0, res
+            border, moved = maybe_reextract(border, pose)
+            if not moved:
+                break
+    if residual in ("line", "dt+line"):
+        kind = "line"
+        gate = LINE_GATE_PX if residual == "dt+line" else max(LINE_GATE_PX, 2 * score_px)
+        for k in range(4):
+            out = _line_stage(border, pose, bank, distance_mm, ideal, seg_roi, loss, f_scale_px,
+                              max_iter, gate)
+            if out is None:
+                break
+            pose_new, res, thr = out
+            iterations += int(res.njev or 0)
+            converged, last = res.status > 0, res
+            step_px, _ = _moved(Border(border.p_obj, border.tan_obj, pose), pose_new, ideal)
+            pose = pose_new
+            border, moved = maybe_reextract(border, pose)
+            if step_px < 0.02 and not moved and k >= 1:
+                break
+
+    score1, cost1 = verify(border, pose, ideal, dtt, score_px=score_px)
+    pose = _symmetric_canonical(pose, bank)
+    if last is None or score1 + 1e-12 < score0:
+        return RefineResult(_symmetric_canonical(pose0, bank), cost0, score0, iterations, score0, False)
+    r = np.abs(last.fun)
+    inl_thr = thr if thr is not None else (score_px if kind == "dt" else 1.0)
+    inl = r <= inl_thr
+    inlier_ratio = float(min(inl.sum() / len(border.p_obj), 1.0))
+    cost = float(r[inl].mean()) if inl.any() else cost1
+    return RefineResult(pose, cost, score1, iterations, inlier_ratio, bool(converged))
