@@ -1,0 +1,197 @@
+"""Wire models: the API contract as pydantic models, and the one place they meet ``service.vision``.
+
+Requests are converted to vision dataclasses once (``Camera.to_intrinsics``); results are built
+from pipeline dataclasses once (``EstimateResult.from_output``). Nothing below ``service.api``
+sees these classes. Lengths are millimetres, angles degrees, poses ``T_cam_obj`` (see API.md).
+"""
+
+from __future__ import annotations
+
+import base64
+from datetime import datetime
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from service.pipeline import EstimateOutput, PoseCandidate, RefinedPose
+from service.vision.bank import TemplateBank
+from service.vision.camera import Intrinsics
+from service.vision.frames import Pose, euler_xyz_deg_from_R, quat_xyzw_from_R
+
+Units = Literal["mm", "cm", "m", "in"]
+SymmetryOption = Literal["auto", "none", "x", "y", "z"]
+Status = Literal["queued", "building", "ready", "failed"]
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+
+_AXES = {"x": [1.0, 0.0, 0.0], "y": [0.0, 1.0, 0.0], "z": [0.0, 0.0, 1.0]}
+
+
+class _Request(BaseModel):
+    """Request JSON: unknown keys and NaN/inf are errors (a typo must not be silently ignored)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+# --- requests ---------------------------------------------------------------------------------------
+
+class Camera(_Request):
+    """Pinhole intrinsics in pixels, OpenCV convention; ``dist`` = [k1, k2, p1, p2[, k3[, k4, k5, k6]]]."""
+
+    fx: float = Field(gt=0, description="focal length in pixels along u (columns)")
+    fy: float = Field(gt=0, description="focal length in pixels along v (rows)")
+    cx: float = Field(description="principal point u, pixels (centre of the top-left pixel is 0)")
+    cy: float = Field(description="principal point v, pixels")
+    dist: list[float] | None = Field(None, description="OpenCV distortion coefficients: 4, 5 or 8 numbers")
+
+    @field_validator("dist")
+    @classmethod
+    def _dist_length(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and len(v) not in (4, 5, 8):
+            raise ValueError(f"dist must have 4, 5 or 8 coefficients, not {len(v)}")
+        return v
+
+    def to_intrinsics(self) -> Intrinsics:
+        dist = tuple(self.dist) if self.dist is not None and any(self.dist) else None
+        return Intrinsics(self.fx, self.fy, self.cx, self.cy, dist)
+
+
+class Options(_Request):
+    distance_mm: float | None = Field(
+        None, gt=0, description="known distance from the camera to the object origin along z, mm")
+    distance_range_mm: tuple[float, float] | None = Field(
+        None, description="[min, max] distance to search, mm, 0 < min < max (default: the pipeline's)")
+    refine: bool = Field(True, description="run the Levenberg-Marquardt refinement")
+    top_k: int = Field(5, ge=1, le=50, description="number of coarse candidates to return")
+    overlay: bool = Field(False, description="add overlay_png_base64 (coarse contour dashed, refined solid)")
+
+    @model_validator(mode="after")
+    def _distances(self) -> Options:
+        if self.distance_range_mm is not None:
+            lo, hi = self.distance_range_mm
+            if not 0 < lo < hi:
+                raise ValueError(f"distance_range_mm must satisfy 0 < min < max, got [{lo:g}, {hi:g}]")
+            if self.distance_mm is not None:
+                raise ValueError("give distance_mm or distance_range_mm, not both")
+        return self
+
+
+# --- results ----------------------------------------------------------------------------------------
+
+class PoseJSON(BaseModel):
+    """``T_cam_obj``: a model point X (mm, model frame) lands at ``R @ X + t_mm`` in the camera frame."""
+
+    R: list[Vec3] = Field(description="3x3 rotation, row-major", min_length=3, max_length=3)
+    t_mm: Vec3 = Field(description="translation, mm, camera frame")
+    euler_xyz_deg: Vec3 = Field(description="(rx, ry, rz) degrees with R = Rx(rx) @ Ry(ry) @ Rz(rz)")
+    quaternion_xyzw: Annotated[list[float], Field(min_length=4, max_length=4)] = Field(
+        description="unit quaternion (x, y, z, w)")
+
+    @staticmethod
+    def fields_from(pose: Pose) -> dict[str, Any]:
+        R = np.asarray(pose.R, float)
+        return {"R": R.tolist(), "t_mm": np.asarray(pose.t_mm, float).tolist(),
+                "euler_xyz_deg": euler_xyz_deg_from_R(R).tolist(),
+                "quaternion_xyzw": quat_xyzw_from_R(R).tolist()}
+
+
+class Candidate(PoseJSON):
+    cost: float = Field(description="mean directional chamfer distance, px (lower is better)")
+    score: float = Field(description="0..1, share of border points near a matching image edge (higher wins)")
+
+    @classmethod
+    def from_candidate(cls, c: PoseCandidate) -> Candidate:
+        return cls(**cls.fields_from(c.pose), cost=float(c.cost), score=float(c.score))
+
+
+class Coarse(Candidate):
+    """The best template placement (before refinement)."""
+
+
+class Refined(Candidate):
+    iterations: int = Field(description="Levenberg-Marquardt iterations")
+    inlier_ratio: float = Field(description="0..1, share of border points inside the robust-loss threshold")
+
+    @classmethod
+    def from_refined(cls, r: RefinedPose) -> Refined:
+        return cls(**cls.fields_from(r.pose), cost=float(r.cost), score=float(r.score),
+                   iterations=int(r.iterations), inlier_ratio=float(r.inlier_ratio))
+
+
+class Timing(BaseModel):
+    edges: float
+    coarse: float
+    refine: float
+    total: float
+
+
+class EstimateResult(BaseModel):
+    model_id: str
+    image_size: Annotated[list[int], Field(min_length=2, max_length=2)] = Field(description="[w, h], pixels")
+    found: bool = Field(description="false when no placement is supported by the image (object absent)")
+    coarse: Coarse | None
+    refined: Refined | None = Field(description="null when refine is false or nothing was found")
+    candidates: list[Candidate] = Field(description="the top_k coarse placements, best first")
+    timing_ms: Timing = Field(description="milliseconds per stage")
+    overlay_png_base64: str | None = Field(None, description="PNG of the image with the contours (overlay)")
+
+    @classmethod
+    def from_output(cls, model_id: str, out: EstimateOutput) -> EstimateResult:
+        overlay = None if out.overlay_png is None else base64.b64encode(out.overlay_png).decode("ascii")
+        return cls(
+            model_id=model_id, image_size=[int(v) for v in out.image_size], found=bool(out.found),
+            coarse=None if out.coarse is None else Coarse.from_candidate(out.coarse),
+            refined=None if out.refined is None else Refined.from_refined(out.refined),
+            candidates=[Candidate.from_candidate(c) for c in out.candidates],
+            timing_ms=Timing(**{k: float(out.timing_ms.get(k, 0.0)) for k in Timing.model_fields}),
+            overlay_png_base64=overlay,
+        )
+
+
+# --- models -----------------------------------------------------------------------------------------
+
+class Symmetry(BaseModel):
+    type: Literal["none", "continuous"]
+    axis: Vec3 | None = Field(description="unit axis in the model frame (continuous symmetry), else null")
+
+    @classmethod
+    def from_bank(cls, bank: TemplateBank) -> Symmetry:
+        if bank.symmetry_axis_obj is None:
+            return cls(type="none", axis=None)
+        return cls(type="continuous", axis=np.asarray(bank.symmetry_axis_obj, float).tolist())
+
+    @classmethod
+    def from_option(cls, option: str) -> Symmetry | None:
+        """What an upload's ``symmetry`` field already says (None for "auto": known after the build)."""
+        if option == "none":
+            return cls(type="none", axis=None)
+        if option in _AXES:
+            return cls(type="continuous", axis=_AXES[option])
+        return None
+
+
+class ModelInfo(BaseModel):
+    id: str
+    name: str
+    status: Status
+    progress: float = Field(description="0..1, template build progress")
+    error: str | None = Field(description="why the build failed (status failed), else null")
+    n_templates: int | None = Field(description="number of templates (null until ready)")
+    units: Units = Field(description="the unit the mesh was uploaded in (converted to mm once)")
+    extents_mm: Vec3 = Field(description="bounding-box size of the mesh, mm, model frame")
+    symmetry: Symmetry | None = Field(description="continuous rotational symmetry; null until known")
+    templates: dict[str, Any] = Field(description="template-grid options the model is built with")
+    created_at: datetime
+
+    @classmethod
+    def from_record(cls, record: dict[str, Any]) -> ModelInfo:
+        return cls.model_validate({k: record.get(k) for k in cls.model_fields})
+
+
+class Health(BaseModel):
+    status: Literal["ok"]
+    version: str
+
+
+class Error(BaseModel):
+    detail: str = Field(description="one sentence: what is wrong and how to fix it")

@@ -1,0 +1,36 @@
+"""Service settings: every knob in one place, read from ``POSE_*`` environment variables.
+
+Tests and the CLI pass a ``Settings(...)`` directly; a deployment sets environment variables
+(``POSE_CACHE_DIR=/data/cache``, ``POSE_TEMPLATE_GRID='{"tilt_step_deg": 15}'``, ...).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+MB = 1024 * 1024
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="POSE_", extra="ignore")
+
+    cache_dir: Path = Field(Path("templates_cache"), description="template cache directory (diskcache)")
+    max_mesh_bytes: int = Field(100 * MB, gt=0, description="largest accepted mesh upload, bytes")
+    max_image_bytes: int = Field(50 * MB, gt=0, description="largest accepted image upload, bytes")
+    max_image_pixels: int = Field(50_000_000, gt=0, description="largest accepted image, width * height")
+    build_workers: int = Field(1, ge=1, description="template-build processes per service process")
+    build_lease_s: float = Field(
+        30.0, gt=0, description="a build's lock expires this long after its process stops renewing it "
+        "(a crashed build is taken over by another process after at most this long)")
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)
+    workers: int = Field(1, ge=1, description="uvicorn worker processes (they share the cache dir)")
+    log_level: str = "info"
+    template_grid: dict[str, Any] = Field(
+        default_factory=dict,
+        description="template-grid defaults (keys of service.vision.templates); an upload's `templates` "
+        "JSON overrides them key by key")
