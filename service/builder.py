@@ -1,0 +1,236 @@
+"""Template builds: registering an upload, and building its template bank off the event loop.
+
+An upload is decoded once (bad files fail at once with 415/422), registered under its content id
+with status ``queued``, and handed to the ``Builder``: a process pool (spawn) owned by the app's
+lifespan. ``run_build`` runs in a pool process, opens its own ``Store`` on the shared cache dir and
+takes the model's build lease, so across all service processes a model is built once::
+
+    queued -> building -> ready | failed
+
+Progress (0..1) is written to the record every ``PROGRESS_STEP``. A build that was interrupted
+(process stopped or killed) stays ``queued``/``building``; at start-up every service process
+re-queues those, the first to get the lease builds and the others wait for it to finish. A lease
+whose process died expires after ``Settings.build_lease_s``, and the build is taken over.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import signal
+import threading
+import time
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from service.decode import decode_mesh
+from service.errors import clause, sentence
+from service.settings import Settings
+from service.store import Store, model_id
+
+log = logging.getLogger("service")
+
+PROGRESS_STEP = 0.02  # write progress at most every 2 %
+LEASE_POLL_S = 0.5  # how often a process waiting for another's build looks again
+MAX_BUILD_DEATHS = 3  # a build whose process keeps dying (OOM) is marked failed after this many
+
+
+def register_upload(store: Store, settings: Settings, data: bytes, *, filename: str, name: str | None = None,
+                    units: str = "mm", symmetry: str = "auto",
+                    templates: dict[str, Any] | None = None) -> tuple[dict[str, Any], bool]:
+    """Validate and store an uploaded mesh: ``(record, needs_build)``.
+
+    Idempotent: the same bytes with the same options give the same id and the existing record
+    (a failed model is queued again: uploading it again is how a client retries).
+    """
+    from service.schemas import Symmetry  # the wire form of the record's symmetry
+
+    grid = {**settings.template_grid, **(templates or {})}
+    mid = model_id(data, units=units, symmetry=symmetry, templates=grid)
+    existing = store.get(mid)
+    if existing is None:
+        mesh = decode_mesh(data, filename, units)  # raises 415/422 now, not in the build
+        sym = Symmetry.from_option(symmetry)
+        record = {
+            "id": mid, "name": name or filename, "filename": filename, "units": units,
+            "symmetry_option": symmetry, "templates": grid,
+            "status": "queued", "progress": 0.0, "error": None, "n_templates": None,
+            "extents_mm": [float(x) for x in mesh.extents],
+            "symmetry": None if sym is None else sym.model_dump(),
+            "created_at": datetime.now(UTC).isoformat(),
+        }
+        if store.create(record, data):
+            return record, True
+        existing = store.get(mid)  # another process registered it a moment ago
+    if existing is not None and existing["status"] == "failed":
+        return store.update(mid, status="queued", progress=0.0, error=None) or existing, True
+    return existing or {}, False
+
+
+class _DeletedError(Exception):
+    """The model was deleted while it was being built."""
+
+
+def _exit_on_sigterm(signum: int, frame: object) -> None:
+    raise SystemExit(128 + signum)
+
+
+def run_build(cache_dir: str, mid: str, lease_s: float) -> str:
+    """Build model ``mid``'s template bank (in a pool process, or in-process for the CLI).
+
+    Returns the final status: "ready", "failed" or "deleted". A SIGTERM while building puts the
+    model back to "queued" (it resumes at the next start-up) and exits.
+    """
+    from service.pipeline import build_templates
+    from service.schemas import Symmetry
+
+    in_main = threading.current_thread() is threading.main_thread()
+    old_handler = signal.signal(signal.SIGTERM, _exit_on_sigterm) if in_main else None
+    store = Store(cache_dir)
+    token: str | None = None
+    stop = threading.Event()
+    try:
+        while token is None:  # wait for the lease, unless the build gets done or deleted meanwhile
+            rec = store.get(mid)
+            if rec is None:
+                return "deleted"
+            if rec["status"] in ("ready", "failed"):
+                return rec["status"]
+            token = store.try_lock(mid, lease_s)
+            if token is None:
+                time.sleep(LEASE_POLL_S)
+        rec = store.get(mid)  # the previous holder may have finished just before we got the lease
+        if rec is None:
+            return "deleted"
+        if rec["status"] in ("ready", "failed"):
+            return rec["status"]
+
+        def heartbeat() -> None:
+            while not stop.wait(lease_s / 3):
+                store.renew(mid, token, lease_s)
+
+        threading.Thread(target=heartbeat, name=f"lease-{mid}", daemon=True).start()
+        store.count_build(mid)
+        store.update(mid, status="building", progress=0.0, error=None)
+        last = [0.0]
+
+        def progress(fraction: float) -> None:
+            f = min(max(float(fraction), 0.0), 1.0)
+            if f - last[0] >= PROGRESS_STEP or (f >= 1.0 > last[0]):
+                last[0] = f
+                if store.update(mid, progress=f) is None:
+                    raise _DeletedError(mid)
+
+        try:
+            mesh = decode_mesh(store.mesh(mid) or b"", rec["filename"], rec["units"])
+            bank = build_templates(mesh, symmetry=rec["symmetry_option"], grid=dict(rec["templates"]),
+                                   progress=progress)
+        except _DeletedError:
+            return "deleted"
+        except Exception as e:
+            log.exception("template build of model %s failed", mid)
+            reason = sentence(getattr(e, "detail", None) or clause(e) or type(e).__name__)
+            return "failed" if store.update(mid, status="failed", error=reason) is not None else "deleted"
+        store.put_bank(mid, bank)
+        done = store.update(mid, status="ready", progress=1.0, error=None, n_templates=bank.n_templates,
+                            extents_mm=[float(x) for x in bank.extents_mm],
+                            symmetry=Symmetry.from_bank(bank).model_dump())
+        if done is None:  # deleted while we stored the bank: leave nothing behind
+            store.delete(mid)
+            return "deleted"
+        return "ready"
+    except (SystemExit, KeyboardInterrupt):
+        if token is not None:
+            store.update(mid, status="queued")
+        raise
+    finally:
+        stop.set()
+        if token is not None:
+            store.unlock(mid, token)
+        store.close()
+        if in_main:
+            signal.signal(signal.SIGTERM, old_handler)
+
+
+class Builder:
+    """The build executor of one service process (created and shut down by the app's lifespan)."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.cache_dir = str(Path(settings.cache_dir))
+        self.lease_s = float(settings.build_lease_s)
+        self.workers = int(settings.build_workers)
+        self._lock = threading.Lock()
+        self._futures: dict[str, Future[str]] = {}
+        self._deaths: dict[str, int] = {}  # pool processes that died building each model
+        self._closing = False
+        self._executor = self._new_executor()
+
+    def _new_executor(self) -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"))
+
+    def submit(self, mid: str) -> None:
+        """Queue a build of ``mid`` unless this process already has one queued or running."""
+        with self._lock:
+            if self._closing:
+                return
+            fut = self._futures.get(mid)
+            if fut is not None and not fut.done():
+                return
+            fut = self._executor.submit(run_build, self.cache_dir, mid, self.lease_s)
+            self._futures[mid] = fut
+        fut.add_done_callback(lambda f, mid=mid: self._finished(mid, f))
+
+    def resume(self, store: Store) -> list[str]:
+        """Re-queue every build that was queued or running when the service last stopped."""
+        ids = store.unfinished()
+        for mid in ids:
+            log.info("resuming the template build of model %s", mid)
+            self.submit(mid)
+        return ids
+
+    def _finished(self, mid: str, fut: Future[str]) -> None:
+        if fut.cancelled() or self._closing:
+            return
+        exc = fut.exception()
+        if exc is None:
+            log.info("template build of model %s: %s", mid, fut.result())
+            return
+        log.error("template build process for model %s died: %r", mid, exc)
+        if not isinstance(exc, BrokenProcessPool):
+            return
+        with self._lock:  # a dead worker breaks the pool for good; later builds need a new one
+            if self._closing:
+                return
+            if self._executor._broken:  # no public flag for this in 3.11
+                self._executor = self._new_executor()
+        self._deaths[mid] = self._deaths.get(mid, 0) + 1
+        with Store(self.cache_dir) as store:
+            rec = store.get(mid)
+            if rec is None or rec["status"] not in ("queued", "building"):
+                return
+            if self._deaths[mid] < MAX_BUILD_DEATHS:
+                self.submit(mid)
+            else:
+                store.update(mid, status="failed", error=sentence(
+                    f"The build process died {MAX_BUILD_DEATHS} times (out of memory?); use a coarser "
+                    "template grid or a smaller mesh"))
+
+    def shutdown(self) -> None:
+        """Stop building now: running builds go back to "queued" and resume at the next start-up."""
+        with self._lock:
+            self._closing = True
+            executor = self._executor
+        # Python 3.11 has no ProcessPoolExecutor.terminate_workers(): take the processes before shutdown.
+        procs = list((getattr(executor, "_processes", None) or {}).values())
+        executor.shutdown(wait=False, cancel_futures=True)
+        for p in procs:
+            if p.is_alive():
+                p.terminate()
+        for p in procs:
+            p.join(timeout=10)
+            if p.is_alive():
+                p.kill()
+                p.join(timeout=5)
