@@ -1,0 +1,18 @@
+"""HTTP routers (health, models, estimate) and their dependencies (``deps``)."""
+
+from typing import Any
+
+from service.schemas import Error
+
+_DESCRIPTIONS = {
+    404: "Unknown model id (or template index).",
+    409: "Model not ready yet (with Retry-After), or its build failed (the detail says why).",
+    413: "Upload over the size limit.",
+    415: "The file is not a mesh / image format the service reads.",
+    422: "Bad form part: bad JSON, out-of-range value, NaN, empty or unusable file.",
+}
+
+
+def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """``responses=`` for a route: each listed status documented with the Error schema."""
+    return {c: {"model": Error, "description": _DESCRIPTIONS[c]} for c in codes}

@@ -1,0 +1,144 @@
+"""Dependencies as ``Annotated`` aliases, so a route reads like prose and the 404/409 rules live here.
+
+``StoreDep``, ``SettingsDep``, ``BuilderDep``: the app-wide objects the lifespan created.
+``ModelRecord``: the model named by the ``model_id`` path parameter, or 404.
+``ReadyModel``: that model with its template bank loaded, or 404 / 409 (not ready) / 409 (failed).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from typing import Annotated, Any, TypeVar
+
+from fastapi import Depends, Request, UploadFile
+from pydantic import BaseModel, ValidationError
+
+from service.builder import Builder
+from service.errors import (
+    BuildFailedError,
+    NotFoundError,
+    NotReadyError,
+    TooLargeError,
+    UnprocessableError,
+    clause,
+    validation_sentence,
+)
+from service.settings import Settings
+from service.store import Store
+from service.vision.bank import TemplateBank
+
+CHUNK_BYTES = 1 << 20
+
+
+def get_store(request: Request) -> Store:
+    return request.app.state.store
+
+
+def get_settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+def get_builder(request: Request) -> Builder:
+    return request.app.state.builder
+
+
+StoreDep = Annotated[Store, Depends(get_store)]
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+BuilderDep = Annotated[Builder, Depends(get_builder)]
+
+
+def get_record(model_id: str, store: StoreDep) -> dict[str, Any]:
+    record = store.get(model_id)
+    if record is None:
+        raise NotFoundError(f"No model has id '{model_id}'; list the models with GET /models or upload one "
+                            "with POST /models")
+    return record
+
+
+ModelRecord = Annotated[dict[str, Any], Depends(get_record)]
+
+
+@dataclass(frozen=True)
+class Loaded:
+    record: dict[str, Any]
+    bank: TemplateBank
+
+    @property
+    def id(self) -> str:
+        return self.record["id"]
+
+
+def get_ready_model(record: ModelRecord, store: StoreDep) -> Loaded:
+    mid, status = record["id"], record["status"]
+    if status == "failed":
+        reason = clause(record.get("error") or "unknown reason")
+        raise BuildFailedError(f"Model '{mid}' failed to build: {reason}; fix the mesh or the template "
+                               "options and upload it again")
+    bank = store.bank(mid) if status == "ready" else None
+    if bank is None:
+        done = 100 * float(record.get("progress") or 0.0)
+        raise NotReadyError(f"Model '{mid}' is not ready yet (template build {status}, {done:.0f}% done); "
+                            f"retry after Retry-After seconds or poll GET /models/{mid} until it is ready")
+    return Loaded(record, bank)
+
+
+ReadyModel = Annotated[Loaded, Depends(get_ready_model)]
+
+
+# --- request bodies -------------------------------------------------------------------------------
+
+async def read_upload(upload: UploadFile, limit: int, what: str, setting: str) -> bytes:
+    """The uploaded part's bytes, read in chunks; 413 as soon as they exceed ``limit``."""
+    if upload.size is not None and upload.size > limit:
+        raise TooLargeError(_too_large(what, limit, setting))
+    chunks, total = [], 0
+    while chunk := await upload.read(CHUNK_BYTES):
+        total += len(chunk)
+        if total > limit:
+            raise TooLargeError(_too_large(what, limit, setting))
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def _too_large(what: str, limit: int, setting: str) -> str:
+    return f"The {what} is larger than the limit of {limit:,} bytes ({setting}); send a smaller file"
+
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def _finite(v: Any) -> bool:
+    if isinstance(v, float):
+        return math.isfinite(v)
+    if isinstance(v, dict):
+        return all(_finite(x) for x in v.values())
+    if isinstance(v, list):
+        return all(_finite(x) for x in v)
+    return True
+
+
+def parse_json_object(text: str | None, what: str) -> dict[str, Any]:
+    """A form part holding a JSON object -> dict; 422 (one sentence) on bad JSON, non-objects or NaN."""
+    if text is None or not text.strip():
+        return {}
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise UnprocessableError(f"The {what} part is not valid JSON ({e.msg} at character {e.pos}); send a "
+                                 "JSON object such as {\"key\": value}") from e
+    if not isinstance(value, dict):
+        raise UnprocessableError(f"The {what} part must be a JSON object, not {type(value).__name__}; send "
+                                 "{\"key\": value, ...}")
+    if not _finite(value):
+        raise UnprocessableError(f"The {what} part contains NaN or Infinity; send finite numbers only")
+    return value
+
+
+def parse_json_part(text: str | None, model: type[M], what: str) -> M:
+    """A form part holding JSON -> the wire model; 422 with one sentence naming the first problem."""
+    try:
+        return model.model_validate(parse_json_object(text, what))
+    except ValidationError as e:
+        raise UnprocessableError(validation_sentence(e.errors(), what=what)) from e

@@ -1,0 +1,85 @@
+"""Models: upload a mesh (its templates build in the background), list, inspect, delete, picture."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import cv2
+from fastapi import APIRouter, File, Form, Response, UploadFile
+from starlette.concurrency import run_in_threadpool
+
+from service.api import error_responses
+from service.api.deps import (
+    BuilderDep,
+    ModelRecord,
+    ReadyModel,
+    SettingsDep,
+    StoreDep,
+    parse_json_object,
+    read_upload,
+)
+from service.builder import register_upload
+from service.errors import NotFoundError
+from service.pipeline import template_picture
+from service.schemas import ModelInfo, SymmetryOption, Units
+
+router = APIRouter(tags=["models"])
+
+
+@router.post("/models", status_code=202, response_model=ModelInfo, responses=error_responses(413, 415, 422))
+async def upload_model(
+    response: Response,
+    store: StoreDep,
+    settings: SettingsDep,
+    builder: BuilderDep,
+    file: Annotated[UploadFile, File(
+        description="the CAD mesh: STL (binary or ASCII), OBJ, PLY, OFF or GLB")],
+    name: Annotated[str | None, Form(description="a label; defaults to the file name")] = None,
+    units: Annotated[Units, Form(description="the mesh's unit, converted to mm once")] = "mm",
+    symmetry: Annotated[SymmetryOption, Form(
+        description="auto (detect), none, or the model-frame axis x, y, z of a continuous symmetry",
+    )] = "auto",
+    templates: Annotated[str | None, Form(
+        description="JSON object of template-grid options (steps and ranges in degrees)")] = None,
+) -> ModelInfo:
+    """Register a mesh and start building its templates; the same bytes and options give the same id."""
+    data = await read_upload(file, settings.max_mesh_bytes, "mesh file", "POSE_MAX_MESH_BYTES")
+    grid = parse_json_object(templates, "templates")
+    record, needs_build = await run_in_threadpool(
+        register_upload, store, settings, data, filename=file.filename or "", name=name or None, units=units,
+        symmetry=symmetry, templates=grid)
+    if needs_build:
+        builder.submit(record["id"])
+    response.headers["Location"] = f"/models/{record['id']}"
+    return ModelInfo.from_record(record)
+
+
+@router.get("/models", response_model=list[ModelInfo])
+def list_models(store: StoreDep) -> list[ModelInfo]:
+    return [ModelInfo.from_record(r) for r in store.records()]
+
+
+@router.get("/models/{model_id}", response_model=ModelInfo, responses=error_responses(404))
+def get_model(record: ModelRecord) -> ModelInfo:
+    return ModelInfo.from_record(record)
+
+
+@router.delete("/models/{model_id}", status_code=204, response_class=Response, responses=error_responses(404))
+def delete_model(record: ModelRecord, store: StoreDep) -> Response:
+    store.delete(record["id"])
+    return Response(status_code=204)
+
+
+@router.get("/models/{model_id}/templates/{k}.png", response_class=Response,
+            responses={200: {"content": {"image/png": {}}, "description": "template k: projected mesh | "
+                             "extracted borderline"}, **error_responses(404, 409, 422)})
+def template_png(model: ReadyModel, k: int) -> Response:
+    """Template ``k`` drawn for a person: the projected mesh and its extracted borderline side by side."""
+    n = model.bank.n_templates
+    if not 0 <= k < n:
+        raise NotFoundError(f"Model '{model.id}' has templates 0 to {n - 1}, not {k}; ask for one in that "
+                            "range")
+    ok, png = cv2.imencode(".png", template_picture(model.bank, k))
+    if not ok:
+        raise RuntimeError(f"PNG encoding of template {k} failed")
+    return Response(png.tobytes(), media_type="image/png")

@@ -1,0 +1,110 @@
+"""The app factory: ``create_app(settings) -> FastAPI``.
+
+The lifespan owns the two long-lived objects, the ``Store`` (template cache) and the ``Builder``
+(template-build process pool), and re-queues builds a previous run left unfinished. Routers live
+in ``service.api``; every error is written as ``{"detail": "<one sentence>."}`` (``service.errors``).
+Run it with ``python -m service serve`` or ``uvicorn 'service.main:create_app' --factory``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.api import estimate, health, models
+from service.api.health import VERSION
+from service.builder import Builder
+from service.errors import install_handlers, sentence
+from service.settings import Settings
+from service.store import Store
+
+log = logging.getLogger("service")
+
+FORM_OVERHEAD_BYTES = 1 << 20  # room for the small form parts and multipart framing next to the file
+
+
+class _BodyTooLarge(StarletteHTTPException):
+    """Raised while the body is being received (an HTTPException, so FastAPI passes it through)."""
+
+
+class UploadLimit:
+    """Stops reading a request body, with 413, as soon as it exceeds the route's limit.
+
+    The limit is the route's file limit plus ``FORM_OVERHEAD_BYTES``; a ``Content-Length`` over it
+    is refused before a byte is read. The exact per-file limit is checked again as the handler
+    reads the part (``deps.read_upload``).
+    """
+
+    def __init__(self, app: ASGIApp, settings: Settings) -> None:
+        self.app = app
+        self.settings = settings
+
+    def _limit(self, scope: Scope) -> tuple[int, str]:
+        path = scope.get("path", "")
+        if scope.get("method") == "POST" and path.rstrip("/") == "/models":
+            return self.settings.max_mesh_bytes + FORM_OVERHEAD_BYTES, "mesh upload (POSE_MAX_MESH_BYTES)"
+        if scope.get("method") == "POST" and path.rstrip("/").endswith("/estimate"):
+            return self.settings.max_image_bytes + FORM_OVERHEAD_BYTES, "image upload (POSE_MAX_IMAGE_BYTES)"
+        return FORM_OVERHEAD_BYTES, "request body"
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        limit, what = self._limit(scope)
+        detail = sentence(f"The request body is larger than the {limit:,}-byte limit for a {what}; "
+                          "send a smaller file")
+        length = dict(scope.get("headers") or []).get(b"content-length")
+        if length is not None and length.isdigit() and int(length) > limit:
+            from fastapi.responses import JSONResponse
+
+            await JSONResponse({"detail": detail}, status_code=413, headers={"Connection": "close"})(
+                scope, receive, send)
+            return
+        total = 0
+
+        async def limited_receive() -> Message:
+            nonlocal total
+            message = await receive()
+            if message["type"] == "http.request":
+                total += len(message.get("body", b""))
+                if total > limit:
+                    raise _BodyTooLarge(413, detail, headers={"Connection": "close"})
+            return message
+
+        await self.app(scope, limited_receive, send)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        settings.cache_dir.mkdir(parents=True, exist_ok=True)
+        store = Store(settings.cache_dir)
+        builder = Builder(settings)
+        app.state.store, app.state.builder = store, builder
+        builder.resume(store)
+        try:
+            yield
+        finally:
+            builder.shutdown()
+            store.close()
+
+    app = FastAPI(
+        title="posecell", version=VERSION, lifespan=lifespan,
+        description="6D pose of a CAD part from one camera image: borderline templates, directional "
+                    "chamfer matching, LM refinement. Lengths in mm, angles in degrees, poses T_cam_obj "
+                    "(OpenCV camera frame).",
+    )
+    app.state.settings = settings
+    install_handlers(app)
+    app.add_middleware(UploadLimit, settings=settings)
+    for module in (health, models, estimate):
+        app.include_router(module.router)
+    return app
