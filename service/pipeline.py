@@ -6,6 +6,7 @@ know nothing about HTTP, pydantic or the cache.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -14,9 +15,12 @@ import trimesh
 
 from service.vision.bank import TemplateBank
 from service.vision.camera import Intrinsics
-from service.vision.frames import Pose
+from service.vision.chamfer import distance_tensor
+from service.vision.coarse import SearchParams, coarse_search, poses_of
+from service.vision.edges import detect_segments, to_grey_u8, undistort_segments
+from service.vision.frames import Pose, canonical_symmetric_R
 
-DEFAULT_DISTANCE_RANGE_MM = (250.0, 1500.0)
+DEFAULT_DISTANCE_RANGE_MM = (300.0, 1200.0)  # searched when the request gives no distance
 
 
 @dataclass(frozen=True)
@@ -59,8 +63,90 @@ def template_picture(bank: TemplateBank, k: int) -> np.ndarray:
     return draw_template(bank, k)
 
 
+FOUND_MIN_SCORE = 0.55  # fraction of border points with a matching edge within score_px (see bench/)
+
+
+def _candidate(bank: TemplateBank, pose: Pose, cost: float, score: float) -> PoseCandidate:
+    return PoseCandidate(canonical_pose(bank, pose), float(cost), float(score))
+
+
+def canonical_pose(bank: TemplateBank, pose: Pose) -> Pose:
+    """For a revolved part, the pose with spin 0 about its axis (API.md: one canonical angle)."""
+    if bank.symmetry_axis_obj is None:
+        return pose
+    R = canonical_symmetric_R(pose.R, bank.symmetry_axis_obj)
+    p0 = np.zeros(3) if bank.symmetry_point_obj is None else np.asarray(bank.symmetry_point_obj, float)
+    # Spinning about an axis through p0 keeps p0 where it was.
+    return Pose(R, pose.R @ p0 + pose.t_mm - R @ p0)
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1000.0
+
+
 def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance_mm: float | None = None,
              distance_range_mm: tuple[float, float] | None = None, refine: bool = True, top_k: int = 5,
-             overlay: bool = False) -> EstimateOutput:
+             overlay: bool = False, params: SearchParams | None = None) -> EstimateOutput:
     """Grey (H, W) uint8/uint16 image + intrinsics -> ranked poses (see EstimateOutput)."""
-    raise NotImplementedError("estimate pipeline lands with the coarse matching issue")
+    p = params or SearchParams()
+    t_start = time.perf_counter()
+    grey = to_grey_u8(image)
+    h, w = grey.shape
+    seg = detect_segments(grey)
+    if intr.dist is not None:
+        # Straighten the edges once; everything after works in the ideal pinhole camera intr.K.
+        seg = undistort_segments(seg, intr)
+    dtt_a = distance_tensor(seg, n_channels=p.n_channels, scale=p.level_scale)
+    dtt_b = distance_tensor(seg, n_channels=p.n_channels, scale=p.fine_scale)
+    t_edges = _ms(t_start)
+
+    t0 = time.perf_counter()
+    rng = distance_range_mm or DEFAULT_DISTANCE_RANGE_MM
+    hyps = coarse_search(bank, dtt_a, dtt_b, intr, (h, w), p, distance_mm=distance_mm, distance_range_mm=rng)
+    Rs, ts = poses_of(bank, hyps, intr.K, distance_mm) if hyps else (np.zeros((0, 3, 3)), np.zeros((0, 3)))
+    cands = [_candidate(bank, Pose(R, t), hy.cost, hy.score) for R, t, hy in zip(Rs, ts, hyps, strict=True)]
+    cands = distinct_candidates(cands, bank, intr.K)[:top_k]
+    t_coarse = _ms(t0)
+
+    found = bool(cands) and cands[0].score >= FOUND_MIN_SCORE
+    coarse = cands[0] if found else None
+    refined = None
+    t0 = time.perf_counter()
+    if refine and found:
+        refined = _refine(bank, cands, grey, intr, distance_mm=distance_mm, n_channels=p.n_channels)
+    t_refine = _ms(t0)
+    png = None
+    if overlay:
+        from service.vision.overlay import draw_overlay, encode_png
+
+        png = encode_png(draw_overlay(grey, bank, intr, coarse.pose if coarse else None,
+                                      refined.pose if refined else None))
+    timing = {"edges": t_edges, "coarse": t_coarse, "refine": t_refine, "total": _ms(t_start)}
+    return EstimateOutput((w, h), found, coarse, refined, cands, timing, png)
+
+
+def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.ndarray) -> list[PoseCandidate]:
+    """Drop candidates whose object centre projects within a quarter diameter of a better one."""
+    out: list[PoseCandidate] = []
+    centres = []
+    for c in sorted(cands, key=lambda c: c.cost):
+        x = c.pose.apply(bank.centre_obj[None])[0]
+        uv = np.array([K[0, 0] * x[0] / x[2], K[1, 1] * x[1] / x[2]])
+        r = 0.25 * K[0, 0] * bank.diameter_mm / max(x[2], 1e-6)
+        if all(np.linalg.norm(uv - o) > r for o in centres):
+            out.append(c)
+            centres.append(uv)
+    return out
+
+
+def _refine(bank: TemplateBank, cands: list[PoseCandidate], grey: np.ndarray, intr: Intrinsics, *,
+            distance_mm: float | None, n_channels: int) -> RefinedPose | None:
+    """Refine the best candidate; keep the refined pose only if it verifies at least as well."""
+    from service.vision.refine import refine_pose
+
+    best = cands[0]
+    r = refine_pose(bank, best.pose, grey, intr, None, distance_mm=distance_mm, n_channels=n_channels)
+    if r.score < best.score:
+        return RefinedPose(best.pose, best.cost, best.score, r.iterations, r.inlier_ratio)
+    return RefinedPose(canonical_pose(bank, r.pose), float(r.cost), float(r.score), int(r.iterations),
+                       float(r.inlier_ratio))

@@ -18,7 +18,7 @@ corners too.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numba as nb
 import numpy as np
@@ -29,6 +29,7 @@ from service.vision.chamfer import DistanceTensor, sample
 from service.vision.frames import Pose, R_between, Rz
 
 E_Z = np.array([0.0, 0.0, 1.0])
+DT_QUANT = 8  # level-A DT3 stored as uint8 in 1/8 px: 4x less memory traffic than float32
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,8 @@ class SearchParams:
     tiles: tuple[int, int] = (4, 3)
     n_peaks: int = 12
     accept_frac: float = 0.5  # level A: a template must average under this fraction of tau
+    unknown_depth_step: float = 0.15  # ratio between distances tried when the distance is not given
+    min_edge_frac: float = 0.3  # level A: edge pixels near an anchor, as a fraction of a border's length
     score_px: float = 3.0  # full-resolution px: a border point is "supported" within this distance
 
 
@@ -122,19 +125,22 @@ def border_orientation(bank: TemplateBank, idx: np.ndarray, pose: Pose, K: np.nd
 # --- level A: exhaustive scan ----------------------------------------------------------------------
 
 
-@nb.njit(parallel=True, cache=True, fastmath=True)
-def _scan(dt, pad, off_u, off_v, chan, scales, anchors_u, anchors_v, anchor_tile, accept, n_sentinel):
+@nb.njit(parallel=True, cache=True)
+def _scan(dt, pad, off_u, off_v, chan, anchors_u, anchors_v, anchor_tile, accept, n_sentinel):
     """For every anchor, the best (template, scale) by mean DT3 over template points.
 
-    dt: (C, Hp, Wp) float32 padded by ``pad`` on every side; off_u/off_v: (J, T, P) float32 offsets
-    in level pixels of template t in tile j at scale 1; chan: (T, P) int32; scales: (D,) float32.
-    Returns best mean cost (A,), template (A,), scale index (A,).
+    dt: (Hp, Wp, C) uint8 (DT3 in 1/DT_QUANT pixels, pixel-major so a template's neighbouring points
+    share cache lines) padded by ``pad`` on every side; off_u/off_v: (J, D, T, P) int16 offsets in
+    level pixels of template t at scale d in tile j; chan: (T, P) int32.
+    Returns best mean cost (A,), template (A,), scale index (A,). A template is abandoned as soon as
+    its partial sum reaches the anchor's best total (all terms are >= 0), or when its first
+    ``n_sentinel`` points already average 1.5x the best mean.
     """
     A = anchors_u.shape[0]
-    T = off_u.shape[1]
-    P = off_u.shape[2]
-    D = scales.shape[0]
-    best_cost = np.full(A, np.inf, np.float32)
+    D = off_u.shape[1]
+    T = off_u.shape[2]
+    P = off_u.shape[3]
+    best_cost = np.full(A, np.inf, np.float64)
     best_t = np.full(A, -1, np.int32)
     best_d = np.full(A, -1, np.int32)
     for a in nb.prange(A):
@@ -146,13 +152,10 @@ def _scan(dt, pad, off_u, off_v, chan, scales, anchors_u, anchors_v, anchor_tile
         bd = -1
         for t in range(T):
             for d in range(D):
-                s = scales[d]
-                acc = 0.0
+                acc = 0
                 ok = True
                 for i in range(P):
-                    u = ua + int(math.floor(off_u[j, t, i] * s + 0.5))
-                    v = va + int(math.floor(off_v[j, t, i] * s + 0.5))
-                    acc += dt[chan[t, i], v, u]
+                    acc += dt[va + off_v[j, d, t, i], ua + off_u[j, d, t, i], chan[t, i]]
                     if acc >= best:
                         ok = False
                         break
@@ -180,6 +183,7 @@ class LevelATemplates:
     z_ref_mm: np.ndarray  # (J, T) depth of the reference point the offsets were projected at
     tile_uv: np.ndarray  # (J, 2) full-res px
     extent_px: float  # largest |offset| at scale 1, level px
+    perimeter_px: float  # median template border length at scale 1, level px
 
 
 def _level_a_views(bank: TemplateBank, view_step_deg: float) -> np.ndarray:
@@ -236,26 +240,52 @@ def level_a_templates(bank: TemplateBank, intr: Intrinsics, image_shape: tuple[i
         off_v[j] = (v - uv[1]) * p.level_scale
         z_ref[j] = zc
     extent = float(max(np.abs(off_u).max(), np.abs(off_v).max()))
-    return LevelATemplates(views, phis, off_u, off_v, chan, z_ref, tile_uv, extent)
+    step = np.hypot(np.diff(off_u[0], axis=1), np.diff(off_v[0], axis=1))
+    perimeter = float(np.median(step.sum(axis=1) * P / (P - 1)))
+    return LevelATemplates(views, phis, off_u, off_v, chan, z_ref, tile_uv, extent, perimeter)
 
 
 def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, image_shape, p: SearchParams):
     C, hl, wl = dtt.dt.shape
     pad = int(math.ceil(tpl.extent_px * float(scales.max()))) + 2
-    dt_pad = np.full((C, hl + 2 * pad, wl + 2 * pad), dtt.tau_px, np.float32)
-    dt_pad[:, pad:pad + hl, pad:pad + wl] = dtt.dt
+    tau_q = int(round(dtt.tau_px * DT_QUANT))
+    dt_pad = np.full((hl + 2 * pad, wl + 2 * pad, C), tau_q, np.uint8)
+    dt_pad[pad:pad + hl, pad:pad + wl] = np.rint(dtt.dt.transpose(1, 2, 0) * DT_QUANT).astype(np.uint8)
     au, av = np.meshgrid(np.arange(0, wl, p.anchor_stride), np.arange(0, hl, p.anchor_stride))
     au, av = au.ravel().astype(np.int32), av.ravel().astype(np.int32)
+    # An anchor can only win if the image has about as many edge pixels around it as a template has
+    # border pixels: counting them (integral image) discards empty background before the scan.
+    edges = (dtt.dt.min(axis=0) < 0.75).astype(np.int32)
+    ii = np.pad(edges.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+    r = max(int(tpl.extent_px * float(scales.min()) * 0.8), 1)
+    u0, u1 = np.clip(au - r, 0, wl), np.clip(au + r + 1, 0, wl)
+    v0, v1 = np.clip(av - r, 0, hl), np.clip(av + r + 1, 0, hl)
+    count = ii[v1, u1] - ii[v0, u1] - ii[v1, u0] + ii[v0, u0]
+    keep = count >= p.min_edge_frac * tpl.perimeter_px * float(scales.min())
+    au, av = au[keep], av[keep]
     h, w = image_shape
     nj_u, nj_v = p.tiles
     uf = (au + 0.5) / p.level_scale - 0.5
     vf = (av + 0.5) / p.level_scale - 0.5
     tile = (np.minimum((vf / h * nj_v).astype(np.int32), nj_v - 1) * nj_u
             + np.minimum((uf / w * nj_u).astype(np.int32), nj_u - 1)).astype(np.int32)
-    # Anchors are the reference point's pixel; offsets were made relative to the tile centre.
-    cost, t, d = _scan(dt_pad, pad, tpl.off_u, tpl.off_v, tpl.chan, scales.astype(np.float32), au, av, tile,
-                       np.float32(p.accept_frac * dtt.tau_px), 8)
-    return au, av, tile, cost, t, d
+    off_u = np.rint(tpl.off_u[:, None] * scales[None, :, None, None]).astype(np.int16)
+    off_v = np.rint(tpl.off_v[:, None] * scales[None, :, None, None]).astype(np.int16)
+    cost, t, d = _scan(dt_pad, pad, off_u, off_v, tpl.chan, au, av, tile,
+                       np.int64(p.accept_frac * tau_q), 8)
+    return au, av, tile, cost / DT_QUANT, t, d
+
+
+def distance_tensor_from_edges_scaled(dtt: DistanceTensor, scale: float) -> DistanceTensor:
+    """A coarser DT3 by min-pooling (an edge anywhere in a cell counts), distances rescaled."""
+    f = int(round(dtt.scale / scale))
+    if f <= 1:
+        return dtt
+    C, h, w = dtt.dt.shape
+    hh, ww = h // f, w // f
+    pooled = dtt.dt[:, :hh * f, :ww * f].reshape(C, hh, f, ww, f).min(axis=(2, 4)) / f
+    return DistanceTensor(np.ascontiguousarray(pooled, np.float32), scale, dtt.origin_uv, dtt.tau_px / f,
+                          dtt.lambda_px / f)
 
 
 def pick_peaks(au, av, cost, n_peaks: int, radius_lvl: float) -> list[int]:
@@ -373,6 +403,11 @@ def coarse_search(bank: TemplateBank, dtt_a: DistanceTensor, dtt_b: DistanceTens
                   distance_range_mm: tuple[float, float]) -> list[Hypothesis]:
     """Ranked, polished, mutually distinct hypotheses (best first)."""
     K = intr.K
+    if distance_mm is None:
+        # Every distance multiplies the scan: run it on a coarser grid, with fewer, smaller templates.
+        p = replace(p, level_scale=p.level_scale / 2, anchor_stride=1, points_per_template=32,
+                    depth_step=p.unknown_depth_step)
+        dtt_a = distance_tensor_from_edges_scaled(dtt_a, p.level_scale)
     if distance_mm is not None:
         scales = np.array([1.0])
         z_ref = distance_mm

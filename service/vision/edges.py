@@ -129,3 +129,17 @@ def edge_channels(seg: Segments, n_channels: int, shape_hw: tuple[int, int], *, 
     ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
     out[c[ok], v[ok], u[ok]] = 1
     return out
+
+
+def undistort_segments(seg: Segments, intr) -> Segments:
+    """Segments of a distorted image -> segments in the ideal pinhole image (endpoints undistorted;
+    LSD segments are short enough that their midpoints stay on the straightened line)."""
+    from service.vision.camera import undistort_points
+
+    if intr.dist is None or len(seg) == 0:
+        return seg
+    p0 = undistort_points(seg.uv0, intr).astype(np.float32)
+    p1 = undistort_points(seg.uv1, intr).astype(np.float32)
+    d = p1 - p0
+    theta = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi).astype(np.float32)
+    return Segments(p0, p1, theta, seg.image_shape)
