@@ -338,8 +338,8 @@ def evaluate(bank: TemplateBank, views: np.ndarray, Rs: np.ndarray, ts: np.ndarr
 
     def proj(ii):
         q = np.einsum("mij,mpj->mpi", Rs, bank.p_obj[ii].astype(np.float64)) + ts[:, None, :]
-        return np.stack([K[0, 0] * q[..., 0] / q[..., 2] + K[0, 2], K[1, 1] * q[..., 1] / q[..., 2] + K[1, 2]],
-                        -1)
+        u = K[0, 0] * q[..., 0] / q[..., 2] + K[0, 2]
+        return np.stack([u, K[1, 1] * q[..., 1] / q[..., 2] + K[1, 2]], -1)
 
     uv = proj(idx)
     d = proj(nxt) - proj(prev)
