@@ -17,7 +17,9 @@ from service.settings import Settings
 router = APIRouter(tags=["estimate"])
 
 
-def _estimate(model: Loaded, data: bytes, cam: Camera, opts: Options, settings: Settings) -> EstimateResult:
+def run_estimate(model: Loaded, data: bytes, cam: Camera, opts: Options,
+                 settings: Settings) -> EstimateResult:
+    """Image bytes -> EstimateResult (blocking: call it from a worker thread; the CLI calls it too)."""
     image = decode_image(data, max_pixels=settings.max_image_pixels)
     out = estimate_pose(model.bank, image, cam.to_intrinsics(), distance_mm=opts.distance_mm,
                         distance_range_mm=opts.distance_range_mm, refine=opts.refine, top_k=opts.top_k,
@@ -40,4 +42,4 @@ async def estimate(
     data = await read_upload(image, settings.max_image_bytes, "image file", "POSE_MAX_IMAGE_BYTES")
     cam = parse_json_part(camera, Camera, "camera")
     opts = parse_json_part(options, Options, "options")
-    return await run_in_threadpool(_estimate, model, data, cam, opts, settings)
+    return await run_in_threadpool(run_estimate, model, data, cam, opts, settings)
