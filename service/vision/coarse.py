@@ -18,6 +18,7 @@ corners too.
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, replace
 
 import numba as nb
@@ -45,6 +46,7 @@ class SearchParams:
     fine_points: int = 160
     tiles: tuple[int, int] = (4, 3)
     n_peaks: int = 12
+    n_polish: int = 4
     accept_frac: float = 0.5  # level A: a template must average under this fraction of tau
     unknown_depth_step: float = 0.15  # ratio between distances tried when the distance is not given
     min_edge_frac: float = 0.3  # level A: edge pixels near an anchor, as a fraction of a border's length
@@ -417,21 +419,46 @@ def coarse_search(bank: TemplateBank, dtt_a: DistanceTensor, dtt_b: DistanceTens
         zs = lo * (1 + p.depth_step) ** (np.arange(n + 1))
         z_ref = float(math.sqrt(lo * hi))
         scales = z_ref / zs
-    tpl = level_a_templates(bank, intr, image_shape, p, distance_mm=distance_mm, z_ref_mm=z_ref)
+    tpl = _cached_level_a(bank, intr, image_shape, p, distance_mm, z_ref)
     au, av, tile, cost, t, d = scan_level_a(dtt_a, tpl, scales, image_shape, p)
     radius = 0.25 * tpl.extent_px * float(np.median(scales))
     peaks = pick_peaks(au, av, cost, p.n_peaks, max(radius, 2.0))
     n_phi = len(tpl.phis_deg)
     neighbours = view_neighbours(bank)
-    out: list[Hypothesis] = []
+    starts: list[Hypothesis] = []
     for a in peaks:
         ti = int(t[a])
         view = int(tpl.views[ti // n_phi])
         phi = float(tpl.phis_deg[ti % n_phi])
         uv = np.array([(au[a] + 0.5) / p.level_scale - 0.5, (av[a] + 0.5) / p.level_scale - 0.5])
         z = float(tpl.z_ref_mm[tile[a], ti] / scales[d[a]])
-        h = polish(bank, Hypothesis(view, phi, z, uv), dtt_b, K, p, distance_mm=distance_mm,
-                   neighbours=neighbours)
-        out.append(h)
+        starts.append(Hypothesis(view, phi, z, uv))
+    if not starts:
+        return []
+    # Level-A ranks are coarse: re-rank every peak on the finer grid, polish only the best few.
+    Rs, ts = poses_of(bank, starts, K, distance_mm)
+    views = np.array([h.view for h in starts])
+    cost_b, _ = evaluate(bank, views, Rs, ts, K, dtt_b, p.fine_points, p.score_px)
+    order = np.argsort(cost_b)[:p.n_polish]
+    out = [polish(bank, starts[i], dtt_b, K, p, distance_mm=distance_mm, neighbours=neighbours)
+           for i in order]
     out.sort(key=lambda h: h.cost)
     return out
+
+
+_LEVEL_A_CACHE: OrderedDict = OrderedDict()
+
+
+def _cached_level_a(bank, intr, image_shape, p, distance_mm, z_ref) -> LevelATemplates:
+    """Level-A templates depend only on the bank, the camera, the image size and the distance: a
+    cell's camera and distance rarely change between frames, so they are made once per camera."""
+    key = (id(bank), intr, tuple(image_shape), p, distance_mm, z_ref)
+    hit = _LEVEL_A_CACHE.get(key)
+    if hit is not None and hit[0] is bank:
+        _LEVEL_A_CACHE.move_to_end(key)
+        return hit[1]
+    tpl = level_a_templates(bank, intr, image_shape, p, distance_mm=distance_mm, z_ref_mm=z_ref)
+    _LEVEL_A_CACHE[key] = (bank, tpl)
+    while len(_LEVEL_A_CACHE) > 8:
+        _LEVEL_A_CACHE.popitem(last=False)
+    return tpl
