@@ -54,6 +54,9 @@ def decode_mesh(data: bytes, filename: str, units: str = "mm") -> trimesh.Trimes
     if isinstance(loaded, trimesh.Scene):
         meshes = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)] if loaded.geometry else []
         loaded = trimesh.util.concatenate(meshes) if meshes else None
+    if isinstance(loaded, trimesh.PointCloud):
+        raise UnprocessableError(f"The file '{filename}' holds a point cloud without faces; upload a surface "
+                                 "mesh")
     if not isinstance(loaded, trimesh.Trimesh):
         raise UnsupportedMediaError(f"{what} (it holds no triangle mesh); upload a file with a surface mesh "
                                     "in it")
@@ -118,6 +121,9 @@ def decode_image(data: bytes, *, max_pixels: int | None = None) -> np.ndarray:
     if fmt is not None:
         raise UnprocessableError(f"The {fmt} image is truncated (its end is missing); upload the whole file")
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if (img is None or img.size == 0) and size is not None:
+        raise UnprocessableError(f"The image header says {size[0]} x {size[1]} pixels but the pixels could "
+                                 "not be decoded (truncated or damaged file); upload the whole file")
     if img is None or img.size == 0:
         raise UnsupportedMediaError(f"The image could not be decoded; upload a {_FORMATS} file")
     if img.dtype not in (np.uint8, np.uint16):
