@@ -1,0 +1,120 @@
+"""Store: content ids, records shared across Store instances (processes), banks, build leases, delete."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from service.store import Store, bank_from_bytes, bank_to_bytes, model_id
+from service.vision.bank import TemplateBank
+
+MESH = b"solid fake mesh bytes"
+
+
+def _bank(n: int = 3, symmetric: bool = True) -> TemplateBank:
+    rng = np.random.default_rng(3)
+    counts = np.array([4, 5, 6][:n])
+    p = int(counts.sum())
+    return TemplateBank(
+        R_tpl_obj=np.repeat(np.eye(3)[None], n, axis=0), view_params_deg=rng.random((n, 2)),
+        offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+        xy_n=rng.random((p, 2)).astype(np.float32), theta_rad=rng.random(p).astype(np.float32),
+        p_obj=rng.random((p, 3)).astype(np.float32), centre_obj=np.array([0.0, 100.0, 0.0]),
+        reference_distance_mm=500.0, vertices_mm=rng.random((8, 3)).astype(np.float32),
+        faces=np.array([[0, 1, 2], [2, 3, 4]], np.int32), extents_mm=np.array([60.0, 200.0, 60.0]),
+        diameter_mm=201.9, symmetry_axis_obj=np.array([0.0, 1.0, 0.0]) if symmetric else None,
+        symmetry_point_obj=np.zeros(3) if symmetric else None, grid={"tilt_step_deg": 15},
+    )
+
+
+def _record(mid: str, status: str = "queued", created_at: str = "2024-01-01T00:00:00+00:00") -> dict:
+    return {"id": mid, "name": "part.stl", "status": status, "progress": 0.0, "created_at": created_at}
+
+
+@pytest.fixture
+def store(tmp_path):
+    with Store(tmp_path / "cache") as s:
+        yield s
+
+
+def test_model_id_is_a_content_hash_of_bytes_and_options():
+    base = model_id(MESH, units="mm", symmetry="auto", templates={"tilt_step_deg": 15})
+    assert base == model_id(MESH, units="mm", symmetry="auto", templates={"tilt_step_deg": 15.0})
+    assert len(base) >= 16 and all(c in "0123456789abcdef" for c in base)
+    others = {
+        model_id(MESH + b" ", units="mm", symmetry="auto", templates={"tilt_step_deg": 15}),
+        model_id(MESH, units="cm", symmetry="auto", templates={"tilt_step_deg": 15}),
+        model_id(MESH, units="mm", symmetry="y", templates={"tilt_step_deg": 15}),
+        model_id(MESH, units="mm", symmetry="auto", templates={"tilt_step_deg": 10}),
+        model_id(MESH, units="mm", symmetry="auto", templates={}),
+    }
+    assert base not in others and len(others) == 5
+
+
+def test_records_are_shared_between_store_instances(tmp_path):
+    with Store(tmp_path / "c") as a, Store(tmp_path / "c") as b:
+        assert a.create(_record("m1"), MESH)
+        assert not b.create(_record("m1"), b"other")  # the id exists: first upload wins
+        assert b.get("m1")["status"] == "queued" and b.mesh("m1") == MESH
+        b.update("m1", status="building", progress=0.5)
+        assert a.get("m1")["progress"] == 0.5 and a.get("m1")["name"] == "part.stl"
+        assert a.update("missing", status="ready") is None
+
+
+def test_list_and_unfinished(store):
+    store.create(_record("b", "ready", "2024-01-02T00:00:00+00:00"), MESH)
+    store.create(_record("a", "queued", "2024-01-01T00:00:00+00:00"), MESH)
+    store.create(_record("c", "building", "2024-01-03T00:00:00+00:00"), MESH)
+    assert [r["id"] for r in store.records()] == ["a", "b", "c"]
+    assert sorted(store.unfinished()) == ["a", "c"]
+
+
+def test_bank_round_trip_and_lru(store):
+    bank = _bank()
+    again = bank_from_bytes(bank_to_bytes(bank))
+    for name in ("R_tpl_obj", "offsets", "xy_n", "theta_rad", "p_obj", "faces", "symmetry_axis_obj"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(bank, name))
+    assert again.grid == bank.grid and again.n_templates == 3
+    assert bank_from_bytes(bank_to_bytes(_bank(symmetric=False))).symmetry_axis_obj is None
+
+    assert store.bank("m") is None
+    store.put_bank("m", bank)
+    first = store.bank("m")
+    assert first is store.bank("m")  # loaded once, then served from memory
+    assert first.n_templates == bank.n_templates
+
+
+def test_delete_removes_every_record(store, tmp_path):
+    store.create(_record("m"), MESH)
+    store.put_bank("m", _bank())
+    store.count_build("m")
+    assert store.bank("m") is not None
+    assert store.delete("m")
+    assert store.get("m") is None and store.mesh("m") is None and store.bank("m") is None
+    assert store.build_count("m") == 0 and list(store.ids()) == []
+    assert not store.delete("m")
+    with Store(tmp_path / "cache") as other:  # nothing is left on disk either
+        assert other.bank("m") is None
+
+
+def test_build_lease_is_exclusive_renewable_and_expires(tmp_path):
+    with Store(tmp_path / "c") as a, Store(tmp_path / "c") as b:
+        token = a.try_lock("m", lease_s=60)
+        assert token is not None and a.lock_holder("m") == token
+        assert b.try_lock("m", lease_s=60) is None
+        assert a.renew("m", token, lease_s=60) and not b.renew("m", "not-the-holder", lease_s=60)
+        b.unlock("m", "not-the-holder")  # only the holder can release it
+        assert a.lock_holder("m") == token
+        a.unlock("m", token)
+        short = b.try_lock("m", lease_s=0.05)
+        assert short is not None
+        time.sleep(0.2)  # the holder "died": its lease runs out and anyone may take over
+        assert a.try_lock("m", lease_s=60) is not None
+
+
+def test_build_counter(store):
+    assert store.build_count("m") == 0
+    assert store.count_build("m") == 1 and store.count_build("m") == 2
+    assert store.build_count("m") == 2
