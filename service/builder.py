@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from service.decode import decode_mesh
-from service.errors import clause, sentence
+from service.errors import UnprocessableError, clause, sentence
 from service.settings import Settings
 from service.store import Store, model_id
 
@@ -44,11 +44,19 @@ def register_upload(store: Store, settings: Settings, data: bytes, *, filename: 
     """Validate and store an uploaded mesh: ``(record, needs_build)``.
 
     Idempotent: the same bytes with the same options give the same id and the existing record
-    (a failed model is queued again: uploading it again is how a client retries).
+    (a failed model is queued again: uploading it again is how a client retries). ``templates``
+    overrides ``settings.template_grid`` key by key; the record keeps exactly what was asked for
+    (the vision code tells an explicit option from a default).
     """
     from service.schemas import Symmetry  # the wire form of the record's symmetry
+    from service.vision.templates import merge_grid
 
     grid = {**settings.template_grid, **(templates or {})}
+    try:  # bad options fail the upload now (422), not the build later
+        merge_grid(grid)
+    except ValueError as e:
+        raise UnprocessableError(f"The templates options are invalid: {clause(e)}; fix them and upload "
+                                 "again") from e
     mid = model_id(data, units=units, symmetry=symmetry, templates=grid)
     existing = store.get(mid)
     if existing is None:
