@@ -20,7 +20,26 @@ SPIN_INVARIANCE_PX = 0.5  # border of a revolved part spun about its axis agains
 
 # --- coarse matching ---
 DT_EXACT_ATOL = 1e-4  # DT3 against the brute-force directional chamfer minimum (exact EDT)
+COARSE_AXIS_DEG = 1.5  # coarse axis direction of the revolved sprayer, distance given (target: 1 deg mean)
+COARSE_XY_MM = 2.0  # coarse |tx|, |ty| at 500-600 mm (target: 1 mm mean); 1 px is ~0.5 mm here
+COARSE_OCCLUDED_AXIS_DEG = 3.0  # the same with 30 % of the object hidden
+COARSE_OCCLUDED_XY_MM = 4.0
+COARSE_ROT_DEG_NONSYM = 8.0  # non-symmetric part: geodesic rotation error (half the test grid's view step)
+COARSE_T_MM_NONSYM = 10.0
 
 # --- refinement ---
+REFINE_ANGLE_DEG = 0.1  # known answer: rotation (axis direction for a symmetric part) after 3 deg / 5 mm
+REFINE_TRANS_MM = 0.2  # known answer: translation after 3 deg / 5 mm, distance given
+REFINE_DEPTH_MM = 3.0  # |tz| when the distance is refined too (the target)
+REFINE_FREE_ANGLE_DEG = 0.3  # rotation when the distance is refined too (the target)
+REFINE_OCCLUDED_ANGLE_DEG = 0.3  # 30 % of the border hidden
+REFINE_OCCLUDED_TRANS_MM = 0.5
+REFINE_REAL_TRANS_MM = 0.2  # paper render 0001: |tx|, |ty| from gt perturbed by 1 deg / 2 mm
+REFINE_REAL_AXIS_DEG = 0.3  # ... and the axis direction
+REFINE_JAC_RTOL = 1e-3  # analytic Jacobian against central differences (relative to the column scale)
+REFINE_JAC_ROWS = 0.97  # fraction of rows that must agree (bilinear kinks make a few rows differ)
+REFINE_SAMPLE_ATOL = 1e-5  # sample_with_grad's value against chamfer.sample (float32 tensor)
+REFINE_SEGMENT_DT_ATOL = 1e-4  # exact segment DT3 against brute force, px
+OVERLAY_ON_BORDER_PX = 1.5  # refined-contour pixels lie this close to the rendered silhouette border
 
 # --- API ---

@@ -47,7 +47,8 @@ from service.vision.frames import Pose, canonical_symmetric_R, rotation_angle_de
 
 ROI_MARGIN_PX = 30  # edges are detected in the bbox of the projected model plus this margin
 BORDER_SPACING_PX = 3.0  # spacing of the border points used in the residuals
-BORDER_SUPERSAMPLE = 1  # border_at_pose supersampling: 1 measured faster AND more accurate than 2
+BORDER_SUPERSAMPLE = 1  # border_at_pose supersampling for the DT stage (fast)
+LINE_BORDER_SUPERSAMPLE = 2  # ... and for the final line stage (finer rim points)
 TANGENT_STEP_MM = 1.0  # border tangent finite step (object frame) for the image orientation
 REEXTRACT_PX = 2.0  # re-extract the border once any point has moved this far ...
 REEXTRACT_DEG = 1.0  # ... or the rotation has changed this much since the extraction
@@ -613,15 +614,17 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     if img is None or len(border.p_obj) < 6:
         return RefineResult(_symmetric_canonical(pose0, bank), float("inf"), 0.0, 0, 0.0, False)
     roi, seg_roi, dtt = img
+    if len(seg_roi) == 0:  # nothing to refine against
+        return RefineResult(_symmetric_canonical(pose0, bank), float("inf"), 0.0, 0, 0.0, False)
     score0, cost0 = verify(border, pose0, ideal, dtt, score_px=score_px)
 
     pose, iterations, converged, thr, last = pose0, 0, False, None, None
     kind = "dt"
 
-    def maybe_reextract(border, pose):
+    def maybe_reextract(border, pose, ss, force=False):
         px, deg = _moved(border, pose, ideal)
-        if px > REEXTRACT_PX or deg > REEXTRACT_DEG:
-            return border_points(bank, pose, ideal, size), True
+        if force or px > REEXTRACT_PX or deg > REEXTRACT_DEG:
+            return border_points(bank, pose, ideal, size, supersample=ss), True
         return border, False
 
     if residual in ("dt", "dt+line"):
@@ -630,12 +633,15 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
                                        max_iter)
             iterations += int(res.njev or 0)
             converged, last = res.status > 0, res
-            border, moved = maybe_reextract(border, pose)
+            if residual == "dt+line":  # the line stage re-extracts (finely) anyway
+                break
+            border, moved = maybe_reextract(border, pose, BORDER_SUPERSAMPLE)
             if not moved:
                 break
     if residual in ("line", "dt+line"):
         kind = "line"
         gate = LINE_GATE_PX if residual == "dt+line" else max(LINE_GATE_PX, 2 * score_px)
+        border, _ = maybe_reextract(border, pose, LINE_BORDER_SUPERSAMPLE, force=True)
         for k in range(4):
             out = _line_stage(border, pose, bank, distance_mm, ideal, seg_roi, loss, f_scale_px,
                               max_iter, gate)
@@ -646,13 +652,13 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
             converged, last = res.status > 0, res
             step_px, _ = _moved(Border(border.p_obj, border.tan_obj, pose), pose_new, ideal)
             pose = pose_new
-            border, moved = maybe_reextract(border, pose)
-            if step_px < 0.02 and not moved and k >= 1:
+            border, moved = maybe_reextract(border, pose, LINE_BORDER_SUPERSAMPLE)
+            if step_px < 0.05 and not moved and k >= 1:
                 break
 
     score1, cost1 = verify(border, pose, ideal, dtt, score_px=score_px)
     pose = _symmetric_canonical(pose, bank)
-    if last is None or score1 + 1e-12 < score0:
+    if last is None or score1 <= 0.0 or score1 + 1e-12 < score0:
         return RefineResult(_symmetric_canonical(pose0, bank), cost0, score0, iterations, score0, False)
     r = np.abs(last.fun)
     inl_thr = thr if thr is not None else (score_px if kind == "dt" else 1.0)
