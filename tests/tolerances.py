@@ -20,12 +20,6 @@ SPIN_INVARIANCE_PX = 0.5  # border of a revolved part spun about its axis agains
 
 # --- coarse matching ---
 DT_EXACT_ATOL = 1e-4  # DT3 against the brute-force directional chamfer minimum (exact EDT)
-COARSE_AXIS_DEG = 1.5  # coarse axis direction of the revolved sprayer, distance given (target: 1 deg mean)
-COARSE_XY_MM = 2.0  # coarse |tx|, |ty| at 500-600 mm (target: 1 mm mean); 1 px is ~0.5 mm here
-COARSE_OCCLUDED_AXIS_DEG = 3.0  # the same with 30 % of the object hidden
-COARSE_OCCLUDED_XY_MM = 4.0
-COARSE_ROT_DEG_NONSYM = 8.0  # non-symmetric part: geodesic rotation error (half the test grid's view step)
-COARSE_T_MM_NONSYM = 10.0
 
 # --- refinement ---
 REFINE_ANGLE_DEG = 0.1  # known answer: rotation (axis direction for a symmetric part) after 3 deg / 5 mm
