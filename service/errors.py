@@ -35,11 +35,13 @@ RETRY_AFTER_S = 2  # what a 409 "not ready" tells the client to wait before aski
 
 
 def sentence(text: str) -> str:
-    """One line, capitalised, ending with exactly one full stop (or ? / !)."""
+    """One line, ending with exactly one full stop (or ? / !); a first plain word is capitalised."""
     s = re.sub(r"\s+", " ", str(text)).strip().rstrip(".;:, ")
     if not s:
         s = "Something went wrong"
-    return s[0].upper() + s[1:] + ("" if s[-1] in "?!" else ".")
+    if s.split(" ", 1)[0].isalpha():  # not identifiers such as reference_distance_mm
+        s = s[0].upper() + s[1:]
+    return s + ("" if s[-1] in "?!" else ".")
 
 
 def clause(text: str) -> str:

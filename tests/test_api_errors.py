@@ -1,0 +1,264 @@
+"""API.md's error table, one test per row: the status AND a one-sentence ``detail``.
+
+A ready model (the sprayer, small grid) is built once for the module; the rows about upload size
+use their own apps with tiny limits.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import warnings
+
+import cv2
+import numpy as np
+import pytest
+
+from service.main import create_app
+from service.settings import Settings
+from service.store import Store, model_id
+
+with warnings.catch_warnings():  # starlette would like httpx2; the test extra installs httpx
+    warnings.filterwarnings("ignore", message="Using `httpx` with `starlette.testclient`")
+    from fastapi.testclient import TestClient
+
+GRID = {"tilt_step_deg": 15, "view_step_deg": 45}
+BUILD_WAIT_S = 300  # give up polling a build after this long (a hang guard, not a speed assert)
+CAMERA = {"fx": 1100.0, "fy": 1100.0, "cx": 643.0, "cy": 477.0}
+
+
+def assert_error(r, status: int) -> str:
+    assert r.status_code == status, r.text
+    detail = r.json()["detail"]
+    assert isinstance(detail, str), detail
+    assert detail.endswith(".") and "\n" not in detail and detail[0].isupper(), detail
+    return detail
+
+
+def wait_built(client: TestClient, mid: str) -> dict:
+    deadline = time.monotonic() + BUILD_WAIT_S
+    while time.monotonic() < deadline:
+        info = client.get(f"/models/{mid}").json()
+        if info["status"] in ("ready", "failed"):
+            return info
+        time.sleep(0.2)
+    raise AssertionError(f"model {mid} still {info['status']} after {BUILD_WAIT_S} s")
+
+
+@pytest.fixture(scope="module")
+def sprayer_bytes(data_dir) -> bytes:
+    return (data_dir / "models" / "sprayer.stl").read_bytes()
+
+
+@pytest.fixture(scope="module")
+def image_bytes(data_dir) -> bytes:
+    return (data_dir / "paper" / "images" / "0001.png").read_bytes()
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory, sprayer_bytes):
+    settings = Settings(cache_dir=tmp_path_factory.mktemp("errors-cache"), template_grid=GRID)
+    with TestClient(create_app(settings)) as c:
+        r = c.post("/models", files={"file": ("sprayer.stl", sprayer_bytes)}, data={"symmetry": "y"})
+        assert r.status_code == 202
+        assert wait_built(c, r.json()["id"])["status"] == "ready"
+        c.ready_id = r.json()["id"]
+        yield c
+
+
+def estimate(client, mid, image=None, camera=CAMERA, options=None, image_bytes=b""):
+    files = {"image": ("img.png", image if image is not None else image_bytes)}
+    data = {"camera": camera if isinstance(camera, str) else json.dumps(camera)}
+    if options is not None:
+        data["options"] = options if isinstance(options, str) else json.dumps(options)
+    return client.post(f"/models/{mid}/estimate", files=files, data=data)
+
+
+# --- unknown model id: 404 ------------------------------------------------------------------------
+
+@pytest.mark.parametrize("method, path", [("GET", "/models/{id}"), ("DELETE", "/models/{id}"),
+                                          ("GET", "/models/{id}/templates/0.png")])
+def test_unknown_model_is_404(client, method, path):
+    detail = assert_error(client.request(method, path.format(id="0123456789abcdef0000")), 404)
+    assert "0123456789abcdef0000" in detail
+
+
+def test_unknown_model_estimate_is_404(client, image_bytes):
+    assert_error(estimate(client, "nope", image=image_bytes), 404)
+
+
+def test_template_index_out_of_range_is_404(client):
+    assert_error(client.get(f"/models/{client.ready_id}/templates/100000.png"), 404)
+    assert_error(client.get(f"/models/{client.ready_id}/templates/-1.png"), 404)
+
+
+def test_unknown_route_and_method(client):
+    assert_error(client.get("/no/such/route"), 404)
+    assert_error(client.post("/health"), 405)
+
+
+# --- model not ready: 409 with Retry-After ----------------------------------------------------------
+
+def test_not_ready_is_409_with_retry_after(tmp_path, sprayer_bytes, image_bytes):
+    """Another process holds the model's build lease, so the build here waits: the model stays queued."""
+    settings = Settings(cache_dir=tmp_path, template_grid=GRID)
+    mid = model_id(sprayer_bytes, units="mm", symmetry="auto", templates=GRID)
+    with Store(tmp_path) as other_process, TestClient(create_app(settings)) as c:
+        assert other_process.try_lock(mid, lease_s=600) is not None
+        r = c.post("/models", files={"file": ("sprayer.stl", sprayer_bytes)})
+        assert r.status_code == 202 and r.json()["id"] == mid
+        for resp in (estimate(c, mid, image=image_bytes), c.get(f"/models/{mid}/templates/0.png")):
+            detail = assert_error(resp, 409)
+            assert int(resp.headers["Retry-After"]) > 0 and "not ready" in detail
+        assert c.get(f"/models/{mid}").json()["status"] in ("queued", "building")
+
+
+# --- build failed: 409, detail says why ---------------------------------------------------------------
+
+def test_build_failed_is_409_with_the_reason(tmp_path, sprayer_bytes, image_bytes):
+    # valid options, impossible for this mesh: the reference distance must exceed 1.2 x its diameter
+    with TestClient(create_app(Settings(cache_dir=tmp_path, template_grid=GRID))) as c:
+        r = c.post("/models", files={"file": ("sprayer.stl", sprayer_bytes)},
+                   data={"templates": json.dumps({"reference_distance_mm": 100})})
+        assert r.status_code == 202
+        info = wait_built(c, r.json()["id"])
+        assert info["status"] == "failed" and "reference_distance_mm" in info["error"]
+        detail = assert_error(estimate(c, info["id"], image=image_bytes), 409)
+        assert "failed" in detail and "reference_distance_mm" in detail
+        assert "Retry-After" not in estimate(c, info["id"], image=image_bytes).headers
+
+
+# --- not a mesh / not an image / empty / truncated: 415 or 422 ------------------------------------------
+
+@pytest.mark.parametrize("filename, content, status", [
+    ("part.step", b"ISO-10303-21;", 415),  # a format we do not read
+    ("notes.stl", b"this is not a mesh\n" * 10, 415),
+    ("empty.stl", b"", 422),
+    ("cloud.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\n", 422),  # no faces
+    ("nan.obj", b"v nan 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", 422),
+])
+def test_bad_mesh_upload(client, filename, content, status):
+    assert_error(client.post("/models", files={"file": (filename, content)}), status)
+
+
+def test_truncated_mesh_upload(client, sprayer_bytes):
+    r = client.post("/models", files={"file": ("sprayer.stl", sprayer_bytes[: len(sprayer_bytes) // 3])})
+    assert r.status_code in (415, 422)
+    assert_error(r, r.status_code)
+
+
+@pytest.mark.parametrize("case", ["garbage", "empty", "truncated"])
+def test_bad_image(client, image_bytes, case):
+    image = {"garbage": b"definitely not a picture " * 40, "empty": b"",
+             "truncated": image_bytes[: len(image_bytes) // 2]}[case]
+    r = estimate(client, client.ready_id, image=image)
+    assert r.status_code in (415, 422)
+    assert_error(r, r.status_code)
+
+
+# --- over the size limit: 413 --------------------------------------------------------------------------
+
+def test_mesh_over_limit_is_413(tmp_path, sprayer_bytes):
+    with TestClient(create_app(Settings(cache_dir=tmp_path, max_mesh_bytes=100_000))) as c:
+        # the body is within the request limit (file limit + form overhead): the part check stops it
+        assert_error(c.post("/models", files={"file": ("sprayer.stl", sprayer_bytes)}), 413)
+        # the body is over the request limit: refused from Content-Length before it is read
+        big = sprayer_bytes * 3
+        assert_error(c.post("/models", files={"file": ("big.stl", big)}), 413)
+        assert c.get("/models").json() == []
+
+
+def test_body_without_content_length_is_counted_while_reading(tmp_path, sprayer_bytes):
+    """A chunked upload (no Content-Length) is stopped by counting the bytes as they arrive."""
+    boundary = "pose-boundary"
+    head = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; filename=\"big.stl\"\r\n"
+            "Content-Type: application/octet-stream\r\n\r\n").encode()
+
+    def body():
+        yield head
+        for _ in range(4):
+            yield sprayer_bytes
+        yield f"\r\n--{boundary}--\r\n".encode()
+
+    with TestClient(create_app(Settings(cache_dir=tmp_path, max_mesh_bytes=100_000))) as c:
+        r = c.post("/models", content=body(),
+                   headers={"Content-Type": f"multipart/form-data; boundary={boundary}"})
+        assert "content-length" not in {k.lower() for k in r.request.headers}
+        assert_error(r, 413)
+        assert c.get("/models").json() == []
+
+
+@pytest.fixture
+def limits(client):
+    """The module app's settings, to lower a limit for one test (restored afterwards)."""
+    settings = client.app.state.settings
+    saved = settings.model_dump()
+    yield settings
+    for key, value in saved.items():
+        setattr(settings, key, value)
+
+
+def test_image_over_byte_limit_is_413(client, limits, image_bytes):
+    limits.max_image_bytes = len(image_bytes) - 1  # within the request limit: the part check stops it
+    assert "bytes" in assert_error(estimate(client, client.ready_id, image=image_bytes), 413)
+    limits.max_image_bytes = 1000  # over the request limit: refused before the body is read
+    assert_error(estimate(client, client.ready_id, image=image_bytes * 2), 413)
+
+
+def test_image_over_pixel_limit_is_413(client, limits, image_bytes):
+    limits.max_image_pixels = 1280 * 960 - 1
+    assert "pixels" in assert_error(estimate(client, client.ready_id, image=image_bytes), 413)
+
+
+# --- bad JSON, fx <= 0, distance <= 0, NaN anywhere: 422 -------------------------------------------------
+
+@pytest.mark.parametrize("camera, options", [
+    ("{not json", None),
+    ("[1100, 1100, 643, 477]", None),
+    ({**CAMERA, "fx": 0}, None),
+    ({**CAMERA, "fy": -5}, None),
+    ('{"fx": NaN, "fy": 1100, "cx": 643, "cy": 477}', None),
+    ('{"fx": 1100, "fy": 1100, "cx": Infinity, "cy": 477}', None),
+    ({**CAMERA, "dist": [0.1, 0.2, 0.3]}, None),
+    ({"fx": 1100, "fy": 1100, "cx": 643}, None),
+    ({**CAMERA, "k1": 0.1}, None),
+    (CAMERA, "{bad json"),
+    (CAMERA, {"distance_mm": 0}),
+    (CAMERA, {"distance_mm": -500}),
+    (CAMERA, '{"distance_mm": NaN}'),
+    (CAMERA, {"distance_range_mm": [800, 300]}),
+    (CAMERA, {"distance_range_mm": [0, 300]}),
+    (CAMERA, {"distance_mm": 500, "distance_range_mm": [300, 800]}),
+    (CAMERA, {"top_k": 0}),
+    (CAMERA, {"top_k": 51}),
+    (CAMERA, {"distance": 500}),
+])
+def test_bad_camera_or_options_is_422(client, image_bytes, camera, options):
+    assert_error(estimate(client, client.ready_id, image=image_bytes, camera=camera, options=options), 422)
+
+
+def test_missing_part_is_422(client, image_bytes):
+    r = client.post(f"/models/{client.ready_id}/estimate", files={"image": ("i.png", image_bytes)})
+    assert "camera" in assert_error(r, 422)
+    assert "file" in assert_error(client.post("/models", data={"name": "no file"}), 422)
+
+
+@pytest.mark.parametrize("data", [
+    {"units": "furlong"},
+    {"symmetry": "w"},
+    {"templates": "{not json"},
+    {"templates": "[15, 45]"},
+    {"templates": '{"tilt_step_deg": NaN}'},
+    {"templates": '{"tilt_step_deg": 0}'},
+    {"templates": '{"no_such_option": 1}'},
+])
+def test_bad_upload_fields_are_422(client, sprayer_bytes, data):
+    assert_error(client.post("/models", files={"file": ("sprayer.stl", sprayer_bytes)}, data=data), 422)
+
+
+def test_sixteen_bit_colour_image_is_accepted(client):
+    """Not an error row: a 16-bit colour TIFF decodes (the estimate may or may not find the object)."""
+    ok, tif = cv2.imencode(".tif", np.zeros((48, 64, 3), np.uint16))
+    r = estimate(client, client.ready_id, image=tif.tobytes(), options={"distance_mm": 500})
+    assert r.status_code == 200, r.text
+    assert r.json()["image_size"] == [64, 48]
