@@ -27,6 +27,8 @@ from tests.tolerances import (
     BORDER_RADIAL_PX,
     BORDER_THETA_MAX_DEG,
     BORDER_THETA_MEAN_DEG,
+    SCANLINE_COVERS_CONTOUR_PX,
+    SCANLINE_ON_CONTOUR_PX,
     SPIN_INVARIANCE_PX,
 )
 
@@ -266,3 +268,34 @@ def test_draw_template_shows_mesh_and_border(sprayer_bank):
     assert (right[uv[:, 1], uv[:, 0]].max(axis=1) > 100).mean() > 0.9  # the border is drawn where it is
     with pytest.raises(IndexError):
         draw_template(bank, bank.n_templates)
+
+
+def _segment_distance(p, a, b):
+    """(N,) distance of points p to the nearest of the segments a[i] -> b[i]."""
+    ab = b - a
+    t = ((p[:, None, :] - a[None]) * ab[None]).sum(-1) / np.maximum((ab**2).sum(-1), 1e-12)[None]
+    t = np.clip(t, 0.0, 1.0)
+    q = a[None] + t[..., None] * ab[None]
+    return np.linalg.norm(p[:, None, :] - q, axis=2).min(axis=1)
+
+
+@pytest.mark.parametrize(
+    "case", ["x10", "x45", "x90", "z-30", "z30"],  # the paper's Tables I and III
+)
+def test_paper_scanline_border_matches_contour_border(sprayer_mesh, case):
+    from service.vision.frames import Rz
+    from service.vision.scanline import scanline_border
+
+    K = np.array([[1100.0, 0.0, 643.0], [0.0, 1100.0, 477.0], [0.0, 0.0, 1.0]])
+    angle = float(case[1:])
+    R = Rx(angle) if case[0] == "x" else Rz(angle) @ Rx(10.0)
+    pose = Pose(R, np.array([0.0, 0.0, 500.0]) - R @ np.array([0.0, 100.0, 0.0]))  # the paper's tz = 500
+    scan = scanline_border(sprayer_mesh.vertices, sprayer_mesh.faces, pose, K)
+    uv, _, _ = border_at_pose(sprayer_mesh.vertices, sprayer_mesh.faces, pose, K, (1280, 960), supersample=4)
+    assert len(scan) > 100
+    # Every scan-line border node lies on the contour-method border ...
+    nxt = np.roll(uv, -1, axis=0)
+    close = np.linalg.norm(nxt - uv, axis=1) < 3.0
+    assert _segment_distance(scan, uv[close], nxt[close]).max() < SCANLINE_ON_CONTOUR_PX
+    # ... and the scan-line border (the line built through its nodes) covers every contour point.
+    assert _segment_distance(uv, scan, np.roll(scan, -1, axis=0)).max() < SCANLINE_COVERS_CONTOUR_PX

@@ -17,6 +17,10 @@ BORDER_THETA_MEAN_DEG = 1.0  # edge orientation against the closed-form tangent:
 BORDER_THETA_MAX_DEG = 6.0  # ... and worst (the traced chain is smoothed over ~0.5 px)
 BACKPROJECT_PX = 1e-3  # template pose applied to p_obj against the border point it came from
 SPIN_INVARIANCE_PX = 0.5  # border of a revolved part spun about its axis against the unspun border
+SYMMETRY_AXIS_DEG = 1.0  # detected symmetry axis against the true one
+SYMMETRY_POINT_MM = 0.5  # distance of a known point of the true axis from the detected axis
+SCANLINE_ON_CONTOUR_PX = 0.5  # the paper's scan-line border nodes against the contour-method border
+SCANLINE_COVERS_CONTOUR_PX = 1.5  # contour-method border points against the scan-line border polyline
 
 # --- coarse matching ---
 DT_EXACT_ATOL = 1e-4  # DT3 against the brute-force directional chamfer minimum (exact EDT)
