@@ -98,7 +98,8 @@ def test_paper_render_coarse_pose_distance_given(sprayer_bank, data_dir, i):
                    "search returns a wrong basin; see the closing note of issue 4")
 def test_paper_render_coarse_pose_with_30_percent_occluded(sprayer_bank, data_dir):
     img, intr, truth = _paper_case(data_dir, 1)
-    mask = render(sprayer_bank.vertices_mm, sprayer_bank.faces, truth, intr.K, (img.shape[1], img.shape[0])).mask
+    size = (img.shape[1], img.shape[0])
+    mask = render(sprayer_bank.vertices_mm, sprayer_bank.faces, truth, intr.K, size).mask
     vs, us = np.nonzero(mask)
     cut = int(np.quantile(vs, 0.30))
     img = img.copy()

@@ -24,6 +24,12 @@ SCANLINE_COVERS_CONTOUR_PX = 1.5  # contour-method border points against the sca
 
 # --- coarse matching ---
 DT_EXACT_ATOL = 1e-4  # DT3 against the brute-force directional chamfer minimum (exact EDT)
+COARSE_AXIS_DEG = 1.5  # coarse axis direction of the revolved sprayer, distance given (target: 1 deg mean)
+COARSE_XY_MM = 2.0  # coarse |tx|, |ty| at 500-600 mm (target: 1 mm mean); 1 px is ~0.5 mm here
+COARSE_OCCLUDED_AXIS_DEG = 3.0  # the same with 30 % of the object hidden
+COARSE_OCCLUDED_XY_MM = 4.0
+COARSE_ROT_DEG_NONSYM = 8.0  # non-symmetric part: geodesic rotation error (half the test grid's view step)
+COARSE_T_MM_NONSYM = 10.0
 
 # --- refinement ---
 REFINE_ANGLE_DEG = 0.1  # known answer: rotation (axis direction for a symmetric part) after 3 deg / 5 mm
@@ -41,3 +47,5 @@ REFINE_SEGMENT_DT_ATOL = 1e-4  # exact segment DT3 against brute force, px
 OVERLAY_ON_BORDER_PX = 1.5  # refined-contour pixels lie this close to the rendered silhouette border
 
 # --- API ---
+API_HELD_DISTANCE_MM = 1e-6  # options.distance_mm is held: the returned t_mm z equals it
+API_UNITS_CHECK_MM = 25.0  # paper/0001 at 500 mm: returned t_mm x, y within this of gt (mm, not m or px)
