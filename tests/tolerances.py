@@ -49,5 +49,3 @@ OVERLAY_ON_BORDER_PX = 1.5  # refined-contour pixels lie this close to the rende
 # --- API ---
 API_HELD_DISTANCE_MM = 1e-6  # options.distance_mm is held: the returned t_mm z equals it
 API_UNITS_CHECK_MM = 25.0  # paper/0001 at 500 mm: returned t_mm x, y within this of gt (mm, not m or px)
-API_HELD_DISTANCE_MM = 1e-6  # options.distance_mm is held: the returned t_mm z equals it
-API_UNITS_CHECK_MM = 25.0  # paper/0001 at 500 mm: returned t_mm x, y within this of gt (mm, not m or px)
