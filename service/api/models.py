@@ -59,12 +59,13 @@ def list_models(store: StoreDep) -> list[ModelInfo]:
     return [ModelInfo.from_record(r) for r in store.records()]
 
 
-@router.get("/models/{model_id}", response_model=ModelInfo, responses=error_responses(404))
+@router.get("/models/{model_id}", response_model=ModelInfo, responses=error_responses(404, 422))
 def get_model(record: ModelRecord) -> ModelInfo:
     return ModelInfo.from_record(record)
 
 
-@router.delete("/models/{model_id}", status_code=204, response_class=Response, responses=error_responses(404))
+@router.delete("/models/{model_id}", status_code=204, response_class=Response,
+               responses=error_responses(404, 422))
 def delete_model(record: ModelRecord, store: StoreDep) -> Response:
     store.delete(record["id"])
     return Response(status_code=204)
