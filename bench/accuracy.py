@@ -205,20 +205,28 @@ def bank_path(model: str, mesh_path: Path, grid: dict | None) -> Path:
     return OUT_DIR / "banks" / f"{model}-{h.hexdigest()[:12]}.npz"
 
 
+_BANKS: dict[tuple[str, str, str], TemplateBank] = {}
+
+
 def load_bank(model: str, mesh_path: Path, grid: dict | None, *, rebuild: bool = False) -> TemplateBank:
     """Build the template bank once per (model, grid) and cache it as .npz."""
     import trimesh
 
     from service.pipeline import build_templates
 
+    key = (model, hashlib.sha1(mesh_path.read_bytes()).hexdigest(), json.dumps(grid or {}, sort_keys=True))
+    if key in _BANKS:  # one bank per model for the whole invocation, even if the code changes meanwhile
+        return _BANKS[key]
     path = bank_path(model, mesh_path, grid)
     if path.exists() and not rebuild:
         with np.load(path) as a:
-            return TemplateBank.from_arrays(dict(a))
+            _BANKS[key] = TemplateBank.from_arrays(dict(a))
+        return _BANKS[key]
     t0 = time.perf_counter()
     bank = build_templates(trimesh.load(mesh_path, force="mesh"), symmetry="auto", grid=grid)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, **bank.to_arrays())
+    _BANKS[key] = bank
     print(f"built bank {path.name}: {bank.n_templates} templates in {time.perf_counter() - t0:.1f} s",
           file=sys.stderr)
     return bank
