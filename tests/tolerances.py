@@ -12,9 +12,11 @@ SYM_DISCRETISATION_DEG = 0.1  # spacing of the brute-force spin grid the closed-
 RENDER_EXTENT_PX = 0.5  # silhouette width/height (from anti-aliased coverage) against the closed form
 RENDER_CENTRE_PX = 0.05  # coverage centroid of a symmetric patch about the origin against (cx, cy)
 RENDER_DEPTH_MM = 0.05  # z-buffer depth against the closed form (tessellated sphere, r = 100 mm)
-BORDER_RADIAL_PX = 0.15  # supersample-4 border against the closed-form silhouette (sphere, cylinder)
-BORDER_THETA_MEAN_DEG = 1.0  # edge orientation against the closed-form tangent: mean ...
-BORDER_THETA_MAX_DEG = 6.0  # ... and worst (the traced chain is smoothed over ~0.5 px)
+BORDER_RADIAL_PX = 0.02  # snapped border against the closed-form silhouette (sphere, cylinder; tessellation)
+BORDER_THETA_MAX_DEG = 1.0  # snapped edge orientation against the closed-form tangent (1-px polygon edges)
+TRACED_RADIAL_PX = 0.15  # traced (unsnapped) supersample-4 border against the closed form
+TRACED_THETA_MEAN_DEG = 1.0  # traced edge orientation against the closed-form tangent: mean ...
+TRACED_THETA_MAX_DEG = 6.0  # ... and worst (the traced chain is smoothed over ~0.5 px)
 BACKPROJECT_PX = 1e-3  # template pose applied to p_obj against the border point it came from
 SPIN_INVARIANCE_PX = 0.5  # border of a revolved part spun about its axis against the unspun border
 SYMMETRY_AXIS_DEG = 1.0  # detected symmetry axis against the true one

@@ -33,10 +33,13 @@ shape unchanged (the paper's Table III), so the matcher rotates the contour at m
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import math
 import os
+import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -61,8 +64,8 @@ GRID_DEFAULTS: dict = {
     "render_px": 400,
     # spacing of border points along the contour, canonical pixels
     "spacing_px": 1.5,
-    # silhouette supersampling for sub-pixel borders
-    "supersample": 4,
+    # silhouette supersampling for tracing the border (closed meshes then snap onto the exact edges)
+    "supersample": 2,
 }
 _GRID_LIMITS = {  # key: (type, lo, hi)
     "tilt_step_deg": (float, 0.1, 90.0),
@@ -188,14 +191,17 @@ def _contours_ss(mask: np.ndarray) -> list[np.ndarray]:
 
 
 def extract_border(invz_ss: np.ndarray, fid_ss: np.ndarray, origin_ss: tuple[int, int], s: int,
-                   intr: Intrinsics, pose: Pose, image_size, spacing_px: float):
+                   intr: Intrinsics, pose: Pose, image_size, spacing_px: float,
+                   sil_edges_cam: np.ndarray | None = None):
     """Border of a rasterised silhouette (see ``rasterise_roi``) in the image of ``intr``.
 
     invz_ss, fid_ss : the ROI buffers (inverse depth, face id) at s times the resolution
     (``intr.scaled(s)``), whose top-left sub-pixel is ``origin_ss`` of the supersampled image.
     Returns ``uv (M, 2)``, ``theta_rad (M,)``, ``p_obj (M, 3)`` (float64; pixels of ``intr``,
     radians, mm object frame). Points on the image frame (where the silhouette is cut by the image
-    border) are dropped.
+    border) are dropped. With ``sil_edges_cam`` ((S, 2, 3) mm, camera frame: the mesh's contour
+    generator edges, see ``MeshTopology``), each point is then moved onto the nearest projected edge
+    (``snap_to_edges``): exact sub-pixel position and orientation, and a 3D point on the mesh.
     """
     empty = np.zeros((0, 2)), np.zeros(0), np.zeros((0, 3))
     if fid_ss.size == 0:
@@ -256,29 +262,166 @@ def extract_border(invz_ss: np.ndarray, fid_ss: np.ndarray, origin_ss: tuple[int
     x = (uv[:, 0] - intr.cx) / intr.fx * z
     y = (uv[:, 1] - intr.cy) / intr.fy * z
     p_cam = np.stack([x, y, z], axis=1)
+    if sil_edges_cam is not None and len(sil_edges_cam):
+        uv, theta, p_cam = snap_to_edges(uv, theta, p_cam, sil_edges_cam, intr)
     p_obj = (p_cam - pose.t_mm) @ pose.R
     return uv, theta, p_obj
 
 
+SNAP_MAX_PX = 0.75  # a border point further than this from every contour-generator edge is kept as traced
+SNAP_MAX_DEPTH_FRACTION = 0.05  # ... and so is one whose edge point is this much (of z) off the z-buffer
+SNAP_SAMPLE_PX = 2.0  # edges are sampled this often to find the candidates (the 6 nearest samples' edges)
+
+
+def snap_to_edges(uv: np.ndarray, theta: np.ndarray, p_cam: np.ndarray, edges_cam: np.ndarray,
+                  intr: Intrinsics):
+    """Move traced border points onto the nearest projected contour-generator edge.
+
+    uv (M, 2), theta (M,), p_cam (M, 3) as traced (p_cam's depth from the z-buffer); edges_cam
+    (S, 2, 3) mm, camera frame. A point within ``SNAP_MAX_PX`` of an edge's projection takes the
+    closest point of that projection, the edge's image direction, and the 3D point of the edge that
+    projects there (perspective-correct), unless that point's depth disagrees with the z-buffer's by
+    more than ``SNAP_MAX_DEPTH_FRACTION`` (an occluded edge). Returns new (uv, theta, p_cam).
+    """
+    from scipy.spatial import cKDTree
+
+    P0, P1 = edges_cam[:, 0], edges_cam[:, 1]
+    ok_z = (P0[:, 2] > 1e-3) & (P1[:, 2] > 1e-3)
+    P0, P1 = P0[ok_z], P1[ok_z]
+    if len(P0) == 0 or len(uv) == 0:
+        return uv, theta, p_cam
+    a = np.stack([intr.fx * P0[:, 0] / P0[:, 2] + intr.cx, intr.fy * P0[:, 1] / P0[:, 2] + intr.cy], axis=1)
+    b = np.stack([intr.fx * P1[:, 0] / P1[:, 2] + intr.cx, intr.fy * P1[:, 1] / P1[:, 2] + intr.cy], axis=1)
+    # Keep only edges near the border's bounding box, then sample them for the candidate search.
+    lo, hi = uv.min(axis=0) - 2.0, uv.max(axis=0) + 2.0
+    near = ~((np.maximum(a, b) < lo).any(axis=1) | (np.minimum(a, b) > hi).any(axis=1))
+    a, b, P0, P1 = a[near], b[near], P0[near], P1[near]
+    if len(a) == 0:
+        return uv, theta, p_cam
+    length = np.linalg.norm(b - a, axis=1)
+    n = np.minimum(np.ceil(length / SNAP_SAMPLE_PX).astype(np.int64), 4096) + 1
+    seg = np.repeat(np.arange(len(a)), n)
+    start = np.repeat(np.cumsum(n) - n, n)
+    t = (np.arange(len(seg)) - start) / np.maximum(n[seg] - 1, 1)
+    samples = a[seg] + t[:, None] * (b - a)[seg]
+    k = min(6, len(samples))
+    _, idx = cKDTree(samples, balanced_tree=False, compact_nodes=False).query(uv, k=k)
+    cand = seg[np.asarray(idx).reshape(len(uv), k)]  # (M, k) segment ids
+    ab = (b - a)[cand]  # (M, k, 2)
+    den = np.maximum((ab**2).sum(axis=2), 1e-18)
+    tt = np.clip(((uv[:, None, :] - a[cand]) * ab).sum(axis=2) / den, 0.0, 1.0)
+    q = a[cand] + tt[..., None] * ab
+    d = np.linalg.norm(q - uv[:, None, :], axis=2)
+    j = np.argmin(d, axis=1)
+    rows = np.arange(len(uv))
+    dmin, best, tb = d[rows, j], cand[rows, j], tt[rows, j]
+    z0, z1 = P0[best, 2], P1[best, 2]
+    lam = tb * z0 / np.maximum((1.0 - tb) * z1 + tb * z0, 1e-12)
+    p_snap = P0[best] + lam[:, None] * (P1[best] - P0[best])
+    depth_ok = np.abs(p_snap[:, 2] - p_cam[:, 2]) <= SNAP_MAX_DEPTH_FRACTION * p_cam[:, 2]
+    use = (dmin <= SNAP_MAX_PX) & depth_ok & (np.linalg.norm(b[best] - a[best], axis=1) > 1e-9)
+    uv = uv.copy()
+    theta = theta.copy()
+    p_cam = p_cam.copy()
+    # uv from the 3D point (consistent to float precision with its projection)
+    ps = p_snap[use]
+    uv[use] = np.stack([intr.fx * ps[:, 0] / ps[:, 2] + intr.cx, intr.fy * ps[:, 1] / ps[:, 2] + intr.cy],
+                       axis=1)
+    dirs = (b - a)[best[use]]
+    theta[use] = np.mod(np.arctan2(dirs[:, 1], dirs[:, 0]), np.pi)
+    p_cam[use] = ps
+    return uv, theta, p_cam
+
+
 def border_at_pose(vertices_mm, faces, pose: Pose, intr_or_K, image_size, *, spacing_px: float = 1.0,
-                   supersample: int = 2, closed: bool = False):
+                   supersample: int = 2, snap: bool = True):
     """Outer silhouette border of the mesh at ``pose`` (T_cam_obj) in a real (pinhole) camera.
 
     Returns ``uv (M, 2)`` pixels, ``theta_rad (M,)`` in [0, pi), ``p_obj (M, 3)`` mm object frame,
     all float64; empty arrays when nothing is visible. Only the ROI of the projected mesh is
-    rasterised. Lens distortion is ignored (``intr_or_K``'s pinhole part is used). ``closed=True``
-    (the mesh is watertight with outward normals, see ``is_closed_outward``) skips back faces.
+    rasterised. Lens distortion is ignored (``intr_or_K``'s pinhole part is used). For a closed mesh
+    (``MeshTopology``, cached per mesh) back faces are skipped and, with ``snap``, the traced points
+    are moved onto the projected contour-generator edges (``snap_to_edges``).
     """
     intr = as_intrinsics(intr_or_K)
     s = int(supersample)
     w, h = int(image_size[0]), int(image_size[1])
     intr_s = intr.scaled(s) if s > 1 else intr
-    V = np.asarray(vertices_mm, np.float64)
-    F = np.asarray(faces, np.int32)
+    topo = mesh_topology(vertices_mm, faces)
+    front = topo.front_facing(pose) if topo.closed else None
+    F = topo.faces if front is None else topo.faces[front]
+    invz, fid, origin = rasterise_roi(topo.vertices, F, pose, intr_s, (w * s, h * s), inverse_depth=True)
+    edges = topo.contour_edges_cam(pose, front) if (snap and front is not None) else None
+    return extract_border(invz, fid, origin, s, intr, pose, (w, h), spacing_px, edges)
+
+
+@dataclass(frozen=True)
+class MeshTopology:
+    """What border extraction needs about a mesh besides its triangles (built once per mesh).
+
+    closed: watertight, consistently wound, outward normals (``is_closed_outward``); only then are
+    back faces culled and contour generators defined. edges (E, 2): each undirected edge once;
+    edge_faces (E, 2): its two faces (closed meshes only).
+    """
+
+    vertices: np.ndarray  # (V, 3) float64, mm
+    faces: np.ndarray  # (F, 3) int32
+    closed: bool
+    face_normals: np.ndarray  # (F, 3) float64, unnormalised (right-hand rule)
+    edges: np.ndarray  # (E, 2) int64
+    edge_faces: np.ndarray  # (E, 2) int64
+
+    def front_facing(self, pose: Pose) -> np.ndarray:
+        """(F,) bool: faces whose outward normal points towards the camera."""
+        cam_obj = -np.asarray(pose.R, float).T @ np.asarray(pose.t_mm, float)
+        v0 = self.vertices[self.faces[:, 0]]
+        return np.einsum("ij,ij->i", self.face_normals, cam_obj - v0) > 0.0
+
+    def contour_edges_cam(self, pose: Pose, front: np.ndarray) -> np.ndarray:
+        """(S, 2, 3) mm, camera frame: edges between a front and a back face (contour generators)."""
+        sel = front[self.edge_faces[:, 0]] != front[self.edge_faces[:, 1]]
+        e = self.edges[sel]
+        p = self.vertices[e.reshape(-1)] @ np.asarray(pose.R, float).T + np.asarray(pose.t_mm, float)
+        return p.reshape(-1, 2, 3)
+
+
+def _build_topology(V: np.ndarray, F: np.ndarray) -> MeshTopology:
+    tri = V[F]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    closed = is_closed_outward(V, F)
+    edges = np.zeros((0, 2), np.int64)
+    edge_faces = np.zeros((0, 2), np.int64)
     if closed:
-        F = F[front_facing(V, F, pose)]
-    invz, fid, origin = rasterise_roi(V, F, pose, intr_s, (w * s, h * s), inverse_depth=True)
-    return extract_border(invz, fid, origin, s, intr, pose, (w, h), spacing_px)
+        d = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]).astype(np.int64)
+        face_of = np.tile(np.arange(len(F)), 3)
+        key = np.sort(d, axis=1)
+        order = np.lexsort((key[:, 1], key[:, 0]))
+        # Closed: every undirected edge occurs exactly twice, so sorted pairs are adjacent.
+        first, second = order[0::2], order[1::2]
+        edges = key[first]
+        edge_faces = np.stack([face_of[first], face_of[second]], axis=1)
+    return MeshTopology(V, F, closed, normals, edges, edge_faces)
+
+
+_TOPOLOGY_CACHE: dict = {}
+_TOPOLOGY_CACHE_SIZE = 8
+_TOPOLOGY_LOCK = threading.Lock()
+
+
+def mesh_topology(vertices_mm, faces) -> MeshTopology:
+    """``MeshTopology`` of the mesh, cached by content (a few recent meshes)."""
+    V = np.ascontiguousarray(vertices_mm, np.float64)
+    F = np.ascontiguousarray(faces, np.int32)
+    key = hashlib.blake2b(V.tobytes() + b"|" + F.tobytes(), digest_size=16).digest()
+    with _TOPOLOGY_LOCK:
+        topo = _TOPOLOGY_CACHE.get(key)
+    if topo is None:
+        topo = _build_topology(V, F)
+        with _TOPOLOGY_LOCK:
+            if len(_TOPOLOGY_CACHE) >= _TOPOLOGY_CACHE_SIZE:
+                _TOPOLOGY_CACHE.pop(next(iter(_TOPOLOGY_CACHE)))
+            _TOPOLOGY_CACHE[key] = topo
+    return topo
 
 
 def is_closed_outward(vertices_mm, faces) -> bool:
@@ -388,13 +531,16 @@ def build_bank(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | No
     s = g["supersample"]
     intr_s = intr.scaled(s) if s > 1 else intr
     R_all, params = grid_rotations(g, axis)
-    closed = is_closed_outward(V, F)
+    topo = mesh_topology(V, F)
 
     def one(R: np.ndarray):
         pose = Pose(R, np.array([0.0, 0.0, d_ref]) - R @ centre)
-        Fv = F[front_facing(V, F, pose)] if closed else F
+        front = topo.front_facing(pose) if topo.closed else None
+        Fv = F if front is None else F[front]
         invz, fid, origin = rasterise_roi(V, Fv, pose, intr_s, (size * s, size * s), inverse_depth=True)
-        uv, theta, p_obj = extract_border(invz, fid, origin, s, intr, pose, (size, size), g["spacing_px"])
+        edges = None if front is None else topo.contour_edges_cam(pose, front)
+        uv, theta, p_obj = extract_border(invz, fid, origin, s, intr, pose, (size, size), g["spacing_px"],
+                                          edges)
         xy = (uv - c) / f
         theta32 = theta.astype(np.float32)
         theta32[theta32 >= np.float32(np.pi)] = 0.0  # pi rounds up in float32; [0, pi) is undirected
