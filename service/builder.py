@@ -35,6 +35,7 @@ log = logging.getLogger("service")
 
 PROGRESS_STEP = 0.02  # write progress at most every 2 %
 LEASE_POLL_S = 0.5  # how often a process waiting for another's build looks again
+SHUTDOWN_GRACE_S = 5.0  # a stopping service waits this long for a build process to put its model back
 MAX_BUILD_DEATHS = 3  # a build whose process keeps dying (OOM) is marked failed after this many
 
 
@@ -237,8 +238,8 @@ class Builder:
         for p in procs:
             if p.is_alive():
                 p.terminate()
-        for p in procs:
-            p.join(timeout=10)
-            if p.is_alive():
+        for p in procs:  # SIGTERM lands between two compiled calls of the build; then we stop waiting
+            p.join(timeout=SHUTDOWN_GRACE_S)
+            if p.is_alive():  # its lease stays until it expires; the build resumes at the next start-up
                 p.kill()
                 p.join(timeout=5)
