@@ -167,6 +167,7 @@ def test_sprayer_bank_layout(sprayer_bank):
     assert 200.0 < bank.diameter_mm < np.linalg.norm([60.0, 200.0, 60.0]) + 1e-6
     assert bank.grid["tilt_step_deg"] == 10.0 and bank.grid["render_px"] == GRID_DEFAULTS["render_px"]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0 and len(fractions) == bank.n_templates
+    assert merge_grid(bank.grid) == bank.grid  # the recorded options are valid options
 
 
 def test_template_points_back_project(sprayer_bank):

@@ -443,14 +443,6 @@ def is_closed_outward(vertices_mm, faces) -> bool:
     return bool(volume > 0.0)
 
 
-def front_facing(vertices_mm: np.ndarray, faces: np.ndarray, pose: Pose) -> np.ndarray:
-    """(F,) bool: faces whose (outward, counter-clockwise) normal points towards the camera."""
-    tri = np.asarray(vertices_mm, float)[faces]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    cam_obj = -np.asarray(pose.R, float).T @ np.asarray(pose.t_mm, float)
-    return np.einsum("ij,ij->i", n, cam_obj - tri[:, 0]) > 0.0
-
-
 # --- the bank -----------------------------------------------------------------------------------
 
 
@@ -522,10 +514,7 @@ def build_bank(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | No
         d_ref = max(d_ref, AUTO_DISTANCE_DIAMETERS * diameter)
     g["reference_distance_mm"] = float(d_ref)
     f = g["render_px"] * d_ref / diameter
-    # Canvas: square, principal point at its centre, large enough for any orientation.
-    r_b = float(np.linalg.norm(V - centre, axis=1).max())
-    half = f * r_b / math.sqrt(max(d_ref**2 - r_b**2, 1e-9)) + 4.0
-    size = int(max(math.ceil(1.4 * g["render_px"]), 2 * math.ceil(half) + 1))
+    size = canvas_px(V.astype(np.float32).astype(np.float64), centre, d_ref, f, g["render_px"])  # as stored
     c = (size - 1) / 2.0
     intr = Intrinsics(f, f, c, c)
     s = g["supersample"]
@@ -560,7 +549,6 @@ def build_bank(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | No
                 progress(done / len(R_all))
     counts = np.array([len(r[0]) for r in results], np.int64)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    g["canvas_px"] = size  # informative: the canonical image's width = height
     return TemplateBank(
         R_tpl_obj=R_all.astype(np.float64),
         view_params_deg=params.astype(np.float64),
@@ -580,6 +568,14 @@ def build_bank(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | No
     )
 
 
+def canvas_px(vertices_mm: np.ndarray, centre_obj: np.ndarray, d_ref: float, f: float, render_px: int) -> int:
+    """Width = height of the canonical image: about 1.4 x ``render_px``, and large enough for the
+    model in any orientation (the cone tangent to its bounding sphere about ``centre_obj``)."""
+    r_b = float(np.linalg.norm(np.asarray(vertices_mm, float) - centre_obj, axis=1).max())
+    half = f * r_b / math.sqrt(max(d_ref**2 - r_b**2, 1e-9)) + 4.0
+    return int(max(math.ceil(1.4 * render_px), 2 * math.ceil(half) + 1))
+
+
 def canonical_pose(bank: TemplateBank, k: int) -> Pose:
     """``T_cam_obj`` of template k's canonical view."""
     R = np.asarray(bank.R_tpl_obj[k], float)
@@ -590,7 +586,8 @@ def canonical_intrinsics(bank: TemplateBank) -> tuple[Intrinsics, tuple[int, int
     """The canonical camera of the bank and its image size (w, h)."""
     g = bank.grid
     f = g["render_px"] * bank.reference_distance_mm / bank.diameter_mm
-    size = int(g.get("canvas_px", math.ceil(1.4 * g["render_px"])))
+    size = canvas_px(np.asarray(bank.vertices_mm, float), np.asarray(bank.centre_obj, float),
+                     bank.reference_distance_mm, f, g["render_px"])
     c = (size - 1) / 2.0
     return Intrinsics(f, f, c, c), (size, size)
 
