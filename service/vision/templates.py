@@ -7,15 +7,18 @@ point carrying
 
 - ``xy_n``: normalised image coordinates ``((u - cx) / f, (v - cy) / f)`` of the canonical camera,
 - ``theta_rad``: the undirected edge orientation in the image, [0, pi),
-- ``p_obj``: the model point it came from (the paper's eq. 7): the point on the viewing ray through
-  the border point at the depth of the nearest covered pixel, mm, object frame; projecting it with
-  the template pose gives back ``xy_n`` exactly.
+- ``p_obj``: the model point it came from (the paper's eq. 7), mm, object frame; projecting it with
+  the template pose gives back ``xy_n`` (to float precision).
 
 The border is traced on a supersampled silhouette (``cv2.findContours``, external contours only),
 moved out by half a sub-pixel (the traced chain runs through the centres of the outermost covered
 sub-pixels, the true edge lies half a sub-pixel further out), smoothed along the chain and resampled
-by arc length. This replaces the paper's scan-line node procedure (kept, for reference and tests, in
-``scanline.py``) with the same result on the paper's cases.
+by arc length. For a closed mesh (watertight, outward normals) each traced point is then snapped
+onto the nearest projected contour-generator edge (an edge between a front and a back face): the
+point, its orientation and its 3D point (on that edge, perspective-correct) are then exact, whatever
+the supersampling. Otherwise ``p_obj`` is the point on the viewing ray at the depth of the nearest
+covered sub-pixel. This replaces the paper's scan-line node procedure (kept, for reference and
+tests, in ``scanline.py``), with the same border on the paper's cases.
 
 Grid
 ----
