@@ -1,0 +1,238 @@
+"""A real ``uvicorn`` on a loopback port, driven with httpx: the whole flow, restarts, a kill
+mid-build, ``/health`` while work is running, and two worker processes on one cache dir."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import httpx
+import pytest
+
+from service.store import Store
+
+ROOT = Path(__file__).resolve().parents[1]
+GRID = {"tilt_step_deg": 15, "view_step_deg": 45}
+SLOW_GRID = {"view_step_deg": 8}  # with symmetry "none": several hundred views, a build of seconds
+START_WAIT_S = 60  # hang guards (not speed asserts)
+BUILD_WAIT_S = 300
+LEASE_S = 3  # a killed build's lease runs out this fast in these tests
+
+
+class Server:
+    def __init__(self, cache_dir: Path, log: Path, *, workers: int = 1, env: dict | None = None) -> None:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            self.port = s.getsockname()[1]
+        self.url = f"http://127.0.0.1:{self.port}"
+        environment = {**os.environ, "POSE_CACHE_DIR": str(cache_dir), "POSE_TEMPLATE_GRID": json.dumps(GRID),
+                       "POSE_BUILD_LEASE_S": str(LEASE_S), **(env or {})}
+        self.log = open(log, "ab")  # noqa: SIM115 (closed in stop/kill)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "uvicorn", "service.main:create_app", "--factory", "--host", "127.0.0.1",
+             "--port", str(self.port), "--workers", str(workers), "--log-level", "warning"],
+            cwd=ROOT, env=environment, stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True)
+        self.client = httpx.Client(base_url=self.url, timeout=120)
+        deadline = time.monotonic() + START_WAIT_S
+        while True:
+            assert self.proc.poll() is None, f"uvicorn exited; see {log}"
+            try:
+                if self.client.get("/health").status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert time.monotonic() < deadline, f"uvicorn did not start; see {log}"
+            time.sleep(0.2)
+
+    def stop(self) -> None:
+        """SIGTERM to uvicorn's pid: a graceful shutdown (the lifespan stops the build pool)."""
+        self.client.close()
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                self.kill()
+        self._reap()
+
+    def kill(self) -> None:
+        """SIGKILL to the server's whole process group (uvicorn, its workers, its build processes)."""
+        self.client.close()
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        self.proc.wait(timeout=30)
+        self._reap()
+
+    def _reap(self) -> None:
+        with contextlib.suppress(ProcessLookupError):  # nothing of this server may outlive it
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        self.log.close()
+
+
+@pytest.fixture
+def servers(tmp_path):
+    started: list[Server] = []
+
+    def start(**kw) -> Server:
+        server = Server(tmp_path / "cache", tmp_path / "uvicorn.log", **kw)
+        started.append(server)
+        return server
+
+    yield start
+    for server in started:
+        if not server.log.closed:
+            server.kill()
+
+
+@pytest.fixture(scope="module")
+def sprayer_bytes(data_dir) -> bytes:
+    return (data_dir / "models" / "sprayer.stl").read_bytes()
+
+
+@pytest.fixture(scope="module")
+def frame(data_dir) -> tuple[bytes, dict]:
+    with open(data_dir / "paper" / "gt.jsonl") as f:
+        gt = json.loads(f.readline())
+    K = gt["K"]
+    camera = {"fx": K[0][0], "fy": K[1][1], "cx": K[0][2], "cy": K[1][2]}
+    return (data_dir / "paper" / gt["image"]).read_bytes(), camera
+
+
+def upload(client: httpx.Client, mesh: bytes, **data) -> dict:
+    r = client.post("/models", files={"file": ("sprayer.stl", mesh)}, data=data)
+    assert r.status_code == 202, r.text
+    return r.json()
+
+
+def wait_status(client: httpx.Client, mid: str, until=("ready", "failed")) -> dict:
+    deadline = time.monotonic() + BUILD_WAIT_S
+    while True:
+        info = client.get(f"/models/{mid}").json()
+        if info["status"] in until:
+            return info
+        assert time.monotonic() < deadline, f"model {mid} still {info['status']}"
+        time.sleep(0.1)
+
+
+def estimate(client: httpx.Client, mid: str, frame: tuple[bytes, dict]) -> httpx.Response:
+    image, camera = frame
+    return client.post(f"/models/{mid}/estimate", files={"image": ("0001.png", image)},
+                       data={"camera": json.dumps(camera), "options": json.dumps({"distance_mm": 500})})
+
+
+def test_upload_build_estimate_restart(servers, tmp_path, sprayer_bytes, frame):
+    server = servers()
+    mid = upload(server.client, sprayer_bytes, symmetry="y")["id"]
+    assert wait_status(server.client, mid)["status"] == "ready"
+    r = estimate(server.client, mid, frame)
+    assert r.status_code == 200 and r.json()["found"] is True
+    server.stop()
+
+    server = servers()  # a restarted service still knows every model
+    info = server.client.get(f"/models/{mid}").json()
+    assert info["status"] == "ready" and info["n_templates"] > 0
+    assert estimate(server.client, mid, frame).status_code == 200
+    server.stop()
+    with Store(tmp_path / "cache") as store:
+        assert store.build_count(mid) == 1
+
+
+def test_health_answers_while_a_build_and_estimates_run(servers, sprayer_bytes, frame):
+    server = servers()
+    ready = upload(server.client, sprayer_bytes, symmetry="y")["id"]
+    assert wait_status(server.client, ready)["status"] == "ready"
+
+    building = upload(server.client, sprayer_bytes, symmetry="none", templates=json.dumps(SLOW_GRID))["id"]
+    stop = threading.Event()
+    lock = threading.Lock()
+    in_flight = [0]  # estimate requests sent and not yet answered
+    codes: list[int | str] = []
+
+    def estimates() -> None:
+        with httpx.Client(base_url=server.url, timeout=120) as c:
+            while not stop.is_set():
+                with lock:
+                    in_flight[0] += 1
+                try:
+                    codes.append(estimate(c, ready, frame).status_code)
+                except httpx.HTTPError as e:
+                    codes.append(repr(e))
+                finally:
+                    with lock:
+                        in_flight[0] -= 1
+
+    def busy() -> bool:
+        building_now = server.client.get(f"/models/{building}").json()["status"] in ("queued", "building")
+        return building_now and in_flight[0] > 0
+
+    threads = [threading.Thread(target=estimates) for _ in range(2)]
+    for t in threads:
+        t.start()
+    try:
+        answered_while_busy = 0
+        deadline = time.monotonic() + BUILD_WAIT_S
+        while answered_while_busy < 5 and time.monotonic() < deadline:
+            before = busy()
+            r = server.client.get("/health")
+            assert r.status_code == 200 and r.json()["status"] == "ok"
+            answered_while_busy += before and busy()  # the build and an estimate ran all the while
+        assert answered_while_busy == 5
+    finally:
+        stop.set()
+        for t in threads:
+            t.join()
+    assert codes and set(codes) == {200}
+    server.stop()
+
+
+@pytest.mark.slow
+def test_build_killed_mid_way_resumes_after_restart(servers, tmp_path, sprayer_bytes):
+    server = servers()
+    mid = upload(server.client, sprayer_bytes, symmetry="none", templates=json.dumps(SLOW_GRID))["id"]
+    deadline = time.monotonic() + BUILD_WAIT_S
+    while (info := server.client.get(f"/models/{mid}").json())["progress"] < 0.1:
+        assert info["status"] in ("queued", "building") and time.monotonic() < deadline
+        time.sleep(0.05)
+    server.kill()  # the server and its build process die mid-build
+    with Store(tmp_path / "cache") as store:
+        assert store.get(mid)["status"] == "building" and store.build_count(mid) == 1
+
+    server = servers()
+    info = wait_status(server.client, mid)
+    assert info["status"] == "ready" and info["progress"] == 1.0 and info["n_templates"] > 0
+    server.stop()
+    with Store(tmp_path / "cache") as store:
+        assert store.build_count(mid) == 2  # started, killed, resumed once
+
+
+def test_two_workers_share_one_cache_and_build_once(servers, tmp_path, sprayer_bytes, frame):
+    server = servers(workers=2)
+
+    def fresh_connection(fn):  # a new connection per request, so the kernel spreads them over both workers
+        with httpx.Client(base_url=server.url, timeout=120) as c:
+            return fn(c)
+
+    with ThreadPoolExecutor(4) as pool:
+        infos = list(pool.map(lambda _: fresh_connection(lambda c: upload(c, sprayer_bytes, symmetry="y")),
+                              range(4)))
+    mid = infos[0]["id"]
+    assert {i["id"] for i in infos} == {mid}
+    assert wait_status(server.client, mid)["status"] == "ready"
+    with ThreadPoolExecutor(4) as pool:
+        statuses = list(pool.map(
+            lambda _: fresh_connection(lambda c: c.get(f"/models/{mid}").json()["status"]), range(12)))
+        codes = list(pool.map(
+            lambda _: fresh_connection(lambda c: estimate(c, mid, frame).status_code), range(6)))
+    assert set(statuses) == {"ready"} and set(codes) == {200}
+    server.stop()
+    with Store(tmp_path / "cache") as store:
+        assert store.build_count(mid) == 1
