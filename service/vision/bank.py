@@ -47,8 +47,8 @@ class TemplateBank:
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Flat dict of arrays (for ``np.savez``); ``from_arrays`` inverts it exactly."""
         d = asdict(self)
-        out = {k: np.asarray(v) for k, v in d.items() if k not in ("grid", "symmetry_axis_obj", "symmetry_point_obj",
-                                                                   "reference_distance_mm", "diameter_mm")}
+        special = ("grid", "symmetry_axis_obj", "symmetry_point_obj", "reference_distance_mm", "diameter_mm")
+        out = {k: np.asarray(v) for k, v in d.items() if k not in special}
         out["reference_distance_mm"] = np.float64(self.reference_distance_mm)
         out["diameter_mm"] = np.float64(self.diameter_mm)
         for k in ("symmetry_axis_obj", "symmetry_point_obj"):
