@@ -232,9 +232,11 @@ class Builder:
         with self._lock:
             self._closing = True
             executor = self._executor
-        # Python 3.11 has no ProcessPoolExecutor.terminate_workers(): take the processes before shutdown.
+        # Python 3.11 has no ProcessPoolExecutor.terminate_workers(): cancel what waits, stop the
+        # processes, then let the pool wind down (joining its queues) once they are gone.
         procs = list((getattr(executor, "_processes", None) or {}).values())
-        executor.shutdown(wait=False, cancel_futures=True)
+        for fut in list(self._futures.values()):
+            fut.cancel()
         for p in procs:
             if p.is_alive():
                 p.terminate()
@@ -243,3 +245,4 @@ class Builder:
             if p.is_alive():  # its lease stays until it expires; the build resumes at the next start-up
                 p.kill()
                 p.join(timeout=5)
+        executor.shutdown(wait=True, cancel_futures=True)

@@ -13,6 +13,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
+from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -61,8 +62,6 @@ class UploadLimit:
                           "send a smaller file")
         length = dict(scope.get("headers") or []).get(b"content-length")
         if length is not None and length.isdigit() and int(length) > limit:
-            from fastapi.responses import JSONResponse
-
             await JSONResponse({"detail": detail}, status_code=413, headers={"Connection": "close"})(
                 scope, receive, send)
             return
