@@ -101,27 +101,26 @@ def run_build(cache_dir: str, mid: str, lease_s: float) -> str:
     store = Store(cache_dir)
     token: str | None = None
     stop = threading.Event()
+    heartbeat: threading.Thread | None = None
     try:
-        while token is None:  # wait for the lease, unless the build gets done or deleted meanwhile
+        while True:  # wait for the lease, unless the build gets done or deleted meanwhile
             rec = store.get(mid)
             if rec is None:
                 return "deleted"
             if rec["status"] in ("ready", "failed"):
                 return rec["status"]
+            if token is not None:
+                break
             token = store.try_lock(mid, lease_s)
             if token is None:
                 time.sleep(LEASE_POLL_S)
-        rec = store.get(mid)  # the previous holder may have finished just before we got the lease
-        if rec is None:
-            return "deleted"
-        if rec["status"] in ("ready", "failed"):
-            return rec["status"]
 
-        def heartbeat() -> None:
+        def renew(token: str = token) -> None:
             while not stop.wait(lease_s / 3):
                 store.renew(mid, token, lease_s)
 
-        threading.Thread(target=heartbeat, name=f"lease-{mid}", daemon=True).start()
+        heartbeat = threading.Thread(target=renew, name=f"lease-{mid}", daemon=True)
+        heartbeat.start()
         store.count_build(mid)
         store.update(mid, status="building", progress=0.0, error=None)
         last = [0.0]
@@ -157,6 +156,8 @@ def run_build(cache_dir: str, mid: str, lease_s: float) -> str:
         raise
     finally:
         stop.set()
+        if heartbeat is not None:
+            heartbeat.join()
         if token is not None:
             store.unlock(mid, token)
         store.close()
