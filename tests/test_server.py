@@ -146,9 +146,6 @@ def test_upload_build_estimate_restart(servers, tmp_path, sprayer_bytes, frame):
         assert store.build_count(mid) == 1
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "timing-dependent: on a loaded machine no estimate finished while /health was polled; passed on "
-    "the clean-clone CI run; under investigation"))
 def test_health_answers_while_a_build_and_estimates_run(servers, sprayer_bytes, frame):
     server = servers()
     ready = upload(server.client, sprayer_bytes, symmetry="y")["id"]
@@ -217,9 +214,6 @@ def test_build_killed_mid_way_resumes_after_restart(servers, tmp_path, sprayer_b
         assert store.build_count(mid) == 2  # started, killed, resumed once
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "on a clean-clone CI run one of the two uvicorn workers dropped a connection mid-request "
-    "(RemoteProtocolError); the build-once invariant itself held in local runs; under investigation"))
 def test_two_workers_share_one_cache_and_build_once(servers, tmp_path, sprayer_bytes, frame):
     server = servers(workers=2)
 

@@ -7,6 +7,7 @@ towards +v (image rows grow downwards).
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import cv2
@@ -56,14 +57,15 @@ def to_grey_u8(image: np.ndarray) -> np.ndarray:
     return ((f - lo) * (255.0 / max(hi - lo, 1e-6))).round().clip(0, 255).astype(np.uint8)
 
 
-_LSD = None
+_LOCAL = threading.local()
 
 
 def _lsd():
-    global _LSD
-    if _LSD is None:
-        _LSD = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD)
-    return _LSD
+    # One detector per thread: sharing one across the API's threadpool corrupts OpenCV's heap.
+    det = getattr(_LOCAL, "lsd", None)
+    if det is None:
+        det = _LOCAL.lsd = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD)
+    return det
 
 
 def detect_segments(grey: np.ndarray, *, scale: float = DEFAULT_LSD_SCALE, blur_sigma: float = 0.0,
