@@ -73,18 +73,6 @@ def ray_rotation(uv: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return d, R_between(E_Z, d)
 
 
-def hypothesis_R(bank: TemplateBank, h: Hypothesis, K: np.ndarray) -> np.ndarray:
-    _, R_ray = ray_rotation(h.uv, K)
-    return R_ray @ Rz(h.phi_deg) @ bank.R_tpl_obj[h.view]
-
-
-def hypothesis_pose(bank: TemplateBank, h: Hypothesis, K: np.ndarray) -> Pose:
-    d, R_ray = ray_rotation(h.uv, K)
-    R = R_ray @ Rz(h.phi_deg) @ bank.R_tpl_obj[h.view]
-    c_cam = d / d[2] * h.z_mm
-    return Pose(R, c_cam - R @ bank.centre_obj)
-
-
 def depth_for_distance(bank: TemplateBank, R: np.ndarray, distance_mm: float) -> float:
     """Depth of centre_obj when the object origin is at camera z = distance_mm."""
     return float(distance_mm + (R @ bank.centre_obj)[2])
