@@ -27,7 +27,7 @@ import numpy as np
 from service.vision.bank import TemplateBank
 from service.vision.camera import Intrinsics
 from service.vision.chamfer import DistanceTensor, sample
-from service.vision.frames import Pose, R_between, Rz
+from service.vision.frames import Pose, Rz
 
 E_Z = np.array([0.0, 0.0, 1.0])
 DT_QUANT = 8  # level-A DT3 stored as uint8 in 1/8 px: 4x less memory traffic than float32
@@ -51,6 +51,9 @@ class SearchParams:
     unknown_depth_step: float = 0.15  # ratio between distances tried when the distance is not given
     min_edge_frac: float = 0.3  # level A: edge pixels near an anchor, as a fraction of a border's length
     score_px: float = 3.0  # full-resolution px: a border point is "supported" within this distance
+    local_phi_step_deg: float = 2.0  # level B: in-plane steps of the local scan around each peak
+    local_radius_px: float = 24.0  # level B: full-resolution px searched around each peak
+    local_view_deg: float = 20.0  # level B: bank views within this angle of a peak's view are tried
 
 
 @dataclass
@@ -68,9 +71,23 @@ class Hypothesis:
 
 def ray_rotation(uv: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit viewing ray through pixel uv and the smallest rotation taking e_z onto it."""
-    d = np.array([(uv[0] - K[0, 2]) / K[0, 0], (uv[1] - K[1, 2]) / K[1, 1], 1.0])
-    d /= np.linalg.norm(d)
-    return d, R_between(E_Z, d)
+    d, R = ray_rotations(np.asarray(uv, float)[None], K)
+    return d[0], R[0]
+
+
+def ray_rotations(uv: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 3) unit viewing rays through pixels uv (M, 2) and (M, 3, 3) rotations taking e_z onto them.
+
+    Rodrigues with k = e_z x d: R = I + [k]x + [k]x^2 / (1 + d_z); a ray never points backwards
+    (d_z > 0), so the formula never divides by zero.
+    """
+    d = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0], (uv[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(uv))], 1)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    kx = np.zeros((len(d), 3, 3))
+    kx[:, 0, 2], kx[:, 1, 2] = d[:, 0], d[:, 1]
+    kx[:, 2, 0], kx[:, 2, 1] = -d[:, 0], -d[:, 1]
+    R = np.eye(3) + kx + (kx @ kx) / (1.0 + d[:, 2])[:, None, None]
+    return d, R
 
 
 def depth_for_distance(bank: TemplateBank, R: np.ndarray, distance_mm: float) -> float:
@@ -291,48 +308,54 @@ def pick_peaks(au, av, cost, n_peaks: int, radius_lvl: float) -> list[int]:
     return chosen
 
 
-# --- level B: local polish -------------------------------------------------------------------------
+# --- level B: local scans around the peaks, then a sub-pixel polish --------------------------------
 
 
-def _border_triplets(bank: TemplateBank, view: int, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    idx = subsample_border(bank, view, count)
-    if len(idx) < count:
-        idx = np.resize(idx, count)
-    lo, hi = bank.offsets[view], bank.offsets[view + 1]
-    prev = np.where(idx - 1 >= lo, idx - 1, hi - 1)
-    nxt = np.where(idx + 1 < hi, idx + 1, lo)
-    return idx, prev, nxt
+_TRIPLETS: OrderedDict = OrderedDict()
+
+
+def border_triplets(bank: TemplateBank, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N, count) indices of ``count`` points spread along every view's border, and of each point's
+    predecessor and successor on that border (for the projected orientation). Made once per bank."""
+    key = (id(bank), count)
+    hit = _TRIPLETS.get(key)
+    if hit is not None and hit[0] is bank:
+        return hit[1]
+    idx = np.stack([np.resize(subsample_border(bank, n, count), count) for n in range(bank.n_templates)])
+    lo = bank.offsets[:-1, None]
+    hi = bank.offsets[1:, None]
+    out = (idx, np.where(idx - 1 >= lo, idx - 1, hi - 1), np.where(idx + 1 < hi, idx + 1, lo))
+    _TRIPLETS[key] = (bank, out)
+    while len(_TRIPLETS) > 8:
+        _TRIPLETS.popitem(last=False)
+    return out
 
 
 def poses_of(bank: TemplateBank, hs: list[Hypothesis], K: np.ndarray, distance_mm: float | None
              ) -> tuple[np.ndarray, np.ndarray]:
     """(M, 3, 3) R and (M, 3) t of hypotheses; with a known distance the depth follows from it."""
-    Rs = np.empty((len(hs), 3, 3))
-    ts = np.empty((len(hs), 3))
-    for i, h in enumerate(hs):
-        d, R_ray = ray_rotation(h.uv, K)
-        R = R_ray @ Rz(h.phi_deg) @ bank.R_tpl_obj[h.view]
-        z = depth_for_distance(bank, R, distance_mm) if distance_mm is not None else h.z_mm
-        Rs[i] = R
-        ts[i] = d / d[2] * z - R @ bank.centre_obj
-    return Rs, ts
+    if not hs:
+        return np.zeros((0, 3, 3)), np.zeros((0, 3))
+    d, R_ray = ray_rotations(np.array([h.uv for h in hs], float), K)
+    Rs = R_ray @ np.stack([Rz(h.phi_deg) for h in hs]) @ bank.R_tpl_obj[[h.view for h in hs]]
+    c_rot = Rs @ bank.centre_obj  # (M, 3)
+    z = (distance_mm + c_rot[:, 2]) if distance_mm is not None else np.array([h.z_mm for h in hs])
+    return Rs, d / d[:, 2:3] * z[:, None] - c_rot
 
 
 def evaluate(bank: TemplateBank, views: np.ndarray, Rs: np.ndarray, ts: np.ndarray, K: np.ndarray,
              dtt: DistanceTensor, n_points: int, score_px: float) -> tuple[np.ndarray, np.ndarray]:
     """Mean directional chamfer cost (full-res px) and support score of M posed templates."""
-    trip = [_border_triplets(bank, int(v), n_points) for v in views]
-    idx = np.stack([t[0] for t in trip])
-    prev = np.stack([t[1] for t in trip])
-    nxt = np.stack([t[2] for t in trip])
+    idx_all, prev_all, nxt_all = border_triplets(bank, n_points)
+    views = np.asarray(views, np.int64)
 
     def proj(ii):
         q = np.einsum("mij,mpj->mpi", Rs, bank.p_obj[ii].astype(np.float64)) + ts[:, None, :]
         u = K[0, 0] * q[..., 0] / q[..., 2] + K[0, 2]
         return np.stack([u, K[1, 1] * q[..., 1] / q[..., 2] + K[1, 2]], -1)
 
-    uv = proj(idx)
-    d = proj(nxt) - proj(prev)
+    uv = proj(idx_all[views])
+    d = proj(nxt_all[views]) - proj(prev_all[views])
     theta = np.mod(np.arctan2(d[..., 1], d[..., 0]), np.pi)
     val = sample(dtt, dtt.to_grid(uv), theta) / dtt.scale
     return val.mean(axis=1), (val <= score_px).mean(axis=1)
@@ -347,13 +370,113 @@ def view_neighbours(bank: TemplateBank, k: int = 6) -> np.ndarray:
     return np.argsort(-sim, axis=1)[:, :k]
 
 
+def views_within(bank: TemplateBank, view: int, angle_deg: float) -> np.ndarray:
+    """Bank views whose viewing direction (object frame) is within ``angle_deg`` of ``view``'s.
+
+    For a revolved part also those near its mirror view (the axis tilted the other way, towards or
+    away from the camera): the two silhouettes are equal in orthographic projection and differ only
+    by perspective, so level A cannot tell them apart.
+    """
+    z = bank.R_tpl_obj.transpose(0, 2, 1) @ E_Z
+    near = z @ z[view] >= math.cos(math.radians(angle_deg)) - 1e-9
+    if bank.symmetry_axis_obj is not None:
+        a = np.asarray(bank.symmetry_axis_obj, float)
+        mirror = z[view] - 2 * (z[view] @ a) * a  # the viewing direction reflected in the axis' normal plane
+        near |= z @ mirror >= math.cos(math.radians(angle_deg)) - 1e-9
+    return np.flatnonzero(near)
+
+
+def quantised_padded(dtt: DistanceTensor, pad: int) -> np.ndarray:
+    """DT3 as (H + 2 pad, W + 2 pad, C) uint8 in 1/DT_QUANT px, tau outside the image (for ``_scan``)."""
+    C, h, w = dtt.dt.shape
+    tau_q = int(round(dtt.tau_px * DT_QUANT))
+    out = np.full((h + 2 * pad, w + 2 * pad, C), min(tau_q, 255), np.uint8)
+    out[pad:pad + h, pad:pad + w] = np.rint(np.minimum(dtt.dt.transpose(1, 2, 0) * DT_QUANT, 255))
+    return out
+
+
+def _local_scan_once(bank: TemplateBank, h: Hypothesis, dt_q: np.ndarray, pad: int, dtt: DistanceTensor,
+               K: np.ndarray, p: SearchParams, *, distance_mm: float | None) -> tuple[Hypothesis, bool]:
+    """Exhaustive search around a level-A peak on the finer grid: every bank view near the peak's,
+    in-plane angles +-``inplane_step_deg`` in ``local_phi_step_deg`` steps, (for an unknown distance)
+    three depths, at every fine-grid pixel within ``local_radius_px``. Level A only says which basin
+    to look in; its angle and placement can be off by half a step, which moves the ends of a long
+    part by many pixels, so a greedy polish from the peak itself can settle in a neighbouring basin.
+    """
+    from service.vision.edges import channel_of
+
+    views = views_within(bank, h.view, p.local_view_deg)
+    phis = h.phi_deg + np.arange(-p.inplane_step_deg, p.inplane_step_deg + 1e-9, p.local_phi_step_deg)
+    idx_all = border_triplets(bank, p.fine_points)[0]
+    idx = idx_all[views]  # (Tv, P)
+    d, R_ray = ray_rotation(h.uv, K)
+    Rv = (R_ray @ np.stack([Rz(f) for f in phis])[:, None] @ bank.R_tpl_obj[views][None])  # (Tp, Tv, 3, 3)
+    Rv = Rv.reshape(-1, 3, 3)
+    p_rel = bank.p_obj[np.tile(idx, (len(phis), 1))].astype(np.float64) - bank.centre_obj  # (T, P, 3)
+    pc = np.einsum("tij,tpj->tpi", Rv, p_rel)
+    c_rot = (Rv @ bank.centre_obj)[:, 2]
+    zc = (distance_mm + c_rot) if distance_mm is not None else np.full(len(Rv), h.z_mm)
+    depth_f = np.array([1.0]) if distance_mm is not None else np.array([1.0, 1 + p.depth_step / 2,
+                                                                       1 / (1 + p.depth_step / 2)])
+    s = dtt.scale
+    uv0 = (h.uv + 0.5) * s - 0.5  # the peak on the fine grid
+    off_u = np.empty((1, len(depth_f), len(Rv), idx.shape[1]), np.int16)
+    off_v = np.empty_like(off_u)
+    for k, f in enumerate(depth_f):
+        q = pc + (d / d[2])[None, None, :] * (zc * f)[:, None, None]
+        u = (K[0, 0] * q[..., 0] / q[..., 2] + K[0, 2] + 0.5) * s - 0.5
+        v = (K[1, 1] * q[..., 1] / q[..., 2] + K[1, 2] + 0.5) * s - 0.5
+        off_u[0, k] = np.rint(u - uv0[0])
+        off_v[0, k] = np.rint(v - uv0[1])
+    theta = np.mod(np.tile(bank.theta_rad[idx], (len(phis), 1))
+                   + np.repeat(np.deg2rad(phis), len(views))[:, None], np.pi)
+    chan = channel_of(theta, dtt.n_channels).astype(np.int32)
+    r = int(math.ceil(p.local_radius_px * s))
+    gu, gv = np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1))
+    au = (np.rint(uv0[0]) + gu.ravel()).astype(np.int32)
+    av = (np.rint(uv0[1]) + gv.ravel()).astype(np.int32)
+    C, hl, wl = dtt.dt.shape
+    ext = int(np.abs(off_u).max(initial=0)), int(np.abs(off_v).max(initial=0))
+    ok = (au >= -pad + ext[0]) & (au < wl + pad - ext[0]) & (av >= -pad + ext[1]) & (av < hl + pad - ext[1])
+    au, av = au[ok], av[ok]
+    if len(au) == 0:
+        return h, False
+    tau_q = int(round(dtt.tau_px * DT_QUANT))
+    cost, t, dk = _scan(dt_q, pad, off_u, off_v, chan, au, av, np.zeros(len(au), np.int32),
+                        np.int64(tau_q), 0)
+    a = int(np.argmin(cost))
+    if not np.isfinite(cost[a]):
+        return h, False
+    ti = int(t[a])
+    uv = np.array([(au[a] + 0.5) / s - 0.5, (av[a] + 0.5) / s - 0.5])
+    view, iphi = int(views[ti % len(views)]), ti // len(views)
+    z = bank.R_tpl_obj.transpose(0, 2, 1) @ E_Z
+    edge_view = math.degrees(math.acos(min(float(z[view] @ z[h.view]), 1.0))) > 0.6 * p.local_view_deg
+    on_edge = (edge_view or iphi in (0, len(phis) - 1) or abs(au[a] - np.rint(uv0[0])) >= r
+               or abs(av[a] - np.rint(uv0[1])) >= r)
+    return Hypothesis(view, float(phis[iphi]), float(zc[ti] * depth_f[dk[a]]), uv), on_edge
+
+
+def local_scan(bank: TemplateBank, h: Hypothesis, dt_q: np.ndarray, pad: int, dtt: DistanceTensor,
+               K: np.ndarray, p: SearchParams, *, distance_mm: float | None, max_walks: int = 3
+               ) -> Hypothesis:
+    """``_local_scan_once``, re-centred while the best lies near the edge of the searched window: on a
+    shaded part a template that is too short (tilted too far) can sit inside the silhouette on its
+    interior edges and win level A, tens of degrees from the truth."""
+    for _ in range(max_walks):
+        h, on_edge = _local_scan_once(bank, h, dt_q, pad, dtt, K, p, distance_mm=distance_mm)
+        if not on_edge:
+            break
+    return h
+
+
+
+
 def polish(bank: TemplateBank, h: Hypothesis, dtt: DistanceTensor, K: np.ndarray, p: SearchParams, *,
-           distance_mm: float | None, neighbours: np.ndarray, min_step_px: float = 0.25,
-           max_iter: int = 60) -> Hypothesis:
-    """Pattern search over (view, phi, z, u, v) from ``h`` on the distance tensor ``dtt``."""
-    step_phi = p.inplane_step_deg / 2
-    step_uv = 1.0 / p.level_scale
-    step_z = p.depth_step / 2
+           distance_mm: float | None, neighbours: np.ndarray, step_phi_deg: float, step_uv_px: float,
+           step_z: float, min_step_px: float = 0.25, max_iter: int = 60) -> Hypothesis:
+    """Pattern search over (view, phi, z, u, v) from ``h`` on the distance tensor ``dtt``, with
+    bilinear, channel-interpolated costs: sub-pixel where the scans are whole-pixel."""
     cur = h
     Rs, ts = poses_of(bank, [cur], K, distance_mm)
     cur.cost, cur.score = (float(x[0]) for x in evaluate(bank, np.array([cur.view]), Rs, ts, K, dtt,
@@ -361,9 +484,9 @@ def polish(bank: TemplateBank, h: Hypothesis, dtt: DistanceTensor, K: np.ndarray
     view_moves = True
     for _ in range(max_iter):
         moves: list[Hypothesis] = []
-        for dp in (-step_phi, step_phi):
+        for dp in (-step_phi_deg, step_phi_deg):
             moves.append(Hypothesis(cur.view, cur.phi_deg + dp, cur.z_mm, cur.uv))
-        for du, dv in ((step_uv, 0), (-step_uv, 0), (0, step_uv), (0, -step_uv)):
+        for du, dv in ((step_uv_px, 0), (-step_uv_px, 0), (0, step_uv_px), (0, -step_uv_px)):
             moves.append(Hypothesis(cur.view, cur.phi_deg, cur.z_mm, cur.uv + np.array([du, dv])))
         if distance_mm is None:
             for f in (1 + step_z, 1 / (1 + step_z)):
@@ -379,12 +502,12 @@ def polish(bank: TemplateBank, h: Hypothesis, dtt: DistanceTensor, K: np.ndarray
             cur = moves[b]
             cur.cost, cur.score = float(cost[b]), float(score[b])
             continue
-        if step_uv <= min_step_px:
+        if step_uv_px <= min_step_px:
             break
-        step_phi /= 2
-        step_uv /= 2
+        step_phi_deg /= 2
+        step_uv_px /= 2
         step_z /= 2
-        view_moves = step_phi >= 0.5  # past that, neighbouring views are coarser than the angle steps
+        view_moves = False  # the scans already chose the view; past the first round only fine moves
     return cur
 
 
@@ -393,11 +516,13 @@ def coarse_search(bank: TemplateBank, dtt_a: DistanceTensor, dtt_b: DistanceTens
                   distance_range_mm: tuple[float, float]) -> list[Hypothesis]:
     """Ranked, polished, mutually distinct hypotheses (best first)."""
     K = intr.K
+    p_b = p
     if distance_mm is None:
         # Every distance multiplies the scan: run it on a coarser grid, with fewer, smaller templates.
         p = replace(p, level_scale=p.level_scale / 2, anchor_stride=1, points_per_template=32,
                     depth_step=p.unknown_depth_step)
         dtt_a = distance_tensor_from_edges_scaled(dtt_a, p.level_scale)
+        p_b = replace(p_b, depth_step=p.unknown_depth_step, local_radius_px=2 * p_b.local_radius_px)
     if distance_mm is not None:
         scales = np.array([1.0])
         z_ref = distance_mm
@@ -412,7 +537,6 @@ def coarse_search(bank: TemplateBank, dtt_a: DistanceTensor, dtt_b: DistanceTens
     radius = 0.25 * tpl.extent_px * float(np.median(scales))
     peaks = pick_peaks(au, av, cost, p.n_peaks, max(radius, 2.0))
     n_phi = len(tpl.phis_deg)
-    neighbours = view_neighbours(bank)
     starts: list[Hypothesis] = []
     for a in peaks:
         ti = int(t[a])
@@ -423,13 +547,19 @@ def coarse_search(bank: TemplateBank, dtt_a: DistanceTensor, dtt_b: DistanceTens
         starts.append(Hypothesis(view, phi, z, uv))
     if not starts:
         return []
-    # Level-A ranks are coarse: re-rank every peak on the finer grid, polish only the best few.
-    Rs, ts = poses_of(bank, starts, K, distance_mm)
-    views = np.array([h.view for h in starts])
-    cost_b, _ = evaluate(bank, views, Rs, ts, K, dtt_b, p.fine_points, p.score_px)
+    # The largest template extent on the fine grid bounds how far outside the image a point can land.
+    z_min = min(h.z_mm for h in starts) / (1 + p_b.depth_step)
+    pad = int(math.ceil(bank.diameter_mm * K[0, 0] / max(z_min, 1e-6) * dtt_b.scale)) + 2
+    dt_q = quantised_padded(dtt_b, pad)
+    scanned = [local_scan(bank, h, dt_q, pad, dtt_b, K, p_b, distance_mm=distance_mm) for h in starts]
+    Rs, ts = poses_of(bank, scanned, K, distance_mm)
+    cost_b, _ = evaluate(bank, np.array([h.view for h in scanned]), Rs, ts, K, dtt_b, p.fine_points,
+                         p.score_px)
     order = np.argsort(cost_b)[:p.n_polish]
-    out = [polish(bank, starts[i], dtt_b, K, p, distance_mm=distance_mm, neighbours=neighbours)
-           for i in order]
+    neighbours = view_neighbours(bank)
+    out = [polish(bank, scanned[i], dtt_b, K, p_b, distance_mm=distance_mm, neighbours=neighbours,
+                  step_phi_deg=p_b.local_phi_step_deg / 2, step_uv_px=1.0 / dtt_b.scale,
+                  step_z=p_b.depth_step / 4) for i in order]
     out.sort(key=lambda h: h.cost)
     return out
 
