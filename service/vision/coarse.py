@@ -54,6 +54,10 @@ class SearchParams:
     local_phi_step_deg: float = 2.0  # level B: in-plane steps of the local scan around each peak
     local_radius_px: float = 24.0  # level B: full-resolution px searched around each peak
     local_view_deg: float = 20.0  # level B: bank views within this angle of a peak's view are tried
+    # Level B ranks by the DT3 mean truncated here (full-res px): a hidden border point then costs no
+    # more than a badly placed one, so a 30 % occluded truth still beats a wrong pose on clutter.
+    rank_tau_px: float = 8.0
+    local_view_step_deg: float = 4.0  # level B fine block: bank views within 1.5x this of the best
 
 
 @dataclass
@@ -133,36 +137,49 @@ def border_orientation(bank: TemplateBank, idx: np.ndarray, pose: Pose, K: np.nd
 
 
 @nb.njit(parallel=True, cache=True)
-def _scan(dt, pad, off_u, off_v, chan, anchors_u, anchors_v, anchor_tile, accept, n_sentinel):
+def _scan(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, anchor_tile, accept, n_sentinel, shared):
     """For every anchor, the best (template, scale) by mean DT3 over template points.
 
-    dt: (Hp, Wp, C) uint8 (DT3 in 1/DT_QUANT pixels, pixel-major so a template's neighbouring points
-    share cache lines) padded by ``pad`` on every side; off_u/off_v: (J, D, T, P) int16 offsets in
+    dt: (H, W, C) uint8 (DT3 in 1/DT_QUANT pixels, pixel-major so a template's neighbouring points
+    share cache lines); a point outside it costs ``tau_q``; off_u/off_v: (J, D, T, P) int16 offsets in
     level pixels of template t at scale d in tile j; chan: (T, P) int32.
     Returns best mean cost (A,), template (A,), scale index (A,). A template is abandoned as soon as
     its partial sum reaches the anchor's best total (all terms are >= 0), or when its first
-    ``n_sentinel`` points already average 1.5x the best mean.
+    ``n_sentinel`` points already average 1.5x the best mean. With ``shared`` only the overall best
+    matters (a local search): every anchor prunes against the best total any anchor has reached, and
+    anchors that cannot beat it report inf. Threads read that bound unsynchronised; a stale (higher)
+    bound only prunes less, so the overall best is exact.
     """
     A = anchors_u.shape[0]
+    H = dt.shape[0]
+    W = dt.shape[1]
     D = off_u.shape[1]
     T = off_u.shape[2]
     P = off_u.shape[3]
     best_cost = np.full(A, np.inf, np.float64)
     best_t = np.full(A, -1, np.int32)
     best_d = np.full(A, -1, np.int32)
+    bound = np.full(1, accept * P, np.int64)
     for a in nb.prange(A):
-        ua = anchors_u[a] + pad
-        va = anchors_v[a] + pad
+        ua = anchors_u[a]
+        va = anchors_v[a]
         j = anchor_tile[a]
         best = accept * P
         bt = -1
         bd = -1
         for t in range(T):
+            if shared and bound[0] < best:
+                best = bound[0]
             for d in range(D):
                 acc = 0
                 ok = True
                 for i in range(P):
-                    acc += dt[va + off_v[j, d, t, i], ua + off_u[j, d, t, i], chan[t, i]]
+                    y = va + off_v[j, d, t, i]
+                    x = ua + off_u[j, d, t, i]
+                    if y >= 0 and y < H and x >= 0 and x < W:
+                        acc += dt[y, x, chan[t, i]]
+                    else:
+                        acc += tau_q
                     if acc >= best:
                         ok = False
                         break
@@ -172,6 +189,8 @@ def _scan(dt, pad, off_u, off_v, chan, anchors_u, anchors_v, anchor_tile, accept
                 if ok:
                     best = acc
                     bt = t
+                    if shared and acc < bound[0]:
+                        bound[0] = acc
                     bd = d
         if bt >= 0:
             best_cost[a] = best / P
@@ -194,11 +213,15 @@ class LevelATemplates:
 
 
 def _level_a_views(bank: TemplateBank, view_step_deg: float) -> np.ndarray:
-    """A subset of the bank's views spaced about ``view_step_deg`` apart (greedy on the sphere)."""
+    """A subset of the bank's views spaced about ``view_step_deg`` apart (greedy on the sphere); for a
+    revolved part only one of each mirror pair (see ``views_within``: level B tries both)."""
     z = bank.R_tpl_obj.transpose(0, 2, 1) @ E_Z  # viewing direction in the object frame
     chosen: list[int] = []
     cos_min = math.cos(math.radians(view_step_deg) * 0.75)
-    for n in range(len(z)):
+    candidates = range(len(z))
+    if bank.symmetry_axis_obj is not None:
+        candidates = np.flatnonzero(z @ np.asarray(bank.symmetry_axis_obj, float) >= -1e-6)
+    for n in candidates:
         if not chosen or np.max(z[chosen] @ z[n]) < cos_min:
             chosen.append(n)
     return np.array(chosen, np.int64)
@@ -254,10 +277,7 @@ def level_a_templates(bank: TemplateBank, intr: Intrinsics, image_shape: tuple[i
 
 def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, image_shape, p: SearchParams):
     C, hl, wl = dtt.dt.shape
-    pad = int(math.ceil(tpl.extent_px * float(scales.max()))) + 2
-    tau_q = int(round(dtt.tau_px * DT_QUANT))
-    dt_pad = np.full((hl + 2 * pad, wl + 2 * pad, C), tau_q, np.uint8)
-    dt_pad[pad:pad + hl, pad:pad + wl] = np.rint(dtt.dt.transpose(1, 2, 0) * DT_QUANT).astype(np.uint8)
+    dt_q, tau_q = quantised(dtt, dtt.tau_px)
     au, av = np.meshgrid(np.arange(0, wl, p.anchor_stride), np.arange(0, hl, p.anchor_stride))
     au, av = au.ravel().astype(np.int32), av.ravel().astype(np.int32)
     # An anchor can only win if the image has about as many edge pixels around it as a template has
@@ -278,8 +298,8 @@ def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, 
             + np.minimum((uf / w * nj_u).astype(np.int32), nj_u - 1)).astype(np.int32)
     off_u = np.rint(tpl.off_u[:, None] * scales[None, :, None, None]).astype(np.int16)
     off_v = np.rint(tpl.off_v[:, None] * scales[None, :, None, None]).astype(np.int16)
-    cost, t, d = _scan(dt_pad, pad, off_u, off_v, tpl.chan, au, av, tile,
-                       np.int64(p.accept_frac * tau_q), 8)
+    cost, t, d = _scan(dt_q, tau_q, off_u, off_v, tpl.chan, au, av, tile,
+                       np.int64(p.accept_frac * tau_q), 8, False)
     return au, av, tile, cost / DT_QUANT, t, d
 
 
@@ -344,8 +364,10 @@ def poses_of(bank: TemplateBank, hs: list[Hypothesis], K: np.ndarray, distance_m
 
 
 def evaluate(bank: TemplateBank, views: np.ndarray, Rs: np.ndarray, ts: np.ndarray, K: np.ndarray,
-             dtt: DistanceTensor, n_points: int, score_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """Mean directional chamfer cost (full-res px) and support score of M posed templates."""
+             dtt: DistanceTensor, n_points: int, score_px: float, tau_px: float = np.inf
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Mean directional chamfer cost (full-res px, each point's truncated at ``tau_px``) and support
+    score of M posed templates."""
     idx_all, prev_all, nxt_all = border_triplets(bank, n_points)
     views = np.asarray(views, np.int64)
 
@@ -358,7 +380,7 @@ def evaluate(bank: TemplateBank, views: np.ndarray, Rs: np.ndarray, ts: np.ndarr
     d = proj(nxt_all[views]) - proj(prev_all[views])
     theta = np.mod(np.arctan2(d[..., 1], d[..., 0]), np.pi)
     val = sample(dtt, dtt.to_grid(uv), theta) / dtt.scale
-    return val.mean(axis=1), (val <= score_px).mean(axis=1)
+    return np.minimum(val, tau_px).mean(axis=1), (val <= score_px).mean(axis=1)
 
 
 def view_neighbours(bank: TemplateBank, k: int = 6) -> np.ndarray:
@@ -386,90 +408,127 @@ def views_within(bank: TemplateBank, view: int, angle_deg: float) -> np.ndarray:
     return np.flatnonzero(near)
 
 
-def quantised_padded(dtt: DistanceTensor, pad: int) -> np.ndarray:
-    """DT3 as (H + 2 pad, W + 2 pad, C) uint8 in 1/DT_QUANT px, tau outside the image (for ``_scan``)."""
-    C, h, w = dtt.dt.shape
-    tau_q = int(round(dtt.tau_px * DT_QUANT))
-    out = np.full((h + 2 * pad, w + 2 * pad, C), min(tau_q, 255), np.uint8)
-    out[pad:pad + h, pad:pad + w] = np.rint(np.minimum(dtt.dt.transpose(1, 2, 0) * DT_QUANT, 255))
+def quantised(dtt: DistanceTensor, tau_px: float) -> tuple[np.ndarray, int]:
+    """DT3 truncated at ``tau_px`` (grid px) as (H, W, C) uint8 in 1/DT_QUANT px (for ``_scan``), and
+    the truncation in those units."""
+    tau_q = min(int(round(min(tau_px, dtt.tau_px) * DT_QUANT)), 255)
+    return _quantise_hwc(dtt.dt, np.float32(DT_QUANT), np.float32(tau_q)), tau_q
+
+
+@nb.njit(parallel=True, cache=True)
+def _quantise_hwc(dt, factor, tau_q):  # numpy's transposed copy alone took 13 ms at 640 x 480 x 16
+    C, H, W = dt.shape
+    out = np.empty((H, W, C), np.uint8)
+    for y in nb.prange(H):
+        for x in range(W):
+            for c in range(C):
+                out[y, x, c] = np.uint8(min(dt[c, y, x] * factor, tau_q) + np.float32(0.5))
     return out
 
 
-def _local_scan_once(bank: TemplateBank, h: Hypothesis, dt_q: np.ndarray, pad: int, dtt: DistanceTensor,
-               K: np.ndarray, p: SearchParams, *, distance_mm: float | None) -> tuple[Hypothesis, bool]:
-    """Exhaustive search around a level-A peak on the finer grid: every bank view near the peak's,
-    in-plane angles +-``inplane_step_deg`` in ``local_phi_step_deg`` steps, (for an unknown distance)
-    three depths, at every fine-grid pixel within ``local_radius_px``. Level A only says which basin
-    to look in; its angle and placement can be off by half a step, which moves the ends of a long
-    part by many pixels, so a greedy polish from the peak itself can settle in a neighbouring basin.
-    """
+@dataclass(frozen=True)
+class Window:
+    """A block of the local search: these views x in-plane angles x depth factors, at every
+    ``stride``-th fine-grid pixel within ``radius`` (fine-grid px) of ``centre`` (full-res uv)."""
+
+    views: np.ndarray
+    phis_deg: np.ndarray
+    depth_f: np.ndarray
+    centre: np.ndarray
+    radius: int
+    stride: int
+
+
+def _scan_window(bank: TemplateBank, win: Window, z_mm: float, dt_q: np.ndarray, tau_q: int,
+                 accept_q: int, dtt: DistanceTensor, K: np.ndarray, n_points: int, *,
+                 distance_mm: float | None) -> tuple[Hypothesis | None, float, tuple[int, int, int, int]]:
+    """The best placement in ``win`` by the compiled scan: (hypothesis, mean cost in 1/DT_QUANT
+    fine-grid px, (view index, phi index, du, dv) within the window) or (None, inf, ...) when nothing
+    beats ``accept_q``. Templates are projected exactly along the window centre's viewing ray."""
     from service.vision.edges import channel_of
 
-    views = views_within(bank, h.view, p.local_view_deg)
-    phis = h.phi_deg + np.arange(-p.inplane_step_deg, p.inplane_step_deg + 1e-9, p.local_phi_step_deg)
-    idx_all = border_triplets(bank, p.fine_points)[0]
-    idx = idx_all[views]  # (Tv, P)
-    d, R_ray = ray_rotation(h.uv, K)
-    Rv = (R_ray @ np.stack([Rz(f) for f in phis])[:, None] @ bank.R_tpl_obj[views][None])  # (Tp, Tv, 3, 3)
-    Rv = Rv.reshape(-1, 3, 3)
+    views, phis = win.views, win.phis_deg
+    idx = border_triplets(bank, n_points)[0][views]  # (Tv, P)
+    d, R_ray = ray_rotation(win.centre, K)
+    Rv = (R_ray @ np.stack([Rz(f) for f in phis])[:, None] @ bank.R_tpl_obj[views][None]).reshape(-1, 3, 3)
     p_rel = bank.p_obj[np.tile(idx, (len(phis), 1))].astype(np.float64) - bank.centre_obj  # (T, P, 3)
     pc = np.einsum("tij,tpj->tpi", Rv, p_rel)
-    c_rot = (Rv @ bank.centre_obj)[:, 2]
-    zc = (distance_mm + c_rot) if distance_mm is not None else np.full(len(Rv), h.z_mm)
-    depth_f = np.array([1.0]) if distance_mm is not None else np.array([1.0, 1 + p.depth_step / 2,
-                                                                       1 / (1 + p.depth_step / 2)])
+    zc = (distance_mm + (Rv @ bank.centre_obj)[:, 2]) if distance_mm is not None else np.full(len(Rv), z_mm)
     s = dtt.scale
-    uv0 = (h.uv + 0.5) * s - 0.5  # the peak on the fine grid
-    off_u = np.empty((1, len(depth_f), len(Rv), idx.shape[1]), np.int16)
+    c0 = np.rint((win.centre + 0.5) * s - 0.5)  # the window centre on the fine grid
+    off_u = np.empty((1, len(win.depth_f), len(Rv), idx.shape[1]), np.int16)
     off_v = np.empty_like(off_u)
-    for k, f in enumerate(depth_f):
+    for k, f in enumerate(win.depth_f):
         q = pc + (d / d[2])[None, None, :] * (zc * f)[:, None, None]
-        u = (K[0, 0] * q[..., 0] / q[..., 2] + K[0, 2] + 0.5) * s - 0.5
-        v = (K[1, 1] * q[..., 1] / q[..., 2] + K[1, 2] + 0.5) * s - 0.5
-        off_u[0, k] = np.rint(u - uv0[0])
-        off_v[0, k] = np.rint(v - uv0[1])
+        off_u[0, k] = np.rint((K[0, 0] * q[..., 0] / q[..., 2] + K[0, 2] + 0.5) * s - 0.5 - c0[0])
+        off_v[0, k] = np.rint((K[1, 1] * q[..., 1] / q[..., 2] + K[1, 2] + 0.5) * s - 0.5 - c0[1])
     theta = np.mod(np.tile(bank.theta_rad[idx], (len(phis), 1))
                    + np.repeat(np.deg2rad(phis), len(views))[:, None], np.pi)
     chan = channel_of(theta, dtt.n_channels).astype(np.int32)
-    r = int(math.ceil(p.local_radius_px * s))
-    gu, gv = np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1))
-    au = (np.rint(uv0[0]) + gu.ravel()).astype(np.int32)
-    av = (np.rint(uv0[1]) + gv.ravel()).astype(np.int32)
-    C, hl, wl = dtt.dt.shape
-    ext = int(np.abs(off_u).max(initial=0)), int(np.abs(off_v).max(initial=0))
-    ok = (au >= -pad + ext[0]) & (au < wl + pad - ext[0]) & (av >= -pad + ext[1]) & (av < hl + pad - ext[1])
-    au, av = au[ok], av[ok]
-    if len(au) == 0:
-        return h, False
-    tau_q = int(round(dtt.tau_px * DT_QUANT))
-    cost, t, dk = _scan(dt_q, pad, off_u, off_v, chan, au, av, np.zeros(len(au), np.int32),
-                        np.int64(tau_q), 0)
+    g = np.arange(-win.radius, win.radius + 1, win.stride)
+    gu, gv = np.meshgrid(g, g)
+    near_first = np.argsort(gu.ravel() ** 2 + gv.ravel() ** 2, kind="stable")  # a tight bound early
+    au = (c0[0] + gu.ravel()[near_first]).astype(np.int32)
+    av = (c0[1] + gv.ravel()[near_first]).astype(np.int32)
+    cost, t, dk = _scan(dt_q, tau_q, off_u, off_v, chan, au, av, np.zeros(len(au), np.int32),
+                        np.int64(accept_q), 0, True)
     a = int(np.argmin(cost))
     if not np.isfinite(cost[a]):
-        return h, False
+        return None, np.inf, (0, 0, 0, 0)
     ti = int(t[a])
+    iv, iphi = ti % len(views), ti // len(views)
     uv = np.array([(au[a] + 0.5) / s - 0.5, (av[a] + 0.5) / s - 0.5])
-    view, iphi = int(views[ti % len(views)]), ti // len(views)
-    z = bank.R_tpl_obj.transpose(0, 2, 1) @ E_Z
-    edge_view = math.degrees(math.acos(min(float(z[view] @ z[h.view]), 1.0))) > 0.6 * p.local_view_deg
-    on_edge = (edge_view or iphi in (0, len(phis) - 1) or abs(au[a] - np.rint(uv0[0])) >= r
-               or abs(av[a] - np.rint(uv0[1])) >= r)
-    return Hypothesis(view, float(phis[iphi]), float(zc[ti] * depth_f[dk[a]]), uv), on_edge
+    hyp = Hypothesis(int(views[iv]), float(phis[iphi]), float(zc[ti] * win.depth_f[dk[a]]), uv)
+    return hyp, float(cost[a]), (iv, iphi, int(au[a] - c0[0]), int(av[a] - c0[1]))
 
 
-def local_scan(bank: TemplateBank, h: Hypothesis, dt_q: np.ndarray, pad: int, dtt: DistanceTensor,
-               K: np.ndarray, p: SearchParams, *, distance_mm: float | None, max_walks: int = 3
-               ) -> Hypothesis:
-    """``_local_scan_once``, re-centred while the best lies near the edge of the searched window: on a
-    shaded part a template that is too short (tilted too far) can sit inside the silhouette on its
-    interior edges and win level A, tens of degrees from the truth."""
+def local_scan(bank: TemplateBank, h: Hypothesis, dt_q: np.ndarray, tau_q: int, dtt: DistanceTensor,
+               K: np.ndarray, p: SearchParams, *, distance_mm: float | None, accept_q: int,
+               max_walks: int = 3) -> tuple[Hypothesis | None, float]:
+    """Exhaustive search around a level-A peak on the finer grid, in two blocks.
+
+    Level A only says which basin to look in: its angle and placement can be off by half a step, which
+    moves the ends of a long part by many pixels, and a shaded part's interior edges can make a
+    template tilted tens of degrees too far win there. So first every bank view within
+    ``local_view_deg`` of the peak's (and of its mirror for a revolved part), in-plane angles
+    +-``inplane_step_deg`` and pixels within ``local_radius_px`` are tried at double steps; the block
+    is re-centred while its best lies on its edge. Then the best's immediate neighbourhood is tried
+    at single steps, abandoning any template that cannot beat the first block's best. Returns the
+    best and its mean cost (1/DT_QUANT fine-grid px), or (None, inf) when nothing beats ``accept_q``.
+    """
+    s = dtt.scale
+    depth_f = np.array([1.0]) if distance_mm is not None else np.array(
+        [1.0, 1 + p.depth_step / 2, 1 / (1 + p.depth_step / 2)])
+    step2 = p.local_phi_step_deg  # a long part's ends move fast with the angle: full angle steps here
+    r = int(math.ceil(p.local_radius_px * s))
+    best, best_q = h, np.inf
+    z_dirs = bank.R_tpl_obj.transpose(0, 2, 1) @ E_Z
     for _ in range(max_walks):
-        h, on_edge = _local_scan_once(bank, h, dt_q, pad, dtt, K, p, distance_mm=distance_mm)
+        win = Window(views_within(bank, best.view, p.local_view_deg),
+                     best.phi_deg + np.arange(-p.inplane_step_deg, p.inplane_step_deg + 1e-9, step2),
+                     depth_f, best.uv, r, 2)
+        hyp, q, (iv, iphi, du, dv) = _scan_window(bank, win, best.z_mm, dt_q, tau_q, accept_q, dtt, K,
+                                                   p.fine_points, distance_mm=distance_mm)
+        if hyp is None:
+            break
+        centre_view = best.view
+        best, best_q = hyp, q
+        turn = math.degrees(math.acos(min(float(z_dirs[hyp.view] @ z_dirs[centre_view]), 1.0)))
+        on_edge = (turn > 0.6 * p.local_view_deg or iphi in (0, len(win.phis_deg) - 1)
+                   or max(abs(du), abs(dv)) >= r - 1)
         if not on_edge:
             break
-    return h
-
-
+    if not np.isfinite(best_q):
+        return None, np.inf
+    # Fine block: neighbouring bank views, single angle and pixel steps, depth half-steps.
+    near = views_within(bank, best.view, 1.5 * p.local_view_step_deg)
+    win = Window(near, best.phi_deg + np.arange(-step2, step2 + 1e-9, p.local_phi_step_deg / 2),
+                 np.array([1.0]) if distance_mm is not None else np.array([1.0, 1 + p.depth_step / 4,
+                                                                          1 / (1 + p.depth_step / 4)]),
+                 best.uv, 2, 1)
+    hyp, q, _ = _scan_window(bank, win, best.z_mm, dt_q, tau_q, int(math.ceil(best_q)) + 1,
+                             dtt, K, p.fine_points, distance_mm=distance_mm)
+    return (hyp, q) if hyp is not None and q <= best_q else (best, best_q)
 
 
 def polish(bank: TemplateBank, h: Hypothesis, dtt: DistanceTensor, K: np.ndarray, p: SearchParams, *,
@@ -480,7 +539,7 @@ def polish(bank: TemplateBank, h: Hypothesis, dtt: DistanceTensor, K: np.ndarray
     cur = h
     Rs, ts = poses_of(bank, [cur], K, distance_mm)
     cur.cost, cur.score = (float(x[0]) for x in evaluate(bank, np.array([cur.view]), Rs, ts, K, dtt,
-                                                         p.fine_points, p.score_px))
+                                                         p.fine_points, p.score_px, p.rank_tau_px))
     view_moves = True
     for _ in range(max_iter):
         moves: list[Hypothesis] = []
@@ -496,7 +555,7 @@ def polish(bank: TemplateBank, h: Hypothesis, dtt: DistanceTensor, K: np.ndarray
                 moves.append(Hypothesis(int(n), cur.phi_deg, cur.z_mm, cur.uv))
         Rs, ts = poses_of(bank, moves, K, distance_mm)
         cost, score = evaluate(bank, np.array([m.view for m in moves]), Rs, ts, K, dtt, p.fine_points,
-                               p.score_px)
+                               p.score_px, p.rank_tau_px)
         b = int(np.argmin(cost))
         if cost[b] < cur.cost - 1e-6:
             cur = moves[b]
@@ -522,7 +581,7 @@ def coarse_search(bank: TemplateBank, dtt_a: DistanceTensor, dtt_b: DistanceTens
         p = replace(p, level_scale=p.level_scale / 2, anchor_stride=1, points_per_template=32,
                     depth_step=p.unknown_depth_step)
         dtt_a = distance_tensor_from_edges_scaled(dtt_a, p.level_scale)
-        p_b = replace(p_b, depth_step=p.unknown_depth_step, local_radius_px=2 * p_b.local_radius_px)
+        p_b = replace(p_b, depth_step=p.unknown_depth_step)
     if distance_mm is not None:
         scales = np.array([1.0])
         z_ref = distance_mm
@@ -547,14 +606,21 @@ def coarse_search(bank: TemplateBank, dtt_a: DistanceTensor, dtt_b: DistanceTens
         starts.append(Hypothesis(view, phi, z, uv))
     if not starts:
         return []
-    # The largest template extent on the fine grid bounds how far outside the image a point can land.
-    z_min = min(h.z_mm for h in starts) / (1 + p_b.depth_step)
-    pad = int(math.ceil(bank.diameter_mm * K[0, 0] / max(z_min, 1e-6) * dtt_b.scale)) + 2
-    dt_q = quantised_padded(dtt_b, pad)
-    scanned = [local_scan(bank, h, dt_q, pad, dtt_b, K, p_b, distance_mm=distance_mm) for h in starts]
+    dt_q, tau_q = quantised(dtt_b, p.rank_tau_px * dtt_b.scale)
+    scanned: list[Hypothesis] = []
+    best_q = np.inf
+    for h in starts:
+        # A peak whose neighbourhood cannot come within 2x of the best so far would never be reported.
+        accept = int(min(tau_q, 2 * best_q))
+        hyp, q = local_scan(bank, h, dt_q, tau_q, dtt_b, K, p_b, distance_mm=distance_mm, accept_q=accept)
+        if hyp is not None:
+            scanned.append(hyp)
+            best_q = min(best_q, q)
+    if not scanned:
+        return []
     Rs, ts = poses_of(bank, scanned, K, distance_mm)
     cost_b, _ = evaluate(bank, np.array([h.view for h in scanned]), Rs, ts, K, dtt_b, p.fine_points,
-                         p.score_px)
+                         p.score_px, p.rank_tau_px)
     order = np.argsort(cost_b)[:p.n_polish]
     neighbours = view_neighbours(bank)
     out = [polish(bank, scanned[i], dtt_b, K, p_b, distance_mm=distance_mm, neighbours=neighbours,
