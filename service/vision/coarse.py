@@ -39,7 +39,8 @@ class SearchParams:
     level_scale: float = 0.25
     fine_scale: float = 0.5
     inplane_step_deg: float = 10.0
-    view_step_deg: float = 6.0  # out-of-plane spacing used at level A (the bank may be finer)
+    view_step_deg: float = 6.0  # out-of-plane spacing used at level A for a revolved part (1 DoF)
+    view_step_any_deg: float = 20.0  # ... and for any other part (2 DoF): level B covers +-local_view_deg
     depth_step: float = 0.08  # ratio between successive distances tried at level A
     anchor_stride: int = 2  # level-A pixels
     points_per_template: int = 48
@@ -57,7 +58,6 @@ class SearchParams:
     # Level B ranks by the DT3 mean truncated here (full-res px): a hidden border point then costs no
     # more than a badly placed one, so a 30 % occluded truth still beats a wrong pose on clutter.
     rank_tau_px: float = 8.0
-    local_view_step_deg: float = 4.0  # level B fine block: bank views within 1.5x this of the best
 
 
 @dataclass
@@ -233,7 +233,8 @@ def level_a_templates(bank: TemplateBank, intr: Intrinsics, image_shape: tuple[i
 
     K = intr.K
     h, w = image_shape
-    views = _level_a_views(bank, p.view_step_deg)
+    views = _level_a_views(bank, p.view_step_deg if bank.symmetry_axis_obj is not None
+                           else p.view_step_any_deg)
     phis = np.arange(0.0, 360.0, p.inplane_step_deg)
     nj_u, nj_v = p.tiles
     tu = (np.arange(nj_u) + 0.5) * w / nj_u - 0.5
@@ -392,6 +393,12 @@ def view_neighbours(bank: TemplateBank, k: int = 6) -> np.ndarray:
     return np.argsort(-sim, axis=1)[:, :k]
 
 
+def bank_view_step_deg(bank: TemplateBank) -> float:
+    """Angle between neighbouring views of the bank's grid."""
+    key = "tilt_step_deg" if bank.symmetry_axis_obj is not None else "view_step_deg"
+    return float(bank.grid.get(key, 10.0))
+
+
 def views_within(bank: TemplateBank, view: int, angle_deg: float) -> np.ndarray:
     """Bank views whose viewing direction (object frame) is within ``angle_deg`` of ``view``'s.
 
@@ -521,7 +528,7 @@ def local_scan(bank: TemplateBank, h: Hypothesis, dt_q: np.ndarray, tau_q: int, 
     if not np.isfinite(best_q):
         return None, np.inf
     # Fine block: neighbouring bank views, single angle and pixel steps, depth half-steps.
-    near = views_within(bank, best.view, 1.5 * p.local_view_step_deg)
+    near = views_within(bank, best.view, 1.5 * bank_view_step_deg(bank))
     win = Window(near, best.phi_deg + np.arange(-step2, step2 + 1e-9, p.local_phi_step_deg / 2),
                  np.array([1.0]) if distance_mm is not None else np.array([1.0, 1 + p.depth_step / 4,
                                                                           1 / (1 + p.depth_step / 4)]),
