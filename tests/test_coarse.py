@@ -136,8 +136,8 @@ def test_unrelated_image_is_not_found(sprayer_bank):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="known weakness: with level A's 20 deg view spacing for non-symmetric "
-                   "parts the search returns the 180 deg flip of this near-symmetric part (position right); "
+@pytest.mark.xfail(strict=False, reason="known weakness: with level A's 20 deg view spacing for non-symmetric"
+                   " parts the search returns the 180 deg flip of this near-symmetric part (position right); "
                    "see the closing note of issue 4")
 def test_tless06_coarse_pose_non_symmetric(tless06_mesh):
     bank = pipeline.build_templates(tless06_mesh, symmetry="none", grid={"view_step_deg": 12.0})

@@ -229,7 +229,7 @@ def test_paper_eq18_median_threshold_option_also_converges(tless_bank):
 
 
 def test_refined_pose_is_never_worse_than_the_start_on_a_seeded_batch(tless_bank):
-    from service.vision.refine import verify
+    from service.vision.refine import SCORE_SLACK, verify
 
     img = synthetic(tless_bank, TLESS_POSE, seed=7)
     dtt = segment_distance_tensor(detect_segments(img, scale=1.0), (0, 0, SIZE[0], SIZE[1]))
@@ -239,8 +239,9 @@ def test_refined_pose_is_never_worse_than_the_start_on_a_seeded_batch(tless_bank
         deg, mm = (2.0, 4.0) if k < 5 else (10.0, 25.0)
         start = perturb(TLESS_POSE, rng, deg, mm, keep_z=True)
         res = refine_pose(tless_bank, start, img, INTR, distance_mm=500.0)
-        score0, _ = verify(border_points(tless_bank, start, INTR, SIZE), start, INTR, dtt, score_px=3.0)
-        assert res.score >= score0 - 0.02  # the same read-out (here on a whole-image DT: rounding)
+        score0, _, _ = verify(border_points(tless_bank, start, INTR, SIZE), start, INTR, dtt, score_px=3.0)
+        # the same read-out (here on a whole-image DT: rounding) with the refinement's SCORE_SLACK
+        assert res.score >= score0 - 0.02 - SCORE_SLACK
         if not res.converged:
             np.testing.assert_allclose(res.pose.R, start.R)
         if k < 5:
