@@ -5,9 +5,11 @@ Search, coarse to fine:
    distance is tried at every anchor (stride ``anchor_stride``) by a compiled scan with early
    termination (a template is abandoned once its partial sum exceeds the anchor's best so far); the
    image is split into tiles so each tile uses the template shape seen along its own viewing ray;
-2. level B (``fine_scale``, e.g. 1/2): the best distinct peaks are polished by a local pattern
-   search over (view, in-plane angle, distance, position) with exact perspective projection of the
-   templates' 3D border points.
+2. level B (``fine_scale``, e.g. 1/2): around each distinct peak a compiled exhaustive scan of the
+   nearby views, in-plane angles, depths and pixels (``local_scan``: level A says which basin to
+   look in, not where in it), then the best few are polished sub-pixel by a pattern search over
+   (view, in-plane angle, distance, position) with exact perspective projection of the templates'
+   3D border points.
 
 A hypothesis becomes a 6D pose without assuming the object sits on the optical axis: with the
 reference point seen at pixel ``uv`` (viewing ray ``r``), ``R = R_between(e_z, r) @ Rz(phi) @ R_view``
