@@ -28,6 +28,7 @@ from typing import Any
 
 from service.decode import decode_mesh
 from service.errors import UnprocessableError, clause, sentence
+from service.logs import configure_like, json_level
 from service.settings import Settings
 from service.store import Store, model_id
 
@@ -179,7 +180,8 @@ class Builder:
         self._executor = self._new_executor()
 
     def _new_executor(self) -> ProcessPoolExecutor:
-        return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"))
+        return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=configure_like, initargs=(json_level(),))
 
     def submit(self, mid: str) -> None:
         """Queue a build of ``mid`` unless this process already has one queued or running."""
