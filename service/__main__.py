@@ -59,7 +59,13 @@ def prepare_metrics_dir() -> tuple[Path, bool]:
     return path, True
 
 
+def _stopped(signum: int, frame: object) -> None:
+    raise SystemExit(0)
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
+    import signal
+
     import uvicorn
 
     from service.logs import logging_config
@@ -68,9 +74,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
         os.environ["POSE_CACHE_DIR"] = str(args.cache_dir)
     s = _settings(args)
     metrics_dir, made_here = prepare_metrics_dir()
+    # SIGTERM (docker stop): uvicorn stops accepting, answers the requests in flight, runs the
+    # lifespan's shutdown (running builds go back to "queued") and then raises the SIGTERM again
+    # for whoever handled it before; this handler makes that a clean exit (status 0, the metrics
+    # directory removed) instead of death by signal.
+    signal.signal(signal.SIGTERM, _stopped)
     try:
-        # SIGTERM / Ctrl-C: uvicorn stops accepting, answers the requests in flight, then runs the
-        # lifespan's shutdown (builds go back to "queued") and returns.
         uvicorn.run("service.main:create_app", factory=True, host=args.host or s.host,
                     port=args.port or s.port, workers=args.workers or s.workers, log_level=s.log_level,
                     log_config=logging_config(s.log_level), access_log=False)

@@ -17,7 +17,8 @@ LOG_LEVELS = ("critical", "error", "warning", "info", "debug")
 
 
 class Settings(BaseSettings):
-    model_config = SettingsConfigDict(env_prefix="POSE_", extra="ignore")
+    # env_ignore_empty: POSE_X= (what compose's ${POSE_X:-} gives when unset) means the default
+    model_config = SettingsConfigDict(env_prefix="POSE_", extra="ignore", env_ignore_empty=True)
 
     cache_dir: Path = Field(Path("templates_cache"), description="template cache directory (diskcache)")
     max_mesh_bytes: int = Field(100 * MB, gt=0, description="largest accepted mesh upload, bytes")
