@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 from service.errors import ServiceError
@@ -35,14 +37,55 @@ def _ensure_built(args: argparse.Namespace, settings, store) -> dict:
     return store.get(record["id"]) or record
 
 
+METRICS_DIR_ENV = "PROMETHEUS_MULTIPROC_DIR"  # read by prometheus_client when it is imported
+
+
+def prepare_metrics_dir() -> tuple[Path, bool]:
+    """An empty directory in ``$PROMETHEUS_MULTIPROC_DIR`` for the workers' metric files: (it, made here).
+
+    Must run before any process of this server imports prometheus_client (the workers inherit the
+    variable). Files of an earlier run would add its counts to this one's, so a directory the
+    operator named is emptied; otherwise a new private one is made (and removed at exit).
+    """
+    named = os.environ.get(METRICS_DIR_ENV)
+    if named:
+        path = Path(named)
+        path.mkdir(parents=True, exist_ok=True)
+        for old in path.glob("*.db"):
+            old.unlink()
+        return path, False
+    path = Path(tempfile.mkdtemp(prefix="posecell-metrics-"))
+    os.environ[METRICS_DIR_ENV] = str(path)
+    return path, True
+
+
+def _stopped(signum: int, frame: object) -> None:
+    raise SystemExit(0)
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
+    import signal
+
     import uvicorn
+
+    from service.logs import logging_config
 
     if args.cache_dir:  # uvicorn's worker processes read their Settings from the environment
         os.environ["POSE_CACHE_DIR"] = str(args.cache_dir)
     s = _settings(args)
-    uvicorn.run("service.main:create_app", factory=True, host=args.host or s.host, port=args.port or s.port,
-                workers=args.workers or s.workers, log_level=s.log_level)
+    metrics_dir, made_here = prepare_metrics_dir()
+    # SIGTERM (docker stop): uvicorn stops accepting, answers the requests in flight, runs the
+    # lifespan's shutdown (running builds go back to "queued") and then raises the SIGTERM again
+    # for whoever handled it before; this handler makes that a clean exit (status 0, the metrics
+    # directory removed) instead of death by signal.
+    signal.signal(signal.SIGTERM, _stopped)
+    try:
+        uvicorn.run("service.main:create_app", factory=True, host=args.host or s.host,
+                    port=args.port or s.port, workers=args.workers or s.workers, log_level=s.log_level,
+                    log_config=logging_config(s.log_level), access_log=False)
+    finally:
+        if made_here:
+            shutil.rmtree(metrics_dir, ignore_errors=True)
     return 0
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 import signal
 import threading
 import time
@@ -28,6 +29,7 @@ from typing import Any
 
 from service.decode import decode_mesh
 from service.errors import UnprocessableError, clause, sentence
+from service.logs import configure_like, json_level
 from service.settings import Settings
 from service.store import Store, model_id
 
@@ -83,25 +85,33 @@ class _DeletedError(Exception):
     """The model was deleted while it was being built."""
 
 
-def _exit_on_sigterm(signum: int, frame: object) -> None:
-    raise SystemExit(128 + signum)
-
-
 def run_build(cache_dir: str, mid: str, lease_s: float) -> str:
     """Build model ``mid``'s template bank (in a pool process, or in-process for the CLI).
 
     Returns the final status: "ready", "failed" or "deleted". A SIGTERM while building puts the
-    model back to "queued" (it resumes at the next start-up) and exits.
+    model back to "queued" (it resumes at the next start-up), releases the lease and ends the
+    process at once (status 143). That is done by the lease's heartbeat thread, not by unwinding the
+    main thread: the main thread may be waiting on a thread pool that would first render every
+    remaining view, longer than the stopping service waits before it kills the process, which
+    would leave the model "building" until its lease ran out.
     """
     from service.pipeline import build_templates
     from service.schemas import Symmetry
 
-    in_main = threading.current_thread() is threading.main_thread()
-    old_handler = signal.signal(signal.SIGTERM, _exit_on_sigterm) if in_main else None
     store = Store(cache_dir)
     token: str | None = None
-    stop = threading.Event()
+    wake = threading.Event()  # the heartbeat stops renewing: the build ended, or a SIGTERM came
+    sigterm = threading.Event()
     heartbeat: threading.Thread | None = None
+
+    def on_sigterm(signum: int, frame: object) -> None:
+        if heartbeat is None:  # no lease taken yet: nothing to put back
+            raise SystemExit(128 + signum)
+        sigterm.set()
+        wake.set()
+
+    in_main = threading.current_thread() is threading.main_thread()
+    old_handler = signal.signal(signal.SIGTERM, on_sigterm) if in_main else None
     try:
         while True:  # wait for the lease, unless the build gets done or deleted meanwhile
             rec = store.get(mid)
@@ -116,8 +126,13 @@ def run_build(cache_dir: str, mid: str, lease_s: float) -> str:
                 time.sleep(LEASE_POLL_S)
 
         def renew(token: str = token) -> None:
-            while not stop.wait(lease_s / 3):
+            while not wake.wait(lease_s / 3):
                 store.renew(mid, token, lease_s)
+            if sigterm.is_set():
+                store.update(mid, status="queued")
+                store.unlock(mid, token)
+                log.info("template build of model %s stopped; it resumes at the next start-up", mid)
+                os._exit(128 + signal.SIGTERM)
 
         heartbeat = threading.Thread(target=renew, name=f"lease-{mid}", daemon=True)
         heartbeat.start()
@@ -155,7 +170,7 @@ def run_build(cache_dir: str, mid: str, lease_s: float) -> str:
             store.update(mid, status="queued")
         raise
     finally:
-        stop.set()
+        wake.set()
         if heartbeat is not None:
             heartbeat.join()
         if token is not None:
@@ -179,7 +194,8 @@ class Builder:
         self._executor = self._new_executor()
 
     def _new_executor(self) -> ProcessPoolExecutor:
-        return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"))
+        return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=configure_like, initargs=(json_level(),))
 
     def submit(self, mid: str) -> None:
         """Queue a build of ``mid`` unless this process already has one queued or running."""
@@ -241,7 +257,7 @@ class Builder:
         for p in procs:
             if p.is_alive():
                 p.terminate()
-        for p in procs:  # SIGTERM lands between two compiled calls of the build; then we stop waiting
+        for p in procs:  # a building process puts its model back to "queued" and exits (run_build)
             p.join(timeout=SHUTDOWN_GRACE_S)
             if p.is_alive():  # its lease stays until it expires; the build resumes at the next start-up
                 p.kill()

@@ -3,6 +3,7 @@
 ::
 
     ServiceError                     500  base: ``status_code``, ``detail`` (one sentence), ``headers``
+    ├── UnauthorizedError            401  POSE_API_KEY is set and X-API-Key is missing or wrong
     ├── NotFoundError                404  unknown model id, template index out of range
     ├── ConflictError                409  the model exists but cannot serve the request (yet)
     │   ├── NotReadyError            409  template build queued or running; sends ``Retry-After``
@@ -56,6 +57,10 @@ class ServiceError(Exception):
         self.detail = sentence(detail)
         self.headers = dict(headers or {})
         super().__init__(self.detail)
+
+
+class UnauthorizedError(ServiceError):
+    status_code = 401
 
 
 class NotFoundError(ServiceError):
@@ -157,10 +162,15 @@ async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResp
     return _json(exc.status_code, detail, getattr(exc, "headers", None))
 
 
-async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
-    log.exception("unhandled error in %s %s", request.method, request.url.path)
+def unexpected_response(method: str, path: str, exc: BaseException) -> JSONResponse:
+    """The 500 for an exception no handler knew: logged with its traceback, answered in one sentence."""
+    log.error("unhandled error in %s %s", method, path, exc_info=exc)
     return _json(500, f"The service failed unexpectedly ({type(exc).__name__}); this is a bug, "
                       "please report it with the request that caused it")
+
+
+async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+    return unexpected_response(request.method, request.url.path, exc)
 
 
 def install_handlers(app: FastAPI) -> None:

@@ -3,7 +3,9 @@
 The lifespan owns the two long-lived objects, the ``Store`` (template cache) and the ``Builder``
 (template-build process pool), and re-queues builds a previous run left unfinished. Routers live
 in ``service.api``; every error is written as ``{"detail": "<one sentence>."}`` (``service.errors``).
-Run it with ``python -m service serve`` or ``uvicorn 'service.main:create_app' --factory``.
+Around the routes (``service.middleware``): request ids, access logs and metrics; the optional API
+key; the upload size limit. Run it with ``python -m service serve`` (JSON logs, metrics of all
+workers) or ``uvicorn 'service.main:create_app' --factory``.
 """
 
 from __future__ import annotations
@@ -17,10 +19,13 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.api import estimate, health, models
+from service import monitoring
+from service.api import error_responses, estimate, health, metrics, models
+from service.api.deps import ApiKeyDocumented
 from service.api.health import VERSION
 from service.builder import Builder
 from service.errors import install_handlers, sentence
+from service.middleware import ApiKeyGuard, RequestContext
 from service.settings import Settings
 from service.store import Store
 
@@ -91,9 +96,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         builder.resume(store)
         try:
             yield
-        finally:
-            builder.shutdown()
+        finally:  # uvicorn gets here once in-flight requests are answered (graceful shutdown)
+            builder.shutdown()  # running builds go back to "queued": the next start-up resumes them
             store.close()
+            monitoring.process_stopped()
 
     app = FastAPI(
         title="posecell", version=VERSION, lifespan=lifespan,
@@ -103,7 +109,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     install_handlers(app)
+    # add_middleware puts each one outside the ones before: RequestContext ends up outermost
     app.add_middleware(UploadLimit, settings=settings)
-    for module in (health, models, estimate):
+    app.add_middleware(ApiKeyGuard, api_key=settings.api_key)
+    app.add_middleware(RequestContext)
+    for module in (health, metrics):
         app.include_router(module.router)
+    for module in (models, estimate):  # behind the optional API key
+        app.include_router(module.router, dependencies=[ApiKeyDocumented],
+                           responses=error_responses(401))
     return app

@@ -9,14 +9,16 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from pydantic import Field
+from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 MB = 1024 * 1024
+LOG_LEVELS = ("critical", "error", "warning", "info", "debug")
 
 
 class Settings(BaseSettings):
-    model_config = SettingsConfigDict(env_prefix="POSE_", extra="ignore")
+    # env_ignore_empty: POSE_X= (what compose's ${POSE_X:-} gives when unset) means the default
+    model_config = SettingsConfigDict(env_prefix="POSE_", extra="ignore", env_ignore_empty=True)
 
     cache_dir: Path = Field(Path("templates_cache"), description="template cache directory (diskcache)")
     max_mesh_bytes: int = Field(100 * MB, gt=0, description="largest accepted mesh upload, bytes")
@@ -29,8 +31,25 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
     workers: int = Field(1, ge=1, description="uvicorn worker processes (they share the cache dir)")
-    log_level: str = "info"
+    log_level: str = Field("info", description="critical, error, warning, info or debug (JSON lines, stdout)")
+    api_key: SecretStr | None = Field(
+        None, description="when set, every route but /health and /metrics requires this value in the "
+        "X-API-Key header; unset or empty: no authentication")
     template_grid: dict[str, Any] = Field(
         default_factory=dict,
         description="template-grid defaults (keys of service.vision.templates); an upload's `templates` "
         "JSON overrides them key by key")
+
+    @field_validator("api_key", mode="before")
+    @classmethod
+    def _empty_key_means_none(cls, v: Any) -> Any:
+        # compose passes ${POSE_API_KEY:-} as an empty string when the operator sets no key
+        return None if v is None or (isinstance(v, str) and not v.strip()) else v
+
+    @field_validator("log_level")
+    @classmethod
+    def _known_level(cls, v: str) -> str:
+        level = v.strip().lower()
+        if level not in LOG_LEVELS:
+            raise ValueError(f"log_level must be one of {', '.join(LOG_LEVELS)}, not {v!r}")
+        return level

@@ -83,6 +83,10 @@ class Store:
     def close(self) -> None:
         self._cache.close()
 
+    def volume_bytes(self) -> int:
+        """Size of the cache on disk, bytes: its SQLite database and the value files beside it."""
+        return int(self._cache.volume())
+
     def __enter__(self) -> Store:
         return self
 

@@ -5,6 +5,7 @@ from typing import Any
 from service.schemas import Error
 
 _DESCRIPTIONS = {
+    401: "POSE_API_KEY is set and the X-API-Key header is missing or wrong.",
     404: "Unknown model id (or template index).",
     409: "Model not ready yet (with Retry-After), or its build failed (the detail says why).",
     413: "Upload over the size limit.",

@@ -3,6 +3,7 @@
 ``StoreDep``, ``SettingsDep``, ``BuilderDep``: the app-wide objects the lifespan created.
 ``ModelRecord``: the model named by the ``model_id`` path parameter, or 404.
 ``ReadyModel``: that model with its template bank loaded, or 404 / 409 (not ready) / 409 (failed).
+``ApiKeyDocumented``: the ``X-API-Key`` header in the OpenAPI schema of the routes that need it.
 """
 
 from __future__ import annotations
@@ -12,7 +13,8 @@ import math
 from dataclasses import dataclass
 from typing import Annotated, Any, TypeVar
 
-from fastapi import Depends, Request, UploadFile
+from fastapi import Depends, Request, Security, UploadFile
+from fastapi.security import APIKeyHeader
 from pydantic import BaseModel, ValidationError
 
 from service.builder import Builder
@@ -85,6 +87,14 @@ def get_ready_model(record: ModelRecord, store: StoreDep) -> Loaded:
 
 
 ReadyModel = Annotated[Loaded, Depends(get_ready_model)]
+
+
+# The key is checked by ``service.middleware.ApiKeyGuard`` before a body is read; this dependency
+# only puts the header and its security scheme into the OpenAPI schema of the protected routes.
+API_KEY_SCHEME = APIKeyHeader(
+    name="X-API-Key", scheme_name="APIKey", auto_error=False,
+    description="required on every route but /health and /metrics when the service has POSE_API_KEY set")
+ApiKeyDocumented = Security(API_KEY_SCHEME)
 
 
 # --- request bodies -------------------------------------------------------------------------------

@@ -7,6 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter, File, Form, UploadFile
 from starlette.concurrency import run_in_threadpool
 
+from service import monitoring
 from service.api import error_responses
 from service.api.deps import Loaded, ReadyModel, SettingsDep, parse_json_part, read_upload
 from service.decode import decode_image
@@ -42,4 +43,6 @@ async def estimate(
     data = await read_upload(image, settings.max_image_bytes, "image file", "POSE_MAX_IMAGE_BYTES")
     cam = parse_json_part(camera, Camera, "camera")
     opts = parse_json_part(options, Options, "options")
-    return await run_in_threadpool(run_estimate, model, data, cam, opts, settings)
+    result = await run_in_threadpool(run_estimate, model, data, cam, opts, settings)
+    monitoring.observe_estimate(result.timing_ms.model_dump(), result.found)
+    return result
