@@ -51,3 +51,7 @@ OVERLAY_ON_BORDER_PX = 1.5  # refined-contour pixels lie this close to the rende
 # --- API ---
 API_HELD_DISTANCE_MM = 1e-6  # options.distance_mm is held: the returned t_mm z equals it
 API_UNITS_CHECK_MM = 25.0  # paper/0001 at 500 mm: returned t_mm x, y within this of gt (mm, not m or px)
+
+# --- found verdict (tests/test_found_verdict.py) ---
+FOUND_POSE_T_MM = 10.0  # a found pose must be graspable: within 10 mm ...
+FOUND_POSE_AXIS_DEG = 5.0  # ... and 5 deg of the truth
