@@ -31,3 +31,8 @@ def tless06_mesh(data_dir):
     import trimesh
 
     return trimesh.load(data_dir / "models" / "tless_06.ply", force="mesh")
+
+
+@pytest.fixture(scope="session")
+def sprayer_bytes(data_dir) -> bytes:
+    return (data_dir / "models" / "sprayer.stl").read_bytes()

@@ -7,7 +7,6 @@ use their own apps with tiny limits.
 from __future__ import annotations
 
 import json
-import time
 import warnings
 
 import cv2
@@ -17,13 +16,13 @@ import pytest
 from service.main import create_app
 from service.settings import Settings
 from service.store import Store, model_id
+from tests.api_helpers import wait_built
 
 with warnings.catch_warnings():  # starlette would like httpx2; the test extra installs httpx
     warnings.filterwarnings("ignore", message="Using `httpx` with `starlette.testclient`")
     from fastapi.testclient import TestClient
 
 GRID = {"tilt_step_deg": 15, "view_step_deg": 45}
-BUILD_WAIT_S = 300  # give up polling a build after this long (a hang guard, not a speed assert)
 CAMERA = {"fx": 1100.0, "fy": 1100.0, "cx": 643.0, "cy": 477.0}
 
 
@@ -33,21 +32,6 @@ def assert_error(r, status: int) -> str:
     assert isinstance(detail, str), detail
     assert detail.endswith(".") and "\n" not in detail and detail[0].isupper(), detail
     return detail
-
-
-def wait_built(client: TestClient, mid: str) -> dict:
-    deadline = time.monotonic() + BUILD_WAIT_S
-    while time.monotonic() < deadline:
-        info = client.get(f"/models/{mid}").json()
-        if info["status"] in ("ready", "failed"):
-            return info
-        time.sleep(0.2)
-    raise AssertionError(f"model {mid} still {info['status']} after {BUILD_WAIT_S} s")
-
-
-@pytest.fixture(scope="module")
-def sprayer_bytes(data_dir) -> bytes:
-    return (data_dir / "models" / "sprayer.stl").read_bytes()
 
 
 @pytest.fixture(scope="module")

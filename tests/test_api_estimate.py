@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import base64
 import json
-import time
 import warnings
 
 import cv2
@@ -18,6 +17,7 @@ import pytest
 from service.main import create_app
 from service.settings import Settings
 from service.vision.frames import R_from_euler_xyz_deg, R_from_quat_xyzw
+from tests.api_helpers import wait_built
 from tests.tolerances import API_HELD_DISTANCE_MM, API_UNITS_CHECK_MM, ROUND_TRIP_ATOL
 
 with warnings.catch_warnings():  # starlette would like httpx2; the test extra installs httpx
@@ -25,7 +25,6 @@ with warnings.catch_warnings():  # starlette would like httpx2; the test extra i
     from fastapi.testclient import TestClient
 
 GRID = {"tilt_step_deg": 15, "view_step_deg": 45}
-BUILD_WAIT_S = 300  # give up polling a build after this long (a hang guard, not a speed assert)
 POSE_FIELDS = {"R", "t_mm", "euler_xyz_deg", "quaternion_xyzw"}
 
 
@@ -47,17 +46,12 @@ def image_bytes(data_dir, gt) -> bytes:
 
 
 @pytest.fixture(scope="module")
-def client(tmp_path_factory, data_dir):
+def client(tmp_path_factory, sprayer_bytes):
     settings = Settings(cache_dir=tmp_path_factory.mktemp("estimate-cache"), template_grid=GRID)
     with TestClient(create_app(settings)) as c:
-        mesh = (data_dir / "models" / "sprayer.stl").read_bytes()
-        r = c.post("/models", files={"file": ("sprayer.stl", mesh)})
+        r = c.post("/models", files={"file": ("sprayer.stl", sprayer_bytes)})
         mid = r.json()["id"]
-        deadline = time.monotonic() + BUILD_WAIT_S
-        while c.get(f"/models/{mid}").json()["status"] not in ("ready", "failed"):
-            assert time.monotonic() < deadline, "the template build did not finish"
-            time.sleep(0.2)
-        assert c.get(f"/models/{mid}").json()["status"] == "ready"
+        assert wait_built(c, mid)["status"] == "ready"
         c.model_id = mid
         yield c
 

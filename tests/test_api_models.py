@@ -3,7 +3,6 @@ template pictures, persistence and resumed builds across app restarts; health.""
 
 from __future__ import annotations
 
-import time
 import warnings
 
 import cv2
@@ -13,32 +12,15 @@ import pytest
 from service.main import create_app
 from service.settings import Settings
 from service.store import Store, model_id
+from tests.api_helpers import wait_built
 
 with warnings.catch_warnings():  # starlette would like httpx2; the test extra installs httpx
     warnings.filterwarnings("ignore", message="Using `httpx` with `starlette.testclient`")
     from fastapi.testclient import TestClient
 
 GRID = {"tilt_step_deg": 15, "view_step_deg": 45}
-BUILD_WAIT_S = 300  # give up polling a build after this long (a hang guard, not a speed assert)
 MODEL_FIELDS = {"id", "name", "status", "progress", "error", "n_templates", "units", "extents_mm", "symmetry",
                 "created_at"}
-
-
-def wait_built(client: TestClient, mid: str, seen: list | None = None) -> dict:
-    deadline = time.monotonic() + BUILD_WAIT_S
-    while time.monotonic() < deadline:
-        info = client.get(f"/models/{mid}").json()
-        if seen is not None:
-            seen.append(info)
-        if info["status"] in ("ready", "failed"):
-            return info
-        time.sleep(0.1)
-    raise AssertionError(f"model {mid} still {info['status']} after {BUILD_WAIT_S} s")
-
-
-@pytest.fixture(scope="module")
-def sprayer_bytes(data_dir) -> bytes:
-    return (data_dir / "models" / "sprayer.stl").read_bytes()
 
 
 @pytest.fixture

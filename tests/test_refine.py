@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from service.vision.camera import Intrinsics, undistort_points
-from service.vision.chamfer import sample
+from service.vision.chamfer import sample, sample_with_grad
 from service.vision.edges import Segments, detect_segments
 from service.vision.frames import Pose, R_from_rotvec, canonical_symmetric_R, rotation_angle_deg
 from service.vision.refine import (
@@ -22,7 +22,6 @@ from service.vision.refine import (
     match_lines,
     project_border,
     refine_pose,
-    sample_with_grad,
     segment_distance_tensor,
 )
 from service.vision.render import render, render_shaded

@@ -89,11 +89,20 @@ def distance_tensor(seg: Segments, *, n_channels: int = DEFAULT_CHANNELS, scale:
 # --- reading costs ---------------------------------------------------------------------------------
 
 
-def sample(dtt: DistanceTensor, uv_grid: np.ndarray, theta_rad: np.ndarray) -> np.ndarray:
-    """Directional chamfer distance at sub-pixel grid points, bilinear in space and linear, cyclic
-    across orientation channels; outside the grid the cost is tau. (..., 2), (...) -> (...)."""
-    dt = dtt.dt
-    C, h, w = dt.shape
+@dataclass(frozen=True)
+class _Cells:
+    """Where sub-pixel points fall in DT3: the two channels' top-left flat indices and the fractions."""
+
+    inside: np.ndarray
+    base0: np.ndarray  # flat index of the top-left neighbour in the lower channel
+    base1: np.ndarray  # ... and in the next channel (cyclically)
+    fu: np.ndarray
+    fv: np.ndarray
+    fc: np.ndarray
+
+
+def _cells(dtt: DistanceTensor, uv_grid: np.ndarray, theta_rad: np.ndarray) -> _Cells:
+    C, h, w = dtt.dt.shape
     uv = np.asarray(uv_grid, np.float64)
     u, v = uv[..., 0], uv[..., 1]
     inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
@@ -101,22 +110,50 @@ def sample(dtt: DistanceTensor, uv_grid: np.ndarray, theta_rad: np.ndarray) -> n
     vc = np.clip(v, 0, h - 1.0001)
     u0 = np.floor(uc).astype(np.int64)
     v0 = np.floor(vc).astype(np.int64)
-    fu = uc - u0
-    fv = vc - v0
     cf = np.mod(np.asarray(theta_rad, np.float64) * (C / np.pi), C)
     c0 = np.floor(cf).astype(np.int64) % C
-    c1 = (c0 + 1) % C
-    fc = cf - np.floor(cf)
-    flat = dt.reshape(-1)
-    base0 = c0 * (h * w) + v0 * w + u0
-    base1 = c1 * (h * w) + v0 * w + u0
+    pix = v0 * w + u0
+    return _Cells(inside, c0 * (h * w) + pix, ((c0 + 1) % C) * (h * w) + pix, uc - u0, vc - v0,
+                  cf - np.floor(cf))
+
+
+def sample(dtt: DistanceTensor, uv_grid: np.ndarray, theta_rad: np.ndarray) -> np.ndarray:
+    """Directional chamfer distance at sub-pixel grid points, bilinear in space and linear, cyclic
+    across orientation channels; outside the grid the cost is tau. (..., 2), (...) -> (...)."""
+    k = _cells(dtt, uv_grid, theta_rad)
+    flat, w = dtt.dt.reshape(-1), dtt.dt.shape[2]
+    fu, fv = k.fu, k.fv
 
     def bil(base):
         return ((1 - fv) * ((1 - fu) * flat[base] + fu * flat[base + 1])
                 + fv * ((1 - fu) * flat[base + w] + fu * flat[base + w + 1]))
 
-    val = (1 - fc) * bil(base0) + fc * bil(base1)
-    return np.where(inside, val, dtt.tau_px)
+    val = (1 - k.fc) * bil(k.base0) + k.fc * bil(k.base1)
+    return np.where(k.inside, val, dtt.tau_px)
+
+
+def sample_with_grad(dtt: DistanceTensor, uv_grid: np.ndarray, theta_rad: np.ndarray):
+    """``sample`` and its partial derivatives: (val, d/du, d/dv, d/dtheta), grid units; outside the
+    grid: tau, zero gradient. Separate from ``sample`` so the coarse search does not pay for them."""
+    k = _cells(dtt, uv_grid, theta_rad)
+    flat, w, C = dtt.dt.reshape(-1), dtt.dt.shape[2], dtt.dt.shape[0]
+    fu, fv, fc = k.fu, k.fv, k.fc
+
+    def bil(base):
+        a, b = flat[base].astype(np.float64), flat[base + 1].astype(np.float64)
+        c, d = flat[base + w].astype(np.float64), flat[base + w + 1].astype(np.float64)
+        val = (1 - fv) * ((1 - fu) * a + fu * b) + fv * ((1 - fu) * c + fu * d)
+        du = (1 - fv) * (b - a) + fv * (d - c)
+        dv = (1 - fu) * (c - a) + fu * (d - b)
+        return val, du, dv
+
+    A0, Au0, Av0 = bil(k.base0)
+    A1, Au1, Av1 = bil(k.base1)
+    val = np.where(k.inside, (1 - fc) * A0 + fc * A1, dtt.tau_px)
+    z = np.zeros_like(val)
+    gu = np.where(k.inside, (1 - fc) * Au0 + fc * Au1, z)
+    gv = np.where(k.inside, (1 - fc) * Av0 + fc * Av1, z)
+    return val, gu, gv, np.where(k.inside, (A1 - A0) * (C / np.pi), z)
 
 
 def sample_nearest(dtt: DistanceTensor, uv_grid: np.ndarray, theta_rad: np.ndarray) -> np.ndarray:

@@ -29,9 +29,8 @@ import numpy as np
 from service.vision.bank import TemplateBank
 from service.vision.camera import Intrinsics
 from service.vision.chamfer import DistanceTensor, sample
-from service.vision.frames import Pose, Rz
+from service.vision.frames import Rz
 
-E_Z = np.array([0.0, 0.0, 1.0])
 DT_QUANT = 8  # level-A DT3 stored as uint8 in 1/8 px: 4x less memory traffic than float32
 
 
@@ -96,9 +95,9 @@ def ray_rotations(uv: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return d, R
 
 
-def depth_for_distance(bank: TemplateBank, R: np.ndarray, distance_mm: float) -> float:
-    """Depth of centre_obj when the object origin is at camera z = distance_mm."""
-    return float(distance_mm + (R @ bank.centre_obj)[2])
+def view_dirs_obj(bank: TemplateBank) -> np.ndarray:
+    """(N, 3) each view's viewing direction (camera +z) in the object frame: R_tpl_obj.T @ e_z."""
+    return bank.R_tpl_obj[:, 2, :]
 
 
 def subsample_border(bank: TemplateBank, n: int, count: int) -> np.ndarray:
@@ -108,31 +107,6 @@ def subsample_border(bank: TemplateBank, n: int, count: int) -> np.ndarray:
     if m <= count:
         return np.arange(s.start, s.stop)
     return s.start + np.linspace(0, m, count, endpoint=False).astype(np.int64)
-
-
-def project_border(bank: TemplateBank, idx: np.ndarray, pose: Pose, K: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Border points ``idx`` at ``pose``: (M, 2) uv full-res px and (M,) image orientation rad.
-
-    The orientation comes from projecting each point's neighbours along the template border, so it
-    follows perspective and off-axis placement exactly.
-    """
-    p = bank.p_obj[idx].astype(np.float64) @ pose.R.T + pose.t_mm
-    uv = np.stack([K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]], 1)
-    theta = border_orientation(bank, idx, pose, K)
-    return uv, theta
-
-
-def border_orientation(bank: TemplateBank, idx: np.ndarray, pose: Pose, K: np.ndarray) -> np.ndarray:
-    view = np.searchsorted(bank.offsets, idx, side="right") - 1
-    lo, hi = bank.offsets[view], bank.offsets[view + 1]
-    prev = np.where(idx - 1 >= lo, idx - 1, hi - 1)
-    nxt = np.where(idx + 1 < hi, idx + 1, lo)
-    a = bank.p_obj[prev].astype(np.float64) @ pose.R.T + pose.t_mm
-    b = bank.p_obj[nxt].astype(np.float64) @ pose.R.T + pose.t_mm
-    du = K[0, 0] * (b[:, 0] / b[:, 2] - a[:, 0] / a[:, 2])
-    dv = K[1, 1] * (b[:, 1] / b[:, 2] - a[:, 1] / a[:, 2])
-    return np.mod(np.arctan2(dv, du), np.pi)
 
 
 # --- level A: exhaustive scan ----------------------------------------------------------------------
@@ -217,7 +191,7 @@ class LevelATemplates:
 def _level_a_views(bank: TemplateBank, view_step_deg: float) -> np.ndarray:
     """A subset of the bank's views spaced about ``view_step_deg`` apart (greedy on the sphere); for a
     revolved part only one of each mirror pair (see ``views_within``: level B tries both)."""
-    z = bank.R_tpl_obj.transpose(0, 2, 1) @ E_Z  # viewing direction in the object frame
+    z = view_dirs_obj(bank)
     chosen: list[int] = []
     cos_min = math.cos(math.radians(view_step_deg) * 0.75)
     candidates = range(len(z))
@@ -388,7 +362,7 @@ def evaluate(bank: TemplateBank, views: np.ndarray, Rs: np.ndarray, ts: np.ndarr
 
 def view_neighbours(bank: TemplateBank, k: int = 6) -> np.ndarray:
     """(N, k) the k nearest other views by viewing direction (object frame)."""
-    z = bank.R_tpl_obj.transpose(0, 2, 1) @ E_Z
+    z = view_dirs_obj(bank)
     sim = z @ z.T
     np.fill_diagonal(sim, -np.inf)
     k = min(k, len(z) - 1)
@@ -408,7 +382,7 @@ def views_within(bank: TemplateBank, view: int, angle_deg: float) -> np.ndarray:
     away from the camera): the two silhouettes are equal in orthographic projection and differ only
     by perspective, so level A cannot tell them apart.
     """
-    z = bank.R_tpl_obj.transpose(0, 2, 1) @ E_Z
+    z = view_dirs_obj(bank)
     near = z @ z[view] >= math.cos(math.radians(angle_deg)) - 1e-9
     if bank.symmetry_axis_obj is not None:
         a = np.asarray(bank.symmetry_axis_obj, float)
@@ -511,7 +485,7 @@ def local_scan(bank: TemplateBank, h: Hypothesis, dt_q: np.ndarray, tau_q: int, 
     step2 = p.local_phi_step_deg  # a long part's ends move fast with the angle: full angle steps here
     r = int(math.ceil(p.local_radius_px * s))
     best, best_q = h, np.inf
-    z_dirs = bank.R_tpl_obj.transpose(0, 2, 1) @ E_Z
+    z_dirs = view_dirs_obj(bank)
     for _ in range(max_walks):
         win = Window(views_within(bank, best.view, p.local_view_deg),
                      best.phi_deg + np.arange(-p.inplane_step_deg, p.inplane_step_deg + 1e-9, step2),

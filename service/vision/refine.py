@@ -43,7 +43,7 @@ from scipy.optimize import least_squares
 
 from service.vision.bank import TemplateBank
 from service.vision.camera import Intrinsics, project_distorted, undistort_points
-from service.vision.chamfer import DEFAULT_LAMBDA_PX_PER_RAD, DEFAULT_TAU_PX, DistanceTensor
+from service.vision.chamfer import DEFAULT_LAMBDA_PX_PER_RAD, DEFAULT_TAU_PX, DistanceTensor, sample_with_grad
 from service.vision.edges import Segments, channel_of, detect_segments
 from service.vision.frames import Pose, canonical_symmetric_R, rotation_angle_deg
 
@@ -199,6 +199,13 @@ class PoseParams:
         t = c_cam - Rc
         return Pose(R, t), JB, dz_dr
 
+    def points(self, x: np.ndarray, p_obj: np.ndarray, with_jac: bool):
+        """Camera-frame points (M, 3) and, with ``with_jac``, d p_cam / d x (M, 3, n), else None."""
+        if with_jac:
+            return self.points_and_jac(x, p_obj)
+        pose = self.pose(x)
+        return p_obj @ pose.R.T + pose.t_mm, None
+
     def points_and_jac(self, x: np.ndarray, p_obj: np.ndarray):
         """Camera-frame points (M, 3) and d p_cam / d x (M, 3, n)."""
         pose, JB, dz_dr = self._pose_jac(x)
@@ -236,11 +243,7 @@ def project_border(params: PoseParams, x: np.ndarray, border: Border, intr: Intr
     P = border.p_obj
     M = len(P)
     allp = np.concatenate([P, P - h * border.tan_obj, P + h * border.tan_obj])
-    if with_jac:
-        pc, Jp = params.points_and_jac(x, allp)
-    else:
-        pose = params.pose(x)
-        pc, Jp = allp @ pose.R.T + pose.t_mm, None
+    pc, Jp = params.points(x, allp, with_jac)
     uv_all, J_all = _project_jac(pc, intr, Jp)
     uv, ua, ub = uv_all[:M], uv_all[M:2 * M], uv_all[2 * M:]
     d = ub - ua
@@ -252,50 +255,6 @@ def project_border(params: PoseParams, x: np.ndarray, border: Border, intr: Intr
     n2 = np.maximum((d ** 2).sum(1), 1e-12)
     dth = (d[:, 0, None] * dd[:, 1] - d[:, 1, None] * dd[:, 0]) / n2[:, None]
     return uv, theta, duv, dth
-
-
-# --- DT3 read-out with derivatives --------------------------------------------------------------
-
-
-def sample_with_grad(dtt: DistanceTensor, uv_grid: np.ndarray, theta_rad: np.ndarray):
-    """``chamfer.sample`` and its partial derivatives: (val, d/du, d/dv, d/dtheta), grid units.
-
-    Bilinear in space, linear and cyclic across channels; outside the grid: tau, zero gradient.
-    """
-    dt = dtt.dt
-    C, h, w = dt.shape
-    uv = np.asarray(uv_grid, np.float64)
-    u, v = uv[..., 0], uv[..., 1]
-    inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
-    uc = np.clip(u, 0, w - 1.0001)
-    vc = np.clip(v, 0, h - 1.0001)
-    u0 = np.floor(uc).astype(np.int64)
-    v0 = np.floor(vc).astype(np.int64)
-    fu = uc - u0
-    fv = vc - v0
-    cf = np.mod(np.asarray(theta_rad, np.float64) * (C / np.pi), C)
-    c0 = np.floor(cf).astype(np.int64) % C
-    c1 = (c0 + 1) % C
-    fc = cf - np.floor(cf)
-    flat = dt.reshape(-1)
-
-    def bil(base):
-        a, b = flat[base].astype(np.float64), flat[base + 1].astype(np.float64)
-        c, d = flat[base + w].astype(np.float64), flat[base + w + 1].astype(np.float64)
-        val = (1 - fv) * ((1 - fu) * a + fu * b) + fv * ((1 - fu) * c + fu * d)
-        du = (1 - fv) * (b - a) + fv * (d - c)
-        dv = (1 - fu) * (c - a) + fu * (d - b)
-        return val, du, dv
-
-    A0, Au0, Av0 = bil(c0 * (h * w) + v0 * w + u0)
-    A1, Au1, Av1 = bil(c1 * (h * w) + v0 * w + u0)
-    val = (1 - fc) * A0 + fc * A1
-    gu = (1 - fc) * Au0 + fc * Au1
-    gv = (1 - fc) * Av0 + fc * Av1
-    gth = (A1 - A0) * (C / np.pi)
-    val = np.where(inside, val, dtt.tau_px)
-    z = np.zeros_like(val)
-    return val, np.where(inside, gu, z), np.where(inside, gv, z), np.where(inside, gth, z)
 
 
 def dt_residuals(params: PoseParams, x: np.ndarray, border: Border, intr: Intrinsics, dtt: DistanceTensor,
@@ -425,11 +384,7 @@ def line_residuals(params: PoseParams, x: np.ndarray, border: Border, intr: Intr
                    with_jac: bool = True):
     """Signed distance (full-res px) of each matched border point to its segment's line."""
     P = border.p_obj[match.idx]
-    if with_jac:
-        pc, Jp = params.points_and_jac(x, P)
-    else:
-        pose = params.pose(x)
-        pc, Jp = P @ pose.R.T + pose.t_mm, None
+    pc, Jp = params.points(x, P, with_jac)
     uv, duv = _project_jac(pc, intr, Jp)
     r = (match.normal * uv).sum(1) - match.offset
     if not with_jac:
