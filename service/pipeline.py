@@ -101,13 +101,13 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     if intr.dist is not None:
         # Straighten the edges once; everything after works in the ideal pinhole camera intr.K.
         seg = undistort_segments(seg, intr)
-    dtt_a = distance_tensor(seg, n_channels=p.n_channels, scale=p.level_scale)
+    # Level A's coarse grid is pooled from level B's (coarse_search): one set of distance transforms.
     dtt_b = distance_tensor(seg, n_channels=p.n_channels, scale=p.fine_scale)
     t_edges = _ms(t_start)
 
     t0 = time.perf_counter()
     rng = distance_range_mm or DEFAULT_DISTANCE_RANGE_MM
-    hyps = coarse_search(bank, dtt_a, dtt_b, intr, (h, w), p, distance_mm=distance_mm, distance_range_mm=rng)
+    hyps = coarse_search(bank, dtt_b, intr, (h, w), p, distance_mm=distance_mm, distance_range_mm=rng)
     Rs, ts = poses_of(bank, hyps, intr.K, distance_mm) if hyps else (np.zeros((0, 3, 3)), np.zeros((0, 3)))
     cands = [_candidate(bank, Pose(R, t), hy.cost, hy.score) for R, t, hy in zip(Rs, ts, hyps, strict=True)]
     cands = distinct_candidates(cands, bank, intr.K)[:top_k]

@@ -19,6 +19,7 @@ corners too.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import OrderedDict
 from dataclasses import dataclass, replace
@@ -37,14 +38,14 @@ DT_QUANT = 8  # level-A DT3 stored as uint8 in 1/8 px: 4x less memory traffic th
 @dataclass(frozen=True)
 class SearchParams:
     n_channels: int = 16
-    level_scale: float = 0.25
+    level_scale: float = 0.125
     fine_scale: float = 0.5
     inplane_step_deg: float = 10.0
     view_step_deg: float = 6.0  # out-of-plane spacing used at level A for a revolved part (1 DoF)
     view_step_any_deg: float = 20.0  # ... and for any other part (2 DoF): level B covers +-local_view_deg
     depth_step: float = 0.08  # ratio between successive distances tried at level A
-    anchor_stride: int = 2  # level-A pixels
-    points_per_template: int = 48
+    anchor_stride: int = 2  # level-A pixels (16 full-res px: level B searches +-local_radius_px)
+    points_per_template: int = 32
     fine_points: int = 160
     tiles: tuple[int, int] = (4, 3)
     n_peaks: int = 12
@@ -59,6 +60,8 @@ class SearchParams:
     # Level B ranks by the DT3 mean truncated here (full-res px): a hidden border point then costs no
     # more than a badly placed one, so a 30 % occluded truth still beats a wrong pose on clutter.
     rank_tau_px: float = 8.0
+    # Level B: a later peak's scan only accepts placements within this ratio of the best cost so far.
+    peak_accept_ratio: float = 1.5
 
 
 @dataclass
@@ -98,6 +101,23 @@ def ray_rotations(uv: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray
 def view_dirs_obj(bank: TemplateBank) -> np.ndarray:
     """(N, 3) each view's viewing direction (camera +z) in the object frame: R_tpl_obj.T @ e_z."""
     return bank.R_tpl_obj[:, 2, :]
+
+
+@functools.lru_cache(maxsize=16)
+def spread_order(count: int) -> np.ndarray:
+    """A permutation of range(count) (indices along a closed border) whose every prefix is spread
+    evenly round it (greedy farthest point): the scans' early termination then judges a template on
+    points from all round its border, not on one stretch of it."""
+    pos = np.arange(count)
+    gap = np.full(count, count, np.int64)  # cyclic distance to the nearest chosen point
+    order = np.empty(count, np.int64)
+    for k in range(count):
+        i = int(np.argmax(gap))
+        order[k] = i
+        d = np.abs(pos - i)
+        gap = np.minimum(gap, np.minimum(d, count - d))
+    order.flags.writeable = False
+    return order
 
 
 def subsample_border(bank: TemplateBank, n: int, count: int) -> np.ndarray:
@@ -159,7 +179,7 @@ def _scan(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, anchor_tile, acce
                     if acc >= best:
                         ok = False
                         break
-                    if i + 1 == n_sentinel and acc * P > best * n_sentinel * 1.5:
+                    if i + 1 == n_sentinel and acc * P > best * n_sentinel * 1.2:
                         ok = False
                         break
                 if ok:
@@ -249,7 +269,10 @@ def level_a_templates(bank: TemplateBank, intr: Intrinsics, image_shape: tuple[i
     extent = float(max(np.abs(off_u).max(), np.abs(off_v).max()))
     step = np.hypot(np.diff(off_u[0], axis=1), np.diff(off_v[0], axis=1))
     perimeter = float(np.median(step.sum(axis=1) * P / (P - 1)))
-    return LevelATemplates(views, phis, off_u, off_v, chan, z_ref, tile_uv, extent, perimeter)
+    order = spread_order(P)
+    return LevelATemplates(views, phis, np.ascontiguousarray(off_u[..., order]),
+                           np.ascontiguousarray(off_v[..., order]), np.ascontiguousarray(chan[:, order]),
+                           z_ref, tile_uv, extent, perimeter)
 
 
 def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, image_shape, p: SearchParams):
@@ -285,11 +308,24 @@ def distance_tensor_from_edges_scaled(dtt: DistanceTensor, scale: float) -> Dist
     f = int(round(dtt.scale / scale))
     if f <= 1:
         return dtt
-    C, h, w = dtt.dt.shape
-    hh, ww = h // f, w // f
-    pooled = dtt.dt[:, :hh * f, :ww * f].reshape(C, hh, f, ww, f).min(axis=(2, 4)) / f
-    return DistanceTensor(np.ascontiguousarray(pooled, np.float32), scale, dtt.origin_uv, dtt.tau_px / f,
-                          dtt.lambda_px / f)
+    pooled = _min_pool(dtt.dt, f)
+    return DistanceTensor(pooled, scale, dtt.origin_uv, dtt.tau_px / f, dtt.lambda_px / f)
+
+
+@nb.njit(parallel=True, cache=True)
+def _min_pool(dt, f):  # numpy's strided min over (C, h, f, w, f) took 50 ms at 640 x 480 x 16
+    C, H, W = dt.shape
+    hh, ww = H // f, W // f
+    out = np.empty((C, hh, ww), np.float32)
+    for c in nb.prange(C):
+        for y in range(hh):
+            for x in range(ww):
+                m = dt[c, y * f, x * f]
+                for i in range(f):
+                    for j in range(f):
+                        m = min(m, dt[c, y * f + i, x * f + j])
+                out[c, y, x] = m / f
+    return out
 
 
 def pick_peaks(au, av, cost, n_peaks: int, radius_lvl: float) -> list[int]:
@@ -349,7 +385,7 @@ def evaluate(bank: TemplateBank, views: np.ndarray, Rs: np.ndarray, ts: np.ndarr
     views = np.asarray(views, np.int64)
 
     def proj(ii):
-        q = np.einsum("mij,mpj->mpi", Rs, bank.p_obj[ii].astype(np.float64)) + ts[:, None, :]
+        q = bank.p_obj[ii].astype(np.float64) @ Rs.transpose(0, 2, 1) + ts[:, None, :]  # matmul: 10x einsum
         u = K[0, 0] * q[..., 0] / q[..., 2] + K[0, 2]
         return np.stack([u, K[1, 1] * q[..., 1] / q[..., 2] + K[1, 2]], -1)
 
@@ -422,32 +458,54 @@ class Window:
     stride: int
 
 
+@nb.njit(cache=True)
+def _window_offsets(p_rel, theta, Rv, zc, depth_f, ray, fx, fy, cx, cy, s, c0u, c0v, phis_rad, n_channels):
+    """Templates of a local-scan window: (1, D, T, P) int16 fine-grid offsets from the window centre
+    (c0u, c0v) and (T, P) int32 channels, for the Tv views' points ``p_rel`` (relative to the
+    reference point) rotated by ``Rv`` (T = Tp * Tv, phi-major) and placed at depth ``zc * depth_f``
+    on the unit-z ray ``ray``. Compiled: numpy's temporaries cost more than the scan itself."""
+    Tv, P = theta.shape[0], theta.shape[1]
+    T, D = Rv.shape[0], depth_f.shape[0]
+    off_u = np.empty((1, D, T, P), np.int16)
+    off_v = np.empty((1, D, T, P), np.int16)
+    chan = np.empty((T, P), np.int32)
+    for t in range(T):
+        iv = t % Tv
+        phi = phis_rad[t // Tv]
+        R = Rv[t]
+        for i in range(P):
+            x, y, z = p_rel[iv, i, 0], p_rel[iv, i, 1], p_rel[iv, i, 2]
+            qx = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z
+            qy = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z
+            qz = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z
+            for k in range(D):
+                zk = zc[t] * depth_f[k]
+                X, Y, Z = qx + ray[0] * zk, qy + ray[1] * zk, qz + zk
+                off_u[0, k, t, i] = np.int16(np.rint((fx * X / Z + cx + 0.5) * s - 0.5 - c0u))
+                off_v[0, k, t, i] = np.int16(np.rint((fy * Y / Z + cy + 0.5) * s - 0.5 - c0v))
+            a = (theta[iv, i] + phi) % np.pi
+            chan[t, i] = np.int32(np.floor(a * (n_channels / np.pi) + 0.5)) % n_channels
+    return off_u, off_v, chan
+
+
 def _scan_window(bank: TemplateBank, win: Window, z_mm: float, dt_q: np.ndarray, tau_q: int,
                  accept_q: int, dtt: DistanceTensor, K: np.ndarray, n_points: int, *,
                  distance_mm: float | None) -> tuple[Hypothesis | None, float, tuple[int, int, int, int]]:
     """The best placement in ``win`` by the compiled scan: (hypothesis, mean cost in 1/DT_QUANT
     fine-grid px, (view index, phi index, du, dv) within the window) or (None, inf, ...) when nothing
     beats ``accept_q``. Templates are projected exactly along the window centre's viewing ray."""
-    from service.vision.edges import channel_of
-
     views, phis = win.views, win.phis_deg
     idx = border_triplets(bank, n_points)[0][views]  # (Tv, P)
+    idx = idx[:, spread_order(idx.shape[1])]
     d, R_ray = ray_rotation(win.centre, K)
     Rv = (R_ray @ np.stack([Rz(f) for f in phis])[:, None] @ bank.R_tpl_obj[views][None]).reshape(-1, 3, 3)
-    p_rel = bank.p_obj[np.tile(idx, (len(phis), 1))].astype(np.float64) - bank.centre_obj  # (T, P, 3)
-    pc = np.einsum("tij,tpj->tpi", Rv, p_rel)
     zc = (distance_mm + (Rv @ bank.centre_obj)[:, 2]) if distance_mm is not None else np.full(len(Rv), z_mm)
     s = dtt.scale
     c0 = np.rint((win.centre + 0.5) * s - 0.5)  # the window centre on the fine grid
-    off_u = np.empty((1, len(win.depth_f), len(Rv), idx.shape[1]), np.int16)
-    off_v = np.empty_like(off_u)
-    for k, f in enumerate(win.depth_f):
-        q = pc + (d / d[2])[None, None, :] * (zc * f)[:, None, None]
-        off_u[0, k] = np.rint((K[0, 0] * q[..., 0] / q[..., 2] + K[0, 2] + 0.5) * s - 0.5 - c0[0])
-        off_v[0, k] = np.rint((K[1, 1] * q[..., 1] / q[..., 2] + K[1, 2] + 0.5) * s - 0.5 - c0[1])
-    theta = np.mod(np.tile(bank.theta_rad[idx], (len(phis), 1))
-                   + np.repeat(np.deg2rad(phis), len(views))[:, None], np.pi)
-    chan = channel_of(theta, dtt.n_channels).astype(np.int32)
+    off_u, off_v, chan = _window_offsets(
+        bank.p_obj[idx].astype(np.float64) - bank.centre_obj, bank.theta_rad[idx].astype(np.float64), Rv, zc,
+        np.asarray(win.depth_f, np.float64), d / d[2], K[0, 0], K[1, 1], K[0, 2], K[1, 2], s, c0[0], c0[1],
+        np.deg2rad(np.asarray(phis, np.float64)), dtt.n_channels)
     g = np.arange(-win.radius, win.radius + 1, win.stride)
     gu, gv = np.meshgrid(g, g)
     near_first = np.argsort(gu.ravel() ** 2 + gv.ravel() ** 2, kind="stable")  # a tight bound early
@@ -553,18 +611,16 @@ def polish(bank: TemplateBank, h: Hypothesis, dtt: DistanceTensor, K: np.ndarray
     return cur
 
 
-def coarse_search(bank: TemplateBank, dtt_a: DistanceTensor, dtt_b: DistanceTensor, intr: Intrinsics,
+def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
                   image_shape: tuple[int, int], p: SearchParams, *, distance_mm: float | None,
                   distance_range_mm: tuple[float, float]) -> list[Hypothesis]:
-    """Ranked, polished, mutually distinct hypotheses (best first)."""
+    """Ranked, polished, mutually distinct hypotheses (best first). ``dtt_b`` is the DT3 at
+    ``fine_scale``; level A's grid is min-pooled from it."""
     K = intr.K
-    p_b = p
     if distance_mm is None:
-        # Every distance multiplies the scan: run it on a coarser grid, with fewer, smaller templates.
-        p = replace(p, level_scale=p.level_scale / 2, anchor_stride=1, points_per_template=32,
-                    depth_step=p.unknown_depth_step)
-        dtt_a = distance_tensor_from_edges_scaled(dtt_a, p.level_scale)
-        p_b = replace(p_b, depth_step=p.unknown_depth_step)
+        p = replace(p, depth_step=p.unknown_depth_step)
+    p_b = p
+    dtt_a = distance_tensor_from_edges_scaled(dtt_b, p.level_scale)
     if distance_mm is not None:
         scales = np.array([1.0])
         z_ref = distance_mm
@@ -593,8 +649,8 @@ def coarse_search(bank: TemplateBank, dtt_a: DistanceTensor, dtt_b: DistanceTens
     scanned: list[Hypothesis] = []
     best_q = np.inf
     for h in starts:
-        # A peak whose neighbourhood cannot come within 2x of the best so far would never be reported.
-        accept = int(min(tau_q, 2 * best_q))
+        # A peak whose neighbourhood cannot come near the best so far would never be reported first.
+        accept = int(min(tau_q, p.peak_accept_ratio * best_q))
         hyp, q = local_scan(bank, h, dt_q, tau_q, dtt_b, K, p_b, distance_mm=distance_mm, accept_q=accept)
         if hyp is not None:
             scanned.append(hyp)
