@@ -47,6 +47,7 @@ class SearchParams:
     anchor_stride: int = 2  # level-A pixels (16 full-res px: level B searches +-local_radius_px)
     points_per_template: int = 32
     fine_points: int = 160
+    scan_points: int = 80  # level B's wide block: a placement's rank needs fewer points than its polish
     tiles: tuple[int, int] = (4, 3)
     n_peaks: int = 12
     n_polish: int = 4
@@ -512,7 +513,7 @@ def _scan_window(bank: TemplateBank, win: Window, z_mm: float, dt_q: np.ndarray,
     au = (c0[0] + gu.ravel()[near_first]).astype(np.int32)
     av = (c0[1] + gv.ravel()[near_first]).astype(np.int32)
     cost, t, dk = _scan(dt_q, tau_q, off_u, off_v, chan, au, av, np.zeros(len(au), np.int32),
-                        np.int64(accept_q), 0, True)
+                        np.int64(accept_q), 16, True)
     a = int(np.argmin(cost))
     if not np.isfinite(cost[a]):
         return None, np.inf, (0, 0, 0, 0)
@@ -549,7 +550,7 @@ def local_scan(bank: TemplateBank, h: Hypothesis, dt_q: np.ndarray, tau_q: int, 
                      best.phi_deg + np.arange(-p.inplane_step_deg, p.inplane_step_deg + 1e-9, step2),
                      depth_f, best.uv, r, 2)
         hyp, q, (iv, iphi, du, dv) = _scan_window(bank, win, best.z_mm, dt_q, tau_q, accept_q, dtt, K,
-                                                   p.fine_points, distance_mm=distance_mm)
+                                                   p.scan_points, distance_mm=distance_mm)
         if hyp is None:
             break
         centre_view = best.view
@@ -567,9 +568,11 @@ def local_scan(bank: TemplateBank, h: Hypothesis, dt_q: np.ndarray, tau_q: int, 
                  np.array([1.0]) if distance_mm is not None else np.array([1.0, 1 + p.depth_step / 4,
                                                                           1 / (1 + p.depth_step / 4)]),
                  best.uv, 2, 1)
-    hyp, q, _ = _scan_window(bank, win, best.z_mm, dt_q, tau_q, int(math.ceil(best_q)) + 1,
+    # The block contains the first block's best, so it finds at least as good a placement unless the
+    # denser sampling raises that one's cost by more than the slack.
+    hyp, q, _ = _scan_window(bank, win, best.z_mm, dt_q, tau_q, int(math.ceil(best_q * 1.25)) + 1,
                              dtt, K, p.fine_points, distance_mm=distance_mm)
-    return (hyp, q) if hyp is not None and q <= best_q else (best, best_q)
+    return (hyp, q) if hyp is not None else (best, best_q)
 
 
 def polish(bank: TemplateBank, h: Hypothesis, dtt: DistanceTensor, K: np.ndarray, p: SearchParams, *,
