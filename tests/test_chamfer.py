@@ -1,9 +1,11 @@
 """DT3 (eqs. 11-13) against brute force; the integral DT (eqs. 15-16) against point sums."""
 
+import cv2
 import numpy as np
 
 from service.vision.chamfer import (
     distance_tensor_from_edges,
+    truncated_edt,
     integral_dt,
     line_cost_idt,
     line_pixels,
@@ -37,6 +39,18 @@ def test_dt3_equals_brute_force_directional_chamfer():
     edges = _random_edges(rng)
     dtt = distance_tensor_from_edges(edges, tau_px=9.0, lambda_px=1.7)
     np.testing.assert_allclose(dtt.dt, _brute_dt3(edges, 1.7, 9.0), atol=DT_EXACT_ATOL)
+
+
+def test_truncated_edt_equals_opencv_exact_transform_capped():
+    # Several row bands (the stamping's work items), edges on the image border, a fractional cap.
+    rng = np.random.default_rng(11)
+    edges = _random_edges(rng, C=3, h=100, w=130, n=90)
+    edges[0, 0, 0] = edges[1, 99, 129] = edges[2, 50, 0] = 1
+    edges[2, 16:18, 40] = 1
+    tau = 7.5
+    want = np.stack([np.minimum(cv2.distanceTransform((e == 0).astype(np.uint8), cv2.DIST_L2,
+                                                      cv2.DIST_MASK_PRECISE), tau) for e in edges])
+    np.testing.assert_allclose(truncated_edt(edges, tau), want, atol=DT_EXACT_ATOL)
 
 
 def test_dt3_empty_channel_is_tau_plus_nothing_closer():
