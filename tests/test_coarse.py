@@ -207,3 +207,62 @@ def test_views_within_adds_a_revolved_parts_mirror_tilt(sprayer_bank):
     near = set(np.round(tilt[views_within(sprayer_bank, v30, 5.0)]).astype(int))
     assert {26, 28, 30, 32, 34} <= near and {-26, -28, -30, -32, -34} <= near
     assert not any(abs(abs(x) - 30) > 5 for x in near)
+
+
+@pytest.mark.parametrize("count", [16, 48, 80, 160])
+def test_spread_order_is_a_permutation_whose_prefixes_cover_the_border_evenly(count):
+    from service.vision.coarse import spread_order
+
+    order = spread_order(count)
+    assert sorted(order.tolist()) == list(range(count))
+    for k in (4, 8, 16):
+        pos = np.sort(order[:k])
+        gaps = np.diff(np.r_[pos, pos[0] + count])  # cyclic: the border is closed
+        assert gaps.max() <= int(np.ceil(count / k)) + 1
+
+
+def test_window_offsets_equal_the_projected_posed_border(sprayer_bank):
+    """The compiled window templates against an independent path: poses_of (ray, in-plane angle,
+    bank view, known distance) then the pinhole projection of the same 3D border points."""
+    from service.vision.coarse import Hypothesis, Window, _window_offsets, border_triplets, poses_of, ray_rotation
+    from service.vision.frames import Rz as Rz_
+
+    bank = sprayer_bank
+    win = Window(np.array([3, 17, 40]), np.array([-12.0, 0.0, 33.0]), np.array([1.0, 1.07]),
+                 np.array([1010.3, 170.8]), 4, 2)
+    scale, distance = 0.5, 480.0
+    idx = border_triplets(bank, 40)[0][win.views]
+    d, R_ray = ray_rotation(win.centre, INTR.K)
+    Rv = (R_ray @ np.stack([Rz_(f) for f in win.phis_deg])[:, None] @ bank.R_tpl_obj[win.views][None]).reshape(-1, 3, 3)
+    zc = distance + (Rv @ bank.centre_obj)[:, 2]
+    c0 = np.rint((win.centre + 0.5) * scale - 0.5)
+    off_u, off_v, _ = _window_offsets(bank.p_obj[idx].astype(np.float64) - bank.centre_obj,
+                                      bank.theta_rad[idx].astype(np.float64), Rv, zc, win.depth_f, d / d[2],
+                                      INTR.fx, INTR.fy, INTR.cx, INTR.cy, scale, c0[0], c0[1],
+                                      np.deg2rad(win.phis_deg), 16)
+    K = INTR.K
+    for t in range(len(Rv)):
+        iv, iphi = t % len(win.views), t // len(win.views)
+        h = Hypothesis(int(win.views[iv]), float(win.phis_deg[iphi]), 0.0, win.centre.copy())
+        R, t_mm = (x[0] for x in poses_of(bank, [h], K, distance))
+        q = bank.p_obj[idx[iv]] @ R.T + t_mm
+        uv = (K @ (q / q[:, 2:3]).T).T[:, :2]
+        want = np.rint((uv + 0.5) * scale - 0.5 - c0)
+        assert np.array_equal(off_u[0, 0, t], want[:, 0]) and np.array_equal(off_v[0, 0, t], want[:, 1])
+        # the second depth factor: the reference point slides along the same ray
+        z = t_mm + (R @ bank.centre_obj)
+        q2 = bank.p_obj[idx[iv]] @ R.T + t_mm + z * (1.07 - 1.0)
+        uv2 = (K @ (q2 / q2[:, 2:3]).T).T[:, :2]
+        assert np.abs(off_u[0, 1, t] - np.rint((uv2[:, 0] + 0.5) * scale - 0.5 - c0[0])).max() <= 1
+
+
+def test_min_pool_is_the_cell_minimum_in_coarser_pixels():
+    from service.vision.chamfer import DistanceTensor
+    from service.vision.coarse import distance_tensor_from_edges_scaled
+
+    rng = np.random.default_rng(5)
+    dt = rng.uniform(0, 10, (3, 23, 37)).astype(np.float32)
+    pooled = distance_tensor_from_edges_scaled(DistanceTensor(dt, 0.5, (0.0, 0.0), 10.0, 1.0), 0.125)
+    want = dt[:, :20, :36].reshape(3, 5, 4, 9, 4).min(axis=(2, 4)) / 4
+    np.testing.assert_allclose(pooled.dt, want, rtol=1e-6)
+    assert pooled.scale == 0.125 and pooled.tau_px == 2.5
