@@ -135,15 +135,25 @@ def test_unrelated_image_is_not_found(sprayer_bank):
     assert not out.found
 
 
+@pytest.fixture(scope="module")
+def tless06_bank(tless06_mesh):
+    return pipeline.build_templates(tless06_mesh, symmetry="none")  # the default grid, as users get it
+
+
+FLIP = pytest.mark.xfail(strict=False, reason=(
+    "known weakness: this near-symmetric part's 180 deg flip has almost the same silhouette; the search "
+    "returns the flip (position right); see the closing notes of issue 4"))
+
+
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="known weakness: with level A's 20 deg view spacing for non-symmetric"
-                   " parts the search returns the 180 deg flip of this near-symmetric part (position right); "
-                   "see the closing note of issue 4")
-def test_tless06_coarse_pose_non_symmetric(tless06_mesh):
-    bank = pipeline.build_templates(tless06_mesh, symmetry="none", grid={"view_step_deg": 12.0})
-    truth = Pose(Rx(-120.0) @ Rz(25.0) @ Rx(10.0), np.array([30.0, -20.0, 400.0]))
+@pytest.mark.parametrize("truth", [
+    Pose(Rx(-120.0) @ Rz(25.0) @ Rx(10.0), np.array([30.0, -20.0, 400.0])),
+    pytest.param(Pose(Rx(40.0) @ Rz(-70.0), np.array([-60.0, 40.0, 550.0])), marks=FLIP),
+])
+def test_tless06_coarse_pose_non_symmetric(tless06_bank, truth):
+    bank = tless06_bank
     img = _noisy(render_shaded(bank.vertices_mm, bank.faces, truth, INTR.K, (W, H)), 6)
-    out = pipeline.estimate(bank, img, INTR, distance_mm=400.0, refine=False)
+    out = pipeline.estimate(bank, img, INTR, distance_mm=float(truth.t_mm[2]), refine=False)
     assert out.found
     assert rotation_angle_deg(out.coarse.pose.R, truth.R) <= COARSE_ROT_DEG_NONSYM
     assert np.linalg.norm(out.coarse.pose.t_mm - truth.t_mm) <= COARSE_T_MM_NONSYM
