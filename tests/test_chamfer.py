@@ -5,12 +5,12 @@ import numpy as np
 
 from service.vision.chamfer import (
     distance_tensor_from_edges,
-    truncated_edt,
     integral_dt,
     line_cost_idt,
     line_pixels,
     sample,
     sample_nearest,
+    truncated_edt,
 )
 from tests.tolerances import DT_EXACT_ATOL
 

@@ -234,7 +234,14 @@ def test_spread_order_is_a_permutation_whose_prefixes_cover_the_border_evenly(co
 def test_window_offsets_equal_the_projected_posed_border(sprayer_bank):
     """The compiled window templates against an independent path: poses_of (ray, in-plane angle,
     bank view, known distance) then the pinhole projection of the same 3D border points."""
-    from service.vision.coarse import Hypothesis, Window, _window_offsets, border_triplets, poses_of, ray_rotation
+    from service.vision.coarse import (
+        Hypothesis,
+        Window,
+        _window_offsets,
+        border_triplets,
+        poses_of,
+        ray_rotation,
+    )
     from service.vision.frames import Rz as Rz_
 
     bank = sprayer_bank
@@ -243,7 +250,8 @@ def test_window_offsets_equal_the_projected_posed_border(sprayer_bank):
     scale, distance = 0.5, 480.0
     idx = border_triplets(bank, 40)[0][win.views]
     d, R_ray = ray_rotation(win.centre, INTR.K)
-    Rv = (R_ray @ np.stack([Rz_(f) for f in win.phis_deg])[:, None] @ bank.R_tpl_obj[win.views][None]).reshape(-1, 3, 3)
+    Rphi = np.stack([Rz_(f) for f in win.phis_deg])[:, None]
+    Rv = (R_ray @ Rphi @ bank.R_tpl_obj[win.views][None]).reshape(-1, 3, 3)
     zc = distance + (Rv @ bank.centre_obj)[:, 2]
     c0 = np.rint((win.centre + 0.5) * scale - 0.5)
     off_u, off_v, _ = _window_offsets(bank.p_obj[idx].astype(np.float64) - bank.centre_obj,

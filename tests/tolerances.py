@@ -30,7 +30,7 @@ COARSE_AXIS_DEG = 1.5  # coarse axis direction of the revolved sprayer, distance
 COARSE_XY_MM = 2.0  # coarse |tx|, |ty| at 500-600 mm (target: 1 mm mean); 1 px is ~0.5 mm here
 COARSE_OCCLUDED_AXIS_DEG = 3.0  # the same with 30 % of the object hidden
 COARSE_OCCLUDED_XY_MM = 4.0
-COARSE_ROT_DEG_NONSYM = 8.0  # non-symmetric part: geodesic rotation error (0.8 x the default 10 deg view step)
+COARSE_ROT_DEG_NONSYM = 8.0  # non-symmetric part: geodesic rotation error (0.8 x the default view step)
 COARSE_T_MM_NONSYM = 10.0
 
 # --- refinement ---
