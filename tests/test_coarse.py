@@ -242,7 +242,6 @@ def test_window_offsets_equal_the_projected_posed_border(sprayer_bank):
         poses_of,
         ray_rotation,
     )
-    from service.vision.frames import Rz as Rz_
 
     bank = sprayer_bank
     win = Window(np.array([3, 17, 40]), np.array([-12.0, 0.0, 33.0]), np.array([1.0, 1.07]),
@@ -250,7 +249,7 @@ def test_window_offsets_equal_the_projected_posed_border(sprayer_bank):
     scale, distance = 0.5, 480.0
     idx = border_triplets(bank, 40)[0][win.views]
     d, R_ray = ray_rotation(win.centre, INTR.K)
-    Rphi = np.stack([Rz_(f) for f in win.phis_deg])[:, None]
+    Rphi = np.stack([Rz(f) for f in win.phis_deg])[:, None]
     Rv = (R_ray @ Rphi @ bank.R_tpl_obj[win.views][None]).reshape(-1, 3, 3)
     zc = distance + (Rv @ bank.centre_obj)[:, 2]
     c0 = np.rint((win.centre + 0.5) * scale - 0.5)
