@@ -11,6 +11,8 @@ workers) or ``uvicorn 'service.main:create_app' --factory``.
 from __future__ import annotations
 
 import logging
+import threading
+import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -19,7 +21,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service import monitoring
+from service import monitoring, pipeline
 from service.api import error_responses, estimate, health, metrics, models
 from service.api.deps import ApiKeyDocumented
 from service.api.health import VERSION
@@ -84,6 +86,16 @@ class UploadLimit:
         await self.app(scope, limited_receive, send)
 
 
+def _warm_up() -> None:
+    t0 = time.perf_counter()
+    try:
+        out = pipeline.warm_up()
+    except Exception:  # a failed warm-up must not take the service down; the first estimate pays instead
+        log.exception("warm-up failed")
+        return
+    log.info("warm-up done in %d ms (synthetic part found: %s)", (time.perf_counter() - t0) * 1000, out.found)
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
 
@@ -94,9 +106,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         builder = Builder(settings)
         app.state.store, app.state.builder = store, builder
         builder.resume(store)
+        warm = threading.Thread(target=_warm_up, name="warm-up") if settings.warm_up else None
+        if warm is not None:
+            warm.start()
         try:
             yield
         finally:  # uvicorn gets here once in-flight requests are answered (graceful shutdown)
+            if warm is not None:  # numba threads still running at interpreter exit abort the process
+                warm.join()
             builder.shutdown()  # running builds go back to "queued": the next start-up resumes them
             store.close()
             monitoring.process_stopped()

@@ -35,6 +35,9 @@ class Settings(BaseSettings):
     api_key: SecretStr | None = Field(
         None, description="when set, every route but /health and /metrics requires this value in the "
         "X-API-Key header; unset or empty: no authentication")
+    warm_up: bool = Field(
+        True, description="at start-up, run the pipeline once on a synthetic scene in the background so "
+        "the first real estimate does not pay ~0.5 s of kernel loading")
     template_grid: dict[str, Any] = Field(
         default_factory=dict,
         description="template-grid defaults (keys of service.vision.templates); an upload's `templates` "

@@ -10,6 +10,9 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 DATA_DIR = Path(os.environ.get("POSE_DATA_DIR", ROOT.parent / "shared" / "data"))
 MODELS_DIR = DATA_DIR / "models"
+# In-process apps (TestClient) skip the start-up warm-up: dozens of them would each run the pipeline
+# once; the served processes (tests/test_serve.py builds their environment itself) keep it on.
+os.environ.setdefault("POSE_WARM_UP", "false")
 
 
 @pytest.fixture(scope="session")

@@ -55,3 +55,5 @@ API_UNITS_CHECK_MM = 25.0  # paper/0001 at 500 mm: returned t_mm x, y within thi
 # --- found verdict (tests/test_found_verdict.py) ---
 FOUND_POSE_T_MM = 10.0  # a found pose must be graspable: within 10 mm ...
 FOUND_POSE_AXIS_DEG = 5.0  # ... and 5 deg of the truth
+WARM_UP_T_MM = 1.0  # the start-up warm-up's synthetic cylinder (320 x 240, 300 mm, noise-free)
+WARM_UP_AXIS_DEG = 2.0
