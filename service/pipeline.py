@@ -69,6 +69,12 @@ FOUND_MIN_SCORE = 0.65
 # on the paper renders every true pose refines to >= 0.94, while wrong poses on the checkerboard
 # clutter stayed at 0.65-0.84 (one L-bracket match on the checkerboard's straight edges reached 0.99).
 FOUND_MIN_REFINED_SCORE = 0.85
+# ... and the image may show no more than this much edge length (per unit of silhouette perimeter)
+# inside the silhouette that the model's creases and depth steps do not explain
+# (interior.unexplained_edge_ratio). At the true pose: paper renders <= 0.06; clutter 0-0.36, and 0.59
+# for a sprayer behind an occluder. The one confident wrong pose left in clutter (an L-bracket fitted to
+# a block of checker squares, refined score 0.97) has 0.53.
+FOUND_MAX_UNEXPLAINED = 0.4
 
 
 def _candidate(bank: TemplateBank, pose: Pose, cost: float, score: float) -> PoseCandidate:
@@ -115,11 +121,12 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
 
     found = bool(cands) and cands[0].score >= FOUND_MIN_SCORE
     coarse = cands[0] if found else None
-    refined = None
+    refined, extra = None, {}
     t0 = time.perf_counter()
     if refine and found:
-        refined = _refine(bank, cands, grey, intr, distance_mm=distance_mm, n_channels=p.n_channels)
-        if refined is None or refined.score < FOUND_MIN_REFINED_SCORE:
+        refined, extra["unexplained"] = _refine(bank, cands, grey, intr, distance_mm=distance_mm,
+                                                n_channels=p.n_channels)
+        if refined.score < FOUND_MIN_REFINED_SCORE or extra["unexplained"] > FOUND_MAX_UNEXPLAINED:
             # A grasp on a pose the image does not confirm is worse than no answer.
             found, coarse, refined = False, None, None
     t_refine = _ms(t0)
@@ -130,7 +137,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
         png = encode_png(draw_overlay(grey, bank, intr, coarse.pose if coarse else None,
                                       refined.pose if refined else None))
     timing = {"edges": t_edges, "coarse": t_coarse, "refine": t_refine, "total": _ms(t_start)}
-    return EstimateOutput((w, h), found, coarse, refined, cands, timing, png)
+    return EstimateOutput((w, h), found, coarse, refined, cands, timing, png, extra)
 
 
 def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.ndarray) -> list[PoseCandidate]:
@@ -148,16 +155,17 @@ def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.nd
 
 
 def _refine(bank: TemplateBank, cands: list[PoseCandidate], grey: np.ndarray, intr: Intrinsics, *,
-            distance_mm: float | None, n_channels: int) -> RefinedPose | None:
-    """Refine the best candidate; keep the refined pose only if it verifies at least as well."""
+            distance_mm: float | None, n_channels: int) -> tuple[RefinedPose, float]:
+    """Refine the best candidate; keep the refined pose only if it verifies at least as well. Also
+    the unexplained-edge ratio of the pose kept (``interior.unexplained_edge_ratio``)."""
     from service.vision.refine import refine_pose
 
     best = cands[0]
     r = refine_pose(bank, best.pose, grey, intr, None, distance_mm=distance_mm, n_channels=n_channels)
     if r.score < best.score:
-        return RefinedPose(best.pose, best.cost, best.score, r.iterations, r.inlier_ratio)
+        return RefinedPose(best.pose, best.cost, best.score, r.iterations, r.inlier_ratio), r.unexplained
     return RefinedPose(canonical_pose(bank, r.pose), float(r.cost), float(r.score), int(r.iterations),
-                       float(r.inlier_ratio))
+                       float(r.inlier_ratio)), r.unexplained
 
 
 WARM_UP_POSE = Pose(Rx(60.0), np.array([5.0, -4.0, 300.0]))  # a cylinder, slightly off the optical axis

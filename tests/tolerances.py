@@ -57,3 +57,5 @@ FOUND_POSE_T_MM = 10.0  # a found pose must be graspable: within 10 mm ...
 FOUND_POSE_AXIS_DEG = 5.0  # ... and 5 deg of the truth
 WARM_UP_T_MM = 1.0  # the start-up warm-up's synthetic cylinder (320 x 240, 300 mm, noise-free)
 WARM_UP_AXIS_DEG = 2.0
+INTERIOR_TEXTURE_MIN = 0.5  # checkerboard lines inside an empty box silhouette, per unit of perimeter
+INTERIOR_PART_MAX = 0.1  # the shaded box really there: only its own creases inside

@@ -46,6 +46,7 @@ from service.vision.camera import Intrinsics, project_distorted, undistort_point
 from service.vision.chamfer import DEFAULT_LAMBDA_PX_PER_RAD, DEFAULT_TAU_PX, DistanceTensor, sample_with_grad
 from service.vision.edges import Segments, channel_of, detect_segments
 from service.vision.frames import Pose, canonical_symmetric_R, rotation_angle_deg
+from service.vision.interior import unexplained_edge_ratio
 
 ROI_MARGIN_PX = 30  # edges are detected in the bbox of the projected model plus this margin
 BORDER_SPACING_PX = 3.0  # spacing of the border points used in the residuals
@@ -62,6 +63,7 @@ DT_TOL = 1e-2  # least_squares ftol/xtol of the DT stage (the line stage polishe
 LINE_TOL = 1e-6  # ... of the line stage
 LINE_MATCH_DEG = 20.0  # "line" residual: orientation gate between border point and LSD segment
 LINE_GATE_PX = 3.0  # ... and distance gate (full-resolution px)
+LINE_ROUNDS = 4  # line-stage rounds (match, solve, re-match ...)
 SPLIT_PX = 16.0  # segments are split into pieces this long before undistortion
 MEDIAN_CONST_PX = 2.0  # eq. 18: tr = max(median(residual), tr_const)
 # Never worse: the refined pose is kept when its DT3 distances, each capped at score_px, average no
@@ -80,6 +82,9 @@ class RefineResult:
     iterations: int  # least-squares iterations (function evaluations' Jacobians), all stages
     inlier_ratio: float  # 0..1 fraction of border points counted as inliers at the end
     converged: bool  # the solver stopped on a tolerance and the refined pose was kept
+    # image edges inside the returned pose's silhouette that the model does not explain, per unit of
+    # perimeter (interior.unexplained_edge_ratio on the full-resolution ROI segments)
+    unexplained: float = 0.0
 
 
 # --- border points at a pose --------------------------------------------------------------------
@@ -603,7 +608,7 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
         kind = "line"
         gate = LINE_GATE_PX if residual == "dt+line" else max(LINE_GATE_PX, 2 * score_px)
         border, _ = maybe_reextract(border, pose, BORDER_SUPERSAMPLE)
-        for k in range(4):
+        for k in range(LINE_ROUNDS):
             out = _line_stage(border, pose, bank, distance_mm, ideal, seg_roi, loss, f_scale_px,
                               max_iter, gate)
             if out is None:
@@ -623,10 +628,12 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     score0, cost0, capped0 = verify(border, pose0, ideal, dtt, score_px=score_px)
     pose = _symmetric_canonical(pose, bank)
     if last is None or score1 <= 0.0 or score1 < score0 - SCORE_SLACK or capped1 > capped0 + 1e-9:
-        return RefineResult(_symmetric_canonical(pose0, bank), cost0, score0, iterations, score0, False)
+        return RefineResult(_symmetric_canonical(pose0, bank), cost0, score0, iterations, score0, False,
+                            unexplained_edge_ratio(bank, pose0, ideal, seg_roi, size))
     r = np.abs(last.fun)
     inl_thr = thr if thr is not None else (score_px if kind == "dt" else 1.0)
     inl = r <= inl_thr
     inlier_ratio = float(min(inl.sum() / len(border.p_obj), 1.0))
     cost = float(r[inl].mean()) if inl.any() else cost1
-    return RefineResult(pose, cost, score1, iterations, inlier_ratio, bool(converged))
+    return RefineResult(pose, cost, score1, iterations, inlier_ratio, bool(converged),
+                        unexplained_edge_ratio(bank, pose, ideal, seg_roi, size))
