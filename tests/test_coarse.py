@@ -283,3 +283,18 @@ def test_min_pool_is_the_cell_minimum_in_coarser_pixels():
     want = dt[:, :20, :36].reshape(3, 5, 4, 9, 4).min(axis=(2, 4)) / 4
     np.testing.assert_allclose(pooled.dt, want, rtol=1e-6)
     assert pooled.scale == 0.125 and pooled.tau_px == 2.5
+
+
+def test_scaled_offsets_are_the_rounded_products_and_are_made_once():
+    from service.vision.coarse import LevelATemplates, scaled_offsets
+
+    rng = np.random.default_rng(2)
+    off_u = rng.uniform(-40, 40, (3, 5, 7)).astype(np.float32)
+    off_v = rng.uniform(-40, 40, (3, 5, 7)).astype(np.float32)
+    tpl = LevelATemplates(np.arange(5), np.zeros(1), off_u, off_v, np.zeros((5, 7), np.int32),
+                          np.zeros((3, 5)), np.zeros((3, 2)), 40.0, 100.0)
+    scales = np.array([0.5, 1.0, 1.15, 2.3])
+    u, v = scaled_offsets(tpl, scales)
+    np.testing.assert_array_equal(u, np.rint(off_u[:, None] * scales[None, :, None, None]).astype(np.int16))
+    np.testing.assert_array_equal(v, np.rint(off_v[:, None] * scales[None, :, None, None]).astype(np.int16))
+    assert scaled_offsets(tpl, scales)[0] is u  # the next frame reuses them

@@ -299,11 +299,43 @@ def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, 
     vf = (av + 0.5) / p.level_scale - 0.5
     tile = (np.minimum((vf / h * nj_v).astype(np.int32), nj_v - 1) * nj_u
             + np.minimum((uf / w * nj_u).astype(np.int32), nj_u - 1)).astype(np.int32)
-    off_u = np.rint(tpl.off_u[:, None] * scales[None, :, None, None]).astype(np.int16)
-    off_v = np.rint(tpl.off_v[:, None] * scales[None, :, None, None]).astype(np.int16)
+    off_u, off_v = scaled_offsets(tpl, scales)
     cost, t, d = _scan(dt_q, tau_q, off_u, off_v, tpl.chan, au, av, tile,
                        np.int64(p.accept_frac * tau_q), 8, False)
     return au, av, tile, cost / DT_QUANT, t, d
+
+
+_SCALED: OrderedDict = OrderedDict()
+
+
+def scaled_offsets(tpl: LevelATemplates, scales: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(J, D, T, P) int16 level-A offsets at each of the ``scales``, made once per (templates, scales):
+    for a non-symmetric part searched over distance they are 2 x 16 M numbers (numpy took 0.6 s per
+    frame to remake them), and a cell's camera, image size and distance range do not change."""
+    key = (id(tpl), tuple(np.asarray(scales, float).tolist()))
+    hit = _SCALED.get(key)
+    if hit is not None and hit[0] is tpl:
+        _SCALED.move_to_end(key)
+        return hit[1], hit[2]
+    sc = np.asarray(scales, np.float64)
+    off_u, off_v = _scale_offsets(tpl.off_u, sc), _scale_offsets(tpl.off_v, sc)
+    _SCALED[key] = (tpl, off_u, off_v)
+    while len(_SCALED) > 4:
+        _SCALED.popitem(last=False)
+    return off_u, off_v
+
+
+@nb.njit(parallel=True, cache=True)
+def _scale_offsets(off, scales):
+    J, T, P = off.shape
+    D = scales.shape[0]
+    out = np.empty((J, D, T, P), np.int16)
+    for j in nb.prange(J):
+        for d in range(D):
+            for t in range(T):
+                for i in range(P):
+                    out[j, d, t, i] = np.int16(np.rint(off[j, t, i] * scales[d]))
+    return out
 
 
 def distance_tensor_from_edges_scaled(dtt: DistanceTensor, scale: float) -> DistanceTensor:
