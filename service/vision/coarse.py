@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import functools
 import math
-from collections import OrderedDict
 from dataclasses import dataclass, replace
 
 import numba as nb
@@ -32,6 +31,7 @@ from service.vision.bank import TemplateBank
 from service.vision.camera import Intrinsics
 from service.vision.chamfer import DistanceTensor, sample
 from service.vision.frames import Rz
+from service.vision.memo import Memo
 
 DT_QUANT = 8  # level-A DT3 stored as uint8 in 1/8 px: 4x less memory traffic than float32
 
@@ -305,24 +305,16 @@ def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, 
     return au, av, tile, cost / DT_QUANT, t, d
 
 
-_SCALED: OrderedDict = OrderedDict()
+_SCALED = Memo(4)
 
 
 def scaled_offsets(tpl: LevelATemplates, scales: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(J, D, T, P) int16 level-A offsets at each of the ``scales``, made once per (templates, scales):
     for a non-symmetric part searched over distance they are 2 x 16 M numbers (numpy took 0.6 s per
     frame to remake them), and a cell's camera, image size and distance range do not change."""
-    key = (id(tpl), tuple(np.asarray(scales, float).tolist()))
-    hit = _SCALED.get(key)
-    if hit is not None and hit[0] is tpl:
-        _SCALED.move_to_end(key)
-        return hit[1], hit[2]
     sc = np.asarray(scales, np.float64)
-    off_u, off_v = _scale_offsets(tpl.off_u, sc), _scale_offsets(tpl.off_v, sc)
-    _SCALED[key] = (tpl, off_u, off_v)
-    while len(_SCALED) > 4:
-        _SCALED.popitem(last=False)
-    return off_u, off_v
+    return _SCALED.get(tpl, tuple(sc.tolist()),
+                       lambda: (_scale_offsets(tpl.off_u, sc), _scale_offsets(tpl.off_v, sc)))
 
 
 @nb.njit(parallel=True, cache=True)
@@ -379,24 +371,20 @@ def pick_peaks(au, av, cost, n_peaks: int, radius_lvl: float) -> list[int]:
 # --- level B: local scans around the peaks, then a sub-pixel polish --------------------------------
 
 
-_TRIPLETS: OrderedDict = OrderedDict()
+_TRIPLETS = Memo(8)
 
 
 def border_triplets(bank: TemplateBank, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(N, count) indices of ``count`` points spread along every view's border, and of each point's
     predecessor and successor on that border (for the projected orientation). Made once per bank."""
-    key = (id(bank), count)
-    hit = _TRIPLETS.get(key)
-    if hit is not None and hit[0] is bank:
-        return hit[1]
-    idx = np.stack([np.resize(subsample_border(bank, n, count), count) for n in range(bank.n_templates)])
-    lo = bank.offsets[:-1, None]
-    hi = bank.offsets[1:, None]
-    out = (idx, np.where(idx - 1 >= lo, idx - 1, hi - 1), np.where(idx + 1 < hi, idx + 1, lo))
-    _TRIPLETS[key] = (bank, out)
-    while len(_TRIPLETS) > 8:
-        _TRIPLETS.popitem(last=False)
-    return out
+
+    def make():
+        idx = np.stack([np.resize(subsample_border(bank, n, count), count) for n in range(bank.n_templates)])
+        lo = bank.offsets[:-1, None]
+        hi = bank.offsets[1:, None]
+        return idx, np.where(idx - 1 >= lo, idx - 1, hi - 1), np.where(idx + 1 < hi, idx + 1, lo)
+
+    return _TRIPLETS.get(bank, count, make)
 
 
 def poses_of(bank: TemplateBank, hs: list[Hypothesis], K: np.ndarray, distance_mm: float | None
@@ -431,13 +419,19 @@ def evaluate(bank: TemplateBank, views: np.ndarray, Rs: np.ndarray, ts: np.ndarr
     return np.minimum(val, tau_px).mean(axis=1), (val <= score_px).mean(axis=1)
 
 
+_NEIGHBOURS = Memo(8)
+
+
 def view_neighbours(bank: TemplateBank, k: int = 6) -> np.ndarray:
-    """(N, k) the k nearest other views by viewing direction (object frame)."""
-    z = view_dirs_obj(bank)
-    sim = z @ z.T
-    np.fill_diagonal(sim, -np.inf)
-    k = min(k, len(z) - 1)
-    return np.argsort(-sim, axis=1)[:, :k]
+    """(N, k) the k nearest other views by viewing direction (object frame), once per bank."""
+
+    def make():
+        z = view_dirs_obj(bank)
+        sim = z @ z.T
+        np.fill_diagonal(sim, -np.inf)
+        return np.argsort(-sim, axis=1)[:, :min(k, len(z) - 1)]
+
+    return _NEIGHBOURS.get(bank, k, make)
 
 
 def bank_view_step_deg(bank: TemplateBank) -> float:
@@ -707,19 +701,12 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
     return out
 
 
-_LEVEL_A_CACHE: OrderedDict = OrderedDict()
+_LEVEL_A = Memo(8)
 
 
 def _cached_level_a(bank, intr, image_shape, p, distance_mm, z_ref) -> LevelATemplates:
     """Level-A templates depend only on the bank, the camera, the image size and the distance: a
     cell's camera and distance rarely change between frames, so they are made once per camera."""
-    key = (id(bank), intr, tuple(image_shape), p, distance_mm, z_ref)
-    hit = _LEVEL_A_CACHE.get(key)
-    if hit is not None and hit[0] is bank:
-        _LEVEL_A_CACHE.move_to_end(key)
-        return hit[1]
-    tpl = level_a_templates(bank, intr, image_shape, p, distance_mm=distance_mm, z_ref_mm=z_ref)
-    _LEVEL_A_CACHE[key] = (bank, tpl)
-    while len(_LEVEL_A_CACHE) > 8:
-        _LEVEL_A_CACHE.popitem(last=False)
-    return tpl
+    return _LEVEL_A.get(bank, (intr, tuple(image_shape), p, distance_mm, z_ref),
+                        lambda: level_a_templates(bank, intr, image_shape, p, distance_mm=distance_mm,
+                                                  z_ref_mm=z_ref))

@@ -22,6 +22,7 @@ from service.vision.bank import TemplateBank
 from service.vision.camera import Intrinsics
 from service.vision.edges import Segments, sample_segments
 from service.vision.frames import Pose
+from service.vision.memo import Memo
 from service.vision.render import rasterise_roi
 
 ERODE_PX = 5  # the border's own edges (and the pose's last pixel of error) are not "inside"
@@ -42,21 +43,19 @@ def model_edges(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size
     return fid >= 0, crease, origin
 
 
-_NORMALS: dict = {}
+_NORMALS = Memo(4)
 
 
 def _unit_face_normals(bank: TemplateBank) -> np.ndarray:
     """(F, 3) float32 unit face normals in the object frame (angles between them do not depend on
     the pose), once per bank."""
-    hit = _NORMALS.get(id(bank))
-    if hit is not None and hit[0] is bank:
-        return hit[1]
-    tri = np.asarray(bank.vertices_mm, np.float64)[bank.faces]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n = (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)).astype(np.float32)
-    _NORMALS.clear()  # one bank at a time is what an estimate needs
-    _NORMALS[id(bank)] = (bank, n)
-    return n
+
+    def make():
+        tri = np.asarray(bank.vertices_mm, np.float64)[bank.faces]
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        return (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)).astype(np.float32)
+
+    return _NORMALS.get(bank, None, make)
 
 
 @nb.njit(cache=True)
