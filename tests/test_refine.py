@@ -205,8 +205,10 @@ def test_perturbed_pose_converges_back_with_distance_refined(tless_bank):
     assert abs(res.pose.t_mm[2] - TLESS_POSE.t_mm[2]) <= REFINE_DEPTH_MM
 
 
-@pytest.mark.xfail(strict=False, reason="synthetic sprayer renders at some poses converge to a 0.2-0.6 deg "
-                   "axis bias (paper renders: 0.07 deg); under investigation")
+@pytest.mark.xfail(strict=False, reason=(
+    "edge bias, not the solver: at the true pose LSD puts one side's outline 0.2-0.4 px inside the "
+    "silhouette (the shading ramps towards the limb there) and the other side's at 0.0, so the fit "
+    "tilts the axis by 0.14-0.2 deg against the 0.1 deg tolerance (T-LESS 6 and the paper renders pass)"))
 def test_symmetric_part_converges_back_and_reports_the_canonical_spin(sprayer_bank):
     img = synthetic(sprayer_bank, SPRAYER_POSE)
     start = perturb(SPRAYER_POSE, np.random.default_rng(20), 3.0, 5.0, keep_z=True)
