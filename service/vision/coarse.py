@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
@@ -44,7 +44,7 @@ class SearchParams:
     inplane_step_deg: float = 10.0
     view_step_deg: float = 6.0  # out-of-plane spacing used at level A for a revolved part (1 DoF)
     view_step_any_deg: float = 20.0  # ... and for any other part (2 DoF): level B covers +-local_view_deg
-    depth_step: float = 0.08  # ratio between successive distances tried at level A
+    depth_step: float = 0.15  # ratio between successive distances tried when the distance is not given
     anchor_stride: int = 2  # level-A pixels (16 full-res px: level B searches +-local_radius_px)
     points_per_template: int = 32
     fine_points: int = 160
@@ -53,7 +53,6 @@ class SearchParams:
     n_peaks: int = 12
     n_polish: int = 4
     accept_frac: float = 0.5  # level A: a template must average under this fraction of tau
-    unknown_depth_step: float = 0.15  # ratio between distances tried when the distance is not given
     min_edge_frac: float = 0.3  # level A: edge pixels near an anchor, as a fraction of a border's length
     score_px: float = 3.0  # full-resolution px: a border point is "supported" within this distance
     local_phi_step_deg: float = 2.0  # level B: in-plane steps of the local scan around each peak
@@ -649,9 +648,6 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
     """Ranked, polished, mutually distinct hypotheses (best first). ``dtt_b`` is the DT3 at
     ``fine_scale``; level A's grid is min-pooled from it."""
     K = intr.K
-    if distance_mm is None:
-        p = replace(p, depth_step=p.unknown_depth_step)
-    p_b = p
     dtt_a = distance_tensor_from_edges_scaled(dtt_b, p.level_scale)
     if distance_mm is not None:
         scales = np.array([1.0])
@@ -683,7 +679,7 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
     for h in starts:
         # A peak whose neighbourhood cannot come near the best so far would never be reported first.
         accept = int(min(tau_q, p.peak_accept_ratio * best_q))
-        hyp, q = local_scan(bank, h, dt_q, tau_q, dtt_b, K, p_b, distance_mm=distance_mm, accept_q=accept)
+        hyp, q = local_scan(bank, h, dt_q, tau_q, dtt_b, K, p, distance_mm=distance_mm, accept_q=accept)
         if hyp is not None:
             scanned.append(hyp)
             best_q = min(best_q, q)
@@ -694,9 +690,9 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
                          p.score_px, p.rank_tau_px)
     order = np.argsort(cost_b)[:p.n_polish]
     neighbours = view_neighbours(bank)
-    out = [polish(bank, scanned[i], dtt_b, K, p_b, distance_mm=distance_mm, neighbours=neighbours,
-                  step_phi_deg=p_b.local_phi_step_deg / 2, step_uv_px=1.0 / dtt_b.scale,
-                  step_z=p_b.depth_step / 4) for i in order]
+    out = [polish(bank, scanned[i], dtt_b, K, p, distance_mm=distance_mm, neighbours=neighbours,
+                  step_phi_deg=p.local_phi_step_deg / 2, step_uv_px=1.0 / dtt_b.scale,
+                  step_z=p.depth_step / 4) for i in order]
     out.sort(key=lambda h: h.cost)
     return out
 
