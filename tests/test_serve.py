@@ -26,7 +26,7 @@ START_WAIT_S = 60  # hang guards, not speed asserts
 STOP_WAIT_S = 60
 BUILD_WAIT_S = 300
 LEASE_S = 3
-SLOW_OPTIONS = {"distance_range_mm": [300, 900]}  # the distance searched too: an estimate of seconds
+OPTIONS = {"distance_range_mm": [300, 900]}  # the distance searched too
 
 
 def free_port() -> int:
@@ -119,26 +119,46 @@ def test_sigterm_finishes_the_estimate_in_flight_and_exits_0(serve, sprayer_byte
     assert wait_status(server.client, mid)["status"] == "ready"
     assert estimate(server.client, mid, frame).status_code == 200  # numba's kernels loaded
 
+    # The request is held in flight by its own body: half of it is sent, the rest only once uvicorn
+    # has begun to shut down (an estimate is too fast now to be caught in flight by timing).
     image, camera = frame
+    request = httpx.Request("POST", f"{server.url}/models/{mid}/estimate",
+                            files={"image": ("0001.png", image)},
+                            data={"camera": json.dumps(camera), "options": json.dumps(OPTIONS)},
+                            headers={"X-Request-ID": "in-flight-at-sigterm"})
+    body = request.read()
+    shutting_down = threading.Event()
+
+    def trickle():
+        yield body[: len(body) // 2]
+        shutting_down.wait(STOP_WAIT_S)
+        yield body[len(body) // 2:]
+
     answer: list[httpx.Response | Exception] = []
 
-    def slow_estimate() -> None:
+    def in_flight_estimate() -> None:
+        headers = {k: v for k, v in request.headers.items() if k.lower() != "content-length"}
         try:
-            with httpx.Client(base_url=server.url, timeout=120) as c:
-                answer.append(c.post(f"/models/{mid}/estimate", files={"image": ("0001.png", image)},
-                                     data={"camera": json.dumps(camera), "options": json.dumps(SLOW_OPTIONS)},
-                                     headers={"X-Request-ID": "in-flight-at-sigterm"}))
+            with httpx.Client(timeout=120) as c:
+                answer.append(c.post(str(request.url), content=trickle(), headers=headers))
         except Exception as e:  # reported by the assert below
             answer.append(e)
 
-    thread = threading.Thread(target=slow_estimate)
+    thread = threading.Thread(target=in_flight_estimate)
     thread.start()
     deadline = time.monotonic() + START_WAIT_S
     # in progress: the estimate and this scrape itself
     while sample(server.client.get("/metrics").text, "posecell_http_requests_in_progress") < 2:
         assert time.monotonic() < deadline and not answer, answer
         time.sleep(0.05)
-    status = server.terminate()
+    server.client.close()
+    server.proc.send_signal(signal.SIGTERM)
+    waiting_line = "Waiting for connections to close. (CTRL+C to force quit)"
+    while waiting_line not in [x["message"] for x in server.log()]:
+        assert time.monotonic() < deadline and server.proc.poll() is None, "no graceful shutdown began"
+        time.sleep(0.05)
+    shutting_down.set()
+    status = server.proc.wait(timeout=STOP_WAIT_S)
     thread.join(timeout=STOP_WAIT_S)
 
     assert len(answer) == 1 and isinstance(answer[0], httpx.Response), answer
@@ -146,7 +166,7 @@ def test_sigterm_finishes_the_estimate_in_flight_and_exits_0(serve, sprayer_byte
     assert status == 0
     lines = server.log()
     messages = [x["message"] for x in lines]
-    waiting = messages.index("Waiting for connections to close. (CTRL+C to force quit)")
+    waiting = messages.index(waiting_line)
     answered = next(i for i, x in enumerate(lines) if x.get("request_id") == "in-flight-at-sigterm"
                     and x["logger"] == "service.access")
     assert waiting < answered, "the estimate was answered after the shutdown began"
