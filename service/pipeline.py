@@ -19,6 +19,7 @@ from service.vision.chamfer import distance_tensor
 from service.vision.coarse import SearchParams, coarse_search, poses_of
 from service.vision.edges import detect_segments, to_grey_u8, undistort_segments
 from service.vision.frames import Pose, Rx, canonical_symmetric_R
+from service.vision.interior import unexplained_edge_ratio
 
 DEFAULT_DISTANCE_RANGE_MM = (300.0, 1200.0)  # searched when the request gives no distance
 
@@ -64,8 +65,10 @@ def template_picture(bank: TemplateBank, k: int) -> np.ndarray:
 
 
 # Fraction of border points with a matching edge within score_px; an absent clutter scene reached 0.59.
+# Under this the coarse pose is not even checked; over it the verdict is the refined pose's, below.
 FOUND_MIN_SCORE = 0.65
-# With refinement on, the verdict is taken on the refined pose's score (full resolution, sub-pixel):
+# The verdict is taken on the refined pose's score (full resolution, sub-pixel), also when refinement
+# is off (then it runs unreported, unless the coarse score already reaches this bar):
 # on the paper renders every true pose refines to >= 0.94, while wrong poses on the checkerboard
 # clutter stayed at 0.65-0.84 (one L-bracket match on the checkerboard's straight edges reached 0.99).
 FOUND_MIN_REFINED_SCORE = 0.85
@@ -123,12 +126,20 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     coarse = cands[0] if found else None
     refined, extra = None, {}
     t0 = time.perf_counter()
-    if refine and found:
-        refined, extra["unexplained"] = _refine(bank, cands, grey, intr, distance_mm=distance_mm,
+    if found and (refine or coarse.score < FOUND_MIN_REFINED_SCORE):
+        # Refinement is also the check: with refine off it still runs, unreported, for a coarse score
+        # that wrong poses on textured floors reach too (0.65-0.76 in clutter).
+        checked, extra["unexplained"] = _refine(bank, cands, grey, intr, distance_mm=distance_mm,
                                                 n_channels=p.n_channels)
-        if refined.score < FOUND_MIN_REFINED_SCORE or extra["unexplained"] > FOUND_MAX_UNEXPLAINED:
+        if checked.score < FOUND_MIN_REFINED_SCORE or extra["unexplained"] > FOUND_MAX_UNEXPLAINED:
             # A grasp on a pose the image does not confirm is worse than no answer.
-            found, coarse, refined = False, None, None
+            found, coarse = False, None
+        elif refine:
+            refined = checked
+    elif found:  # refine off and a coarse score as high as a refined one's: check its inside only
+        extra["unexplained"] = unexplained_edge_ratio(bank, coarse.pose, intr, seg, (w, h))
+        if extra["unexplained"] > FOUND_MAX_UNEXPLAINED:
+            found, coarse = False, None
     t_refine = _ms(t0)
     png = None
     if overlay:

@@ -20,19 +20,24 @@ def sprayer_bank(sprayer_mesh):
     return pipeline.build_templates(sprayer_mesh, symmetry="y")
 
 
+@pytest.mark.parametrize("refine", [True, False])
 @pytest.mark.parametrize("image", ["images/0001.jpg", "images/0009.jpg"])
-def test_clutter_scene_is_either_right_or_not_found(sprayer_bank, data_dir, image):
+def test_clutter_scene_is_either_right_or_not_found(sprayer_bank, data_dir, image, refine):
+    """Also with refinement off: 0001's coarse pose there is wrong with score 0.68, and the
+    refinement still runs, unreported, as the check (``pipeline.estimate``)."""
     rows = [json.loads(s) for s in (data_dir / "clutter" / "gt.jsonl").read_text().splitlines()]
     g = next(r for r in rows if r["image"] == image)
     img = cv2.imread(str(data_dir / "clutter" / image), cv2.IMREAD_GRAYSCALE)
-    out = pipeline.estimate(sprayer_bank, img, Intrinsics.from_K(np.array(g["K"])))
+    out = pipeline.estimate(sprayer_bank, img, Intrinsics.from_K(np.array(g["K"])), refine=refine)
     if out.found:
+        pose = out.refined.pose if refine else out.coarse.pose
         R, t = np.array(g["R"]), np.array(g["t_mm"])
-        axis_err = np.degrees(np.arccos(np.clip(out.refined.pose.R[:, 1] @ R[:, 1], -1, 1)))
-        assert np.linalg.norm(out.refined.pose.t_mm - t) <= FOUND_POSE_T_MM
+        axis_err = np.degrees(np.arccos(np.clip(pose.R[:, 1] @ R[:, 1], -1, 1)))
+        assert np.linalg.norm(pose.t_mm - t) <= FOUND_POSE_T_MM
         assert axis_err <= FOUND_POSE_AXIS_DEG
     else:
         assert out.coarse is None and out.refined is None
+    assert (out.refined is not None) == (refine and out.found)
 
 
 @pytest.fixture(scope="module")
