@@ -22,8 +22,8 @@ from service.vision.bank import TemplateBank
 from service.vision.camera import Intrinsics
 from service.vision.edges import Segments, sample_segments
 from service.vision.frames import Pose
-from service.vision.memo import Memo
 from service.vision.render import rasterise_roi
+from service.vision.templates import mesh_topology
 
 ERODE_PX = 5  # the border's own edges (and the pose's last pixel of error) are not "inside"
 CREASE_DEG = 25.0  # neighbouring pixels whose surface normals differ more than this: a model crease
@@ -36,34 +36,20 @@ def model_edges(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size
                 ) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
     """Silhouette mask and crease/step mask of the model at ``pose`` in the ROI of its projection:
     ``(mask (h, w) bool, crease (h, w) bool, (u0, v0))``."""
-    invz, fid, origin = rasterise_roi(bank.vertices_mm, bank.faces, pose, intr, image_size, margin_px=8,
+    topo = mesh_topology(bank.vertices_mm, bank.faces)  # its arrays and face normals, made once per mesh
+    invz, fid, origin = rasterise_roi(topo.vertices, topo.faces, pose, intr, image_size, margin_px=8,
                                       inverse_depth=True)
-    crease = _creases(fid, invz, np.ascontiguousarray(bank.faces, np.int64), _unit_face_normals(bank),
-                      np.float32(np.cos(np.radians(CREASE_DEG))), np.float32(CREASE_DEPTH_MM))
+    crease = _creases(fid, invz, topo.faces, topo.face_normals, np.cos(np.radians(CREASE_DEG)),
+                      CREASE_DEPTH_MM)
     return fid >= 0, crease, origin
-
-
-_NORMALS = Memo(4)
-
-
-def _unit_face_normals(bank: TemplateBank) -> np.ndarray:
-    """(F, 3) float32 unit face normals in the object frame (angles between them do not depend on
-    the pose), once per bank."""
-
-    def make():
-        tri = np.asarray(bank.vertices_mm, np.float64)[bank.faces]
-        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        return (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)).astype(np.float32)
-
-    return _NORMALS.get(bank, None, make)
 
 
 @nb.njit(cache=True)
 def _creases(fid, invz, faces, normals, cos_max, step_mm):  # numpy's (h, w, 3) temporaries took 10 ms
     """Pixels whose right or lower neighbour (both on the model) shows a face bent by more than
-    acos(cos_max) (either winding), or a face sharing no vertex with this one and more than
-    ``step_mm`` nearer or further (an occlusion step: a face seen at a grazing angle changes depth by
-    several mm per pixel without any step)."""
+    acos(cos_max) (either winding; ``normals`` need not be unit length), or a face sharing no vertex
+    with this one and more than ``step_mm`` nearer or further (an occlusion step: a face seen at a
+    grazing angle changes depth by several mm per pixel without any step)."""
     h, w = fid.shape
     out = np.zeros((h, w), np.bool_)
     for v in range(h):
@@ -78,9 +64,9 @@ def _creases(fid, invz, faces, normals, cos_max, step_mm):  # numpy's (h, w, 3) 
                 g = fid[vv, uu]
                 if g == f:
                     continue
-                c = (normals[f, 0] * normals[g, 0] + normals[f, 1] * normals[g, 1]
-                     + normals[f, 2] * normals[g, 2])
-                if abs(c) < cos_max:
+                nf, ng = normals[f], normals[g]
+                c = nf[0] * ng[0] + nf[1] * ng[1] + nf[2] * ng[2]
+                if abs(c) < cos_max * np.sqrt((nf @ nf) * (ng @ ng)):
                     out[v, u] = True
                     continue
                 shared = False

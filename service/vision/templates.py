@@ -39,7 +39,6 @@ import contextlib
 import hashlib
 import math
 import os
-import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -407,12 +406,9 @@ def _build_topology(V: np.ndarray, F: np.ndarray) -> MeshTopology:
     return MeshTopology(V, F, closed, normals, edges, edge_faces)
 
 
-_TOPOLOGY_CACHE: dict = {}
-_TOPOLOGY_CACHE_SIZE = 8
-_TOPOLOGY_LOCK = threading.Lock()
-
-
 _TOPOLOGY_BY_ARRAY = Memo(8)
+_TOPOLOGY_BY_CONTENT = Memo(8)
+_CONTENT = object()  # owner of the content-keyed entries: their key (a digest) says everything
 
 
 def mesh_topology(vertices_mm, faces) -> MeshTopology:
@@ -427,15 +423,7 @@ def _topology_by_content(vertices_mm, faces) -> MeshTopology:
     V = np.ascontiguousarray(vertices_mm, np.float64)
     F = np.ascontiguousarray(faces, np.int32)
     key = hashlib.blake2b(V.tobytes() + b"|" + F.tobytes(), digest_size=16).digest()
-    with _TOPOLOGY_LOCK:
-        topo = _TOPOLOGY_CACHE.get(key)
-    if topo is None:
-        topo = _build_topology(V, F)
-        with _TOPOLOGY_LOCK:
-            if len(_TOPOLOGY_CACHE) >= _TOPOLOGY_CACHE_SIZE:
-                _TOPOLOGY_CACHE.pop(next(iter(_TOPOLOGY_CACHE)))
-            _TOPOLOGY_CACHE[key] = topo
-    return topo
+    return _TOPOLOGY_BY_CONTENT.get(_CONTENT, key, lambda: _build_topology(V, F))
 
 
 def is_closed_outward(vertices_mm, faces) -> bool:
