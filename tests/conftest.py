@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -39,3 +40,17 @@ def tless06_mesh(data_dir):
 @pytest.fixture(scope="session")
 def sprayer_bytes(data_dir) -> bytes:
     return (data_dir / "models" / "sprayer.stl").read_bytes()
+
+
+@pytest.fixture(scope="session")
+def paper_gt(data_dir) -> dict:
+    """The ground-truth row of paper/images/0001.png (K, R, t_mm, ...)."""
+    return json.loads((data_dir / "paper" / "gt.jsonl").read_text().splitlines()[0])
+
+
+@pytest.fixture(scope="session")
+def frame(data_dir, paper_gt) -> tuple[bytes, dict]:
+    """paper/images/0001.png as an upload's bytes, and its camera as the API's JSON."""
+    K = paper_gt["K"]
+    return (data_dir / "paper" / paper_gt["image"]).read_bytes(), {"fx": K[0][0], "fy": K[1][1],
+                                                                   "cx": K[0][2], "cy": K[1][2]}

@@ -29,20 +29,13 @@ POSE_FIELDS = {"R", "t_mm", "euler_xyz_deg", "quaternion_xyzw"}
 
 
 @pytest.fixture(scope="module")
-def gt(data_dir) -> dict:
-    with open(data_dir / "paper" / "gt.jsonl") as f:
-        return json.loads(f.readline())
+def camera(frame) -> dict:
+    return frame[1]
 
 
 @pytest.fixture(scope="module")
-def camera(gt) -> dict:
-    K = gt["K"]
-    return {"fx": K[0][0], "fy": K[1][1], "cx": K[0][2], "cy": K[1][2]}
-
-
-@pytest.fixture(scope="module")
-def image_bytes(data_dir, gt) -> bytes:
-    return (data_dir / "paper" / gt["image"]).read_bytes()
+def image_bytes(frame) -> bytes:
+    return frame[0]
 
 
 @pytest.fixture(scope="module")
@@ -84,11 +77,11 @@ def check_scored(c: dict) -> None:
     assert isinstance(c["score"], float) and 0.0 <= c["score"] <= 1.0
 
 
-def test_estimate_result_contract(client, image_bytes, camera, gt):
+def test_estimate_result_contract(client, image_bytes, camera, paper_gt):
     res = estimate(client, image_bytes, camera, {"distance_mm": 500})
     assert set(res) >= {"model_id", "image_size", "found", "coarse", "refined", "candidates", "timing_ms"}
     assert res["model_id"] == client.model_id
-    assert res["image_size"] == [gt["width"], gt["height"]]  # [w, h]
+    assert res["image_size"] == [paper_gt["width"], paper_gt["height"]]  # [w, h]
     assert res["found"] is True
     check_scored(res["coarse"])
     check_scored(res["refined"])
@@ -102,21 +95,21 @@ def test_estimate_result_contract(client, image_bytes, camera, gt):
     assert res.get("overlay_png_base64") is None  # overlay defaults to false
 
 
-def test_translation_is_in_mm_with_the_distance_held(client, image_bytes, camera, gt):
+def test_translation_is_in_mm_with_the_distance_held(client, image_bytes, camera, paper_gt):
     res = estimate(client, image_bytes, camera, {"distance_mm": 500})
     for pose in (res["coarse"], res["refined"]):
         assert abs(pose["t_mm"][2] - 500.0) <= API_HELD_DISTANCE_MM
-        np.testing.assert_allclose(pose["t_mm"][:2], gt["t_mm"][:2], atol=API_UNITS_CHECK_MM)
+        np.testing.assert_allclose(pose["t_mm"][:2], paper_gt["t_mm"][:2], atol=API_UNITS_CHECK_MM)
 
 
-def test_options_refine_top_k_overlay(client, image_bytes, camera, gt):
+def test_options_refine_top_k_overlay(client, image_bytes, camera, paper_gt):
     options = {"distance_mm": 500, "refine": False, "top_k": 2, "overlay": True}
     res = estimate(client, image_bytes, camera, options)
     assert res["found"] is True and res["refined"] is None
     assert 1 <= len(res["candidates"]) <= 2
     png = base64.b64decode(res["overlay_png_base64"])
     overlay = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
-    assert overlay.shape[:2] == (gt["height"], gt["width"])
+    assert overlay.shape[:2] == (paper_gt["height"], paper_gt["width"])
 
 
 def test_distance_range_and_distortion_and_colour_jpeg(client, image_bytes, camera):

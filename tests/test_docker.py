@@ -396,7 +396,7 @@ def metric_value(text: str, family: str, sample: str, **labels: str) -> float | 
     return None
 
 
-def test_image_replayed_serves_health_upload_estimate_and_metrics(tmp_path, data_dir):
+def test_image_replayed_serves_health_upload_estimate_and_metrics(tmp_path, sprayer_bytes, frame):
     image = replay(tmp_path)
     port = free_port()
     container_env = {**image.env, **compose_environment(), "POSE_HOST": "127.0.0.1", "POSE_PORT": str(port)}
@@ -427,8 +427,7 @@ def test_image_replayed_serves_health_upload_estimate_and_metrics(tmp_path, data
             health = subprocess.run(compose_check, env=env, cwd=workdir, capture_output=True, timeout=30)
             assert health.returncode == 0, health.stderr
 
-            mesh = (data_dir / "models" / "sprayer.stl").read_bytes()
-            r = client.post("/models", files={"file": ("sprayer.stl", mesh)},
+            r = client.post("/models", files={"file": ("sprayer.stl", sprayer_bytes)},
                             data={"templates": json.dumps(SMOKE_GRID)})
             assert r.status_code == 202, r.text
             mid = r.json()["id"]
@@ -438,11 +437,8 @@ def test_image_replayed_serves_health_upload_estimate_and_metrics(tmp_path, data
                 time.sleep(0.2)
             assert info["status"] == "ready", info
 
-            gt = json.loads((data_dir / "paper" / "gt.jsonl").read_text().splitlines()[0])
-            K = gt["K"]
-            camera = {"fx": K[0][0], "fy": K[1][1], "cx": K[0][2], "cy": K[1][2]}
-            r = client.post(f"/models/{mid}/estimate",
-                            files={"image": ("0001.png", (data_dir / "paper" / gt["image"]).read_bytes())},
+            png, camera = frame
+            r = client.post(f"/models/{mid}/estimate", files={"image": ("0001.png", png)},
                             data={"camera": json.dumps(camera), "options": json.dumps({"distance_mm": 500})},
                             headers={"X-Request-ID": "smoke-estimate-1"})
             assert r.status_code == 200, r.text

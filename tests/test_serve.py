@@ -92,19 +92,6 @@ def serve(tmp_path):
         s.close()
 
 
-@pytest.fixture(scope="module")
-def sprayer_bytes(data_dir) -> bytes:
-    return (data_dir / "models" / "sprayer.stl").read_bytes()
-
-
-@pytest.fixture(scope="module")
-def frame(data_dir) -> tuple[bytes, dict]:
-    gt = json.loads((data_dir / "paper" / "gt.jsonl").read_text().splitlines()[0])
-    K = gt["K"]
-    return (data_dir / "paper" / gt["image"]).read_bytes(), {"fx": K[0][0], "fy": K[1][1], "cx": K[0][2],
-                                                             "cy": K[1][2]}
-
-
 def sample(text: str, name: str, **labels: str) -> float | None:
     for family in text_string_to_metric_families(text):
         for s in family.samples:

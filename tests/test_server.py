@@ -93,20 +93,6 @@ def servers(tmp_path):
             server.kill()
 
 
-@pytest.fixture(scope="module")
-def sprayer_bytes(data_dir) -> bytes:
-    return (data_dir / "models" / "sprayer.stl").read_bytes()
-
-
-@pytest.fixture(scope="module")
-def frame(data_dir) -> tuple[bytes, dict]:
-    with open(data_dir / "paper" / "gt.jsonl") as f:
-        gt = json.loads(f.readline())
-    K = gt["K"]
-    camera = {"fx": K[0][0], "fy": K[1][1], "cx": K[0][2], "cy": K[1][2]}
-    return (data_dir / "paper" / gt["image"]).read_bytes(), camera
-
-
 def upload(client: httpx.Client, mesh: bytes, **data) -> dict:
     r = client.post("/models", files={"file": ("sprayer.stl", mesh)}, data=data)
     assert r.status_code == 202, r.text
