@@ -31,6 +31,17 @@ def as_intrinsics(K_or_intr) -> Intrinsics:
     return K_or_intr if isinstance(K_or_intr, Intrinsics) else Intrinsics.from_K(np.asarray(K_or_intr, float))
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _clip_span(a, r, eps, lo, hi):  # pragma: no cover - compiled
+    """Narrow the row span [lo, hi] of u to where a barycentric weight a * u + r is >= -eps
+    (an empty span comes back with lo > hi)."""
+    if a > 0.0:
+        return max(lo, (-eps - r) / a), hi
+    if a < 0.0:
+        return lo, min(hi, (-eps - r) / a)
+    return (lo, hi) if r >= -eps else (1e30, -1e30)
+
+
 @numba.njit(cache=True, nogil=True)
 def _zbuffer(uv, z, faces, invz, fid, eps):  # pragma: no cover - compiled
     """Rasterise triangles into ``invz`` (H, W) float32 (init 0) and ``fid`` (H, W) int32 (init -1).
@@ -83,23 +94,10 @@ def _zbuffer(uv, z, faces, invz, fid, eps):  # pragma: no cover - compiled
             # w2 = 1 - w0 - w1
             a2 = -a0 - a1
             r2 = 1.0 - r0 - r1
-            if a0 > 0.0:
-                lo = max(lo, (-eps - r0) / a0)
-            elif a0 < 0.0:
-                hi = min(hi, (-eps - r0) / a0)
-            elif r0 < -eps:
-                continue
-            if a1 > 0.0:
-                lo = max(lo, (-eps - r1) / a1)
-            elif a1 < 0.0:
-                hi = min(hi, (-eps - r1) / a1)
-            elif r1 < -eps:
-                continue
-            if a2 > 0.0:
-                lo = max(lo, (-eps - r2) / a2)
-            elif a2 < 0.0:
-                hi = min(hi, (-eps - r2) / a2)
-            elif r2 < -eps:
+            lo, hi = _clip_span(a0, r0, eps, lo, hi)
+            lo, hi = _clip_span(a1, r1, eps, lo, hi)
+            lo, hi = _clip_span(a2, r2, eps, lo, hi)
+            if lo > hi + 1.0:  # no pixel (also a weight that is constant and negative along the row)
                 continue
             ulo = max(int(np.ceil(lo - 1e-9)), umin)
             uhi = min(int(np.floor(hi + 1e-9)), umax)
