@@ -169,7 +169,8 @@ def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.nd
 def _refine(bank: TemplateBank, cands: list[PoseCandidate], grey: np.ndarray, intr: Intrinsics, *,
             distance_mm: float | None, n_channels: int) -> tuple[RefinedPose, float]:
     """Refine the best candidate; keep the refined pose only if it verifies at least as well. Also
-    the unexplained-edge ratio of the pose kept (``interior.unexplained_edge_ratio``)."""
+    the unexplained-edge ratio (``interior.unexplained_edge_ratio``) of refine_pose's result, which is
+    the pose kept or, when the candidate's own score is the higher, within a pixel or two of it."""
     from service.vision.refine import refine_pose
 
     best = cands[0]

@@ -587,10 +587,10 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     pose, iterations, converged, thr, last = pose0, 0, False, None, None
     kind = "dt"
 
-    def maybe_reextract(border, pose, ss, force=False):
+    def maybe_reextract(border, pose):
         px, deg = _moved(border, pose, ideal)
-        if force or px > REEXTRACT_PX or deg > REEXTRACT_DEG:
-            return border_points(bank, pose, ideal, size, supersample=ss), True
+        if px > REEXTRACT_PX or deg > REEXTRACT_DEG:
+            return border_points(bank, pose, ideal, size), True
         return border, False
 
     if residual in ("dt", "dt+line"):
@@ -601,13 +601,13 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
             converged, last = res.status > 0, res
             if residual == "dt+line":  # the line stage re-extracts if the pose moved
                 break
-            border, moved = maybe_reextract(border, pose, BORDER_SUPERSAMPLE)
+            border, moved = maybe_reextract(border, pose)
             if not moved:
                 break
     if residual in ("line", "dt+line"):
         kind = "line"
         gate = LINE_GATE_PX if residual == "dt+line" else max(LINE_GATE_PX, 2 * score_px)
-        border, _ = maybe_reextract(border, pose, BORDER_SUPERSAMPLE)
+        border, _ = maybe_reextract(border, pose)
         for k in range(LINE_ROUNDS):
             out = _line_stage(border, pose, bank, distance_mm, ideal, seg_roi, loss, f_scale_px,
                               max_iter, gate)
@@ -618,7 +618,7 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
             converged, last = res.status > 0, res
             step_px, _ = _moved(Border(border.p_obj, border.tan_obj, pose), pose_new, ideal)
             pose = pose_new
-            border, moved = maybe_reextract(border, pose, BORDER_SUPERSAMPLE)
+            border, moved = maybe_reextract(border, pose)
             if step_px < 0.05 and not moved and k >= 1:
                 break
 
