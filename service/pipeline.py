@@ -129,9 +129,9 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     if found and (refine or coarse.score < FOUND_MIN_REFINED_SCORE):
         # Refinement is also the check: with refine off it still runs, unreported, for a coarse score
         # that wrong poses on textured floors reach too (0.65-0.76 in clutter).
-        checked, extra["unexplained"] = _refine(bank, cands, grey, intr, distance_mm=distance_mm,
-                                                n_channels=p.n_channels)
-        if checked.score < FOUND_MIN_REFINED_SCORE or extra["unexplained"] > FOUND_MAX_UNEXPLAINED:
+        checked, verified, extra["unexplained"] = _refine(bank, cands, grey, intr, distance_mm=distance_mm,
+                                                          n_channels=p.n_channels)
+        if verified < FOUND_MIN_REFINED_SCORE or extra["unexplained"] > FOUND_MAX_UNEXPLAINED:
             # A grasp on a pose the image does not confirm is worse than no answer.
             found, coarse = False, None
         elif refine:
@@ -167,18 +167,23 @@ def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.nd
 
 
 def _refine(bank: TemplateBank, cands: list[PoseCandidate], grey: np.ndarray, intr: Intrinsics, *,
-            distance_mm: float | None, n_channels: int) -> tuple[RefinedPose, float]:
-    """Refine the best candidate; keep the refined pose only if it verifies at least as well. Also
-    the unexplained-edge ratio (``interior.unexplained_edge_ratio``) of refine_pose's result, which is
-    the pose kept or, when the candidate's own score is the higher, within a pixel or two of it."""
+            distance_mm: float | None, n_channels: int) -> tuple[RefinedPose, float, float]:
+    """Refine the best candidate; keep the refined pose only if it verifies at least as well.
+
+    Also returns the verdict's evidence: the pose's score verified on the full-resolution edges (when
+    the candidate is kept, the score it reports is the coarse, half-resolution one, which a textured
+    floor can inflate), and its unexplained-edge ratio (``interior.unexplained_edge_ratio``)."""
     from service.vision.refine import refine_pose
 
     best = cands[0]
     r = refine_pose(bank, best.pose, grey, intr, None, distance_mm=distance_mm, n_channels=n_channels)
+    # r.score: the full-resolution score of r.pose, which is the candidate itself when refinement lost
+    # score, else a pose scoring at least the candidate's there (less refine.SCORE_SLACK).
     if r.score < best.score:
-        return RefinedPose(best.pose, best.cost, best.score, r.iterations, r.inlier_ratio), r.unexplained
+        return RefinedPose(best.pose, best.cost, best.score, r.iterations, r.inlier_ratio), r.score, \
+            r.unexplained
     return RefinedPose(canonical_pose(bank, r.pose), float(r.cost), float(r.score), int(r.iterations),
-                       float(r.inlier_ratio)), r.unexplained
+                       float(r.inlier_ratio)), float(r.score), r.unexplained
 
 
 WARM_UP_POSE = Pose(Rx(60.0), np.array([5.0, -4.0, 300.0]))  # a cylinder, slightly off the optical axis

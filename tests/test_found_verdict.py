@@ -60,3 +60,21 @@ def test_silhouette_fitted_to_checker_squares_is_not_found(lbracket_bank, data_d
         assert np.linalg.norm(out.refined.pose.t_mm - np.array(g["t_mm"])) <= FOUND_POSE_T_MM
     else:
         assert out.coarse is None and out.refined is None
+
+
+def test_verdict_reads_the_full_resolution_score_not_the_candidates(sprayer_bank, data_dir, paper_gt):
+    """When refinement cannot improve a candidate, the candidate is what gets reported, with its
+    coarse (half-resolution) score; the verdict must still read the full-resolution verification, or
+    an inflated coarse score passes the bar (clutter 0001 with chroma edges: 0.86 coarse, 0.70
+    verified). Here: a candidate 120 mm beside the paper render's sprayer, on the blank background,
+    claiming a perfect score."""
+    from service.vision.frames import Pose
+
+    img = cv2.imread(str(data_dir / "paper" / paper_gt["image"]), cv2.IMREAD_GRAYSCALE)
+    beside = Pose(np.array(paper_gt["R"]), np.array(paper_gt["t_mm"]) + np.array([120.0, 0.0, 0.0]))
+    claimed = pipeline.PoseCandidate(beside, cost=0.1, score=0.99)
+    intr = Intrinsics.from_K(np.array(paper_gt["K"]))
+    checked, verified, _ = pipeline._refine(sprayer_bank, [claimed], img, intr, distance_mm=None,
+                                            n_channels=16)
+    assert checked.score == claimed.score  # the candidate is kept as it was...
+    assert verified < pipeline.FOUND_MIN_REFINED_SCORE  # ...but the image does not confirm it
