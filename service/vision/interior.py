@@ -37,10 +37,13 @@ def model_edges(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size
     """Silhouette mask and crease/step mask of the model at ``pose`` in the ROI of its projection:
     ``(mask (h, w) bool, crease (h, w) bool, (u0, v0))``."""
     topo = mesh_topology(bank.vertices_mm, bank.faces)  # its arrays and face normals, made once per mesh
-    invz, fid, origin = rasterise_roi(topo.vertices, topo.faces, pose, intr, image_size, margin_px=8,
+    faces, normals = topo.faces, topo.face_normals
+    if topo.closed:  # a closed mesh's back faces are hidden: half the triangles to rasterise
+        front = topo.front_facing(pose)
+        faces, normals = faces[front], normals[front]
+    invz, fid, origin = rasterise_roi(topo.vertices, faces, pose, intr, image_size, margin_px=8,
                                       inverse_depth=True)
-    crease = _creases(fid, invz, topo.faces, topo.face_normals, np.cos(np.radians(CREASE_DEG)),
-                      CREASE_DEPTH_MM)
+    crease = _creases(fid, invz, faces, normals, np.cos(np.radians(CREASE_DEG)), CREASE_DEPTH_MM)
     return fid >= 0, crease, origin
 
 
