@@ -180,10 +180,11 @@ def _refine(bank: TemplateBank, cands: list[PoseCandidate], grey: np.ndarray, in
     # r.score: the full-resolution score of r.pose, which is the candidate itself when refinement lost
     # score, else a pose scoring at least the candidate's there (less refine.SCORE_SLACK).
     if r.score < best.score:
-        return RefinedPose(best.pose, best.cost, best.score, r.iterations, r.inlier_ratio), r.score, \
-            r.unexplained
-    return RefinedPose(canonical_pose(bank, r.pose), float(r.cost), float(r.score), int(r.iterations),
-                       float(r.inlier_ratio)), float(r.score), r.unexplained
+        kept = RefinedPose(best.pose, best.cost, best.score, r.iterations, r.inlier_ratio)
+    else:
+        kept = RefinedPose(canonical_pose(bank, r.pose), float(r.cost), float(r.score), int(r.iterations),
+                           float(r.inlier_ratio))
+    return kept, float(r.score), r.unexplained
 
 
 WARM_UP_POSE = Pose(Rx(60.0), np.array([5.0, -4.0, 300.0]))  # a cylinder, slightly off the optical axis

@@ -59,6 +59,8 @@ REEXTRACT_DEG = 1.0  # ... or the rotation has changed this much since the extra
 # The interior check, started in the background at the DT stage's pose, stands for a final pose whose
 # border lies within this of it (the check erodes the silhouette by interior.ERODE_PX = 5 px anyway).
 INTERIOR_REUSE_PX = 1.5
+# Refinement's second thread (per request; the API's threadpool runs requests side by side).
+_BACKGROUND = ThreadPoolExecutor(max_workers=4, thread_name_prefix="refine")
 DT_SCALE = 1.0  # DT3 grid per full-resolution pixel (exact distances to segments at pixel centres)
 DT_TAU_PX = 12.0  # DT3 truncation for refinement (full-res px): the basin, not the coarse search
 DT_F_SCALE_PX = 4.0  # robust-loss scale of the DT stage (smaller scales converge much slower)
@@ -575,81 +577,81 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
         raise ValueError(f"loss must be one of {LOSSES}.")
     if residual not in ("dt", "line", "dt+line"):
         raise ValueError("residual must be 'dt', 'line' or 'dt+line'.")
-    ideal = Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy)
     H, W = grey.shape[:2]
     size = (W, H)
-    # A second thread overlaps the border rasterisation with LSD + DT, and the interior check
+    ideal = Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy)
+    # A background thread overlaps the border rasterisation with LSD + DT, and the interior check
     # (unexplained_edge_ratio) with the line stage.
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        fut = pool.submit(border_points, bank, pose0, ideal, size)
-        img = _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px)
-        border = fut.result()
-        if img is None or len(border.p_obj) < 6:
-            return RefineResult(_symmetric_canonical(pose0, bank), float("inf"), 0.0, 0, 0.0, False)
-        roi, seg_roi, dtt = img
-        if len(seg_roi) == 0:  # nothing to refine against
-            return RefineResult(_symmetric_canonical(pose0, bank), float("inf"), 0.0, 0, 0.0, False)
-        pose, iterations, converged, thr, last = pose0, 0, False, None, None
-        kind = "dt"
+    fut = _BACKGROUND.submit(border_points, bank, pose0, ideal, size)
+    img = _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px)
+    border = fut.result()
+    if img is None or len(border.p_obj) < 6:
+        return RefineResult(_symmetric_canonical(pose0, bank), float("inf"), 0.0, 0, 0.0, False)
+    roi, seg_roi, dtt = img
+    if len(seg_roi) == 0:  # nothing to refine against
+        return RefineResult(_symmetric_canonical(pose0, bank), float("inf"), 0.0, 0, 0.0, False)
+    pose, iterations, converged, thr, last = pose0, 0, False, None, None
+    kind = "dt"
 
-        def maybe_reextract(border, pose):
-            px, deg = _moved(border, pose, ideal)
-            if px > REEXTRACT_PX or deg > REEXTRACT_DEG:
-                return border_points(bank, pose, ideal, size), True
-            return border, False
+    def maybe_reextract(border, pose):
+        px, deg = _moved(border, pose, ideal)
+        if px > REEXTRACT_PX or deg > REEXTRACT_DEG:
+            return border_points(bank, pose, ideal, size), True
+        return border, False
 
-        if residual in ("dt", "dt+line"):
-            for _ in range(3):
-                pose, res, thr = _dt_stage(border, pose, bank, distance_mm, ideal, dtt, loss, dt_f_scale_px,
-                                           max_iter)
-                iterations += int(res.njev or 0)
-                converged, last = res.status > 0, res
-                if residual == "dt+line":  # the line stage re-extracts if the pose moved
-                    break
-                border, moved = maybe_reextract(border, pose)
-                if not moved:
-                    break
-            started = (pose, pool.submit(unexplained_edge_ratio, bank, pose, ideal, seg_roi, size))
-        else:
-            started = None
+    if residual in ("dt", "dt+line"):
+        for _ in range(3):
+            pose, res, thr = _dt_stage(border, pose, bank, distance_mm, ideal, dtt, loss, dt_f_scale_px,
+                                       max_iter)
+            iterations += int(res.njev or 0)
+            converged, last = res.status > 0, res
+            if residual == "dt+line":  # the line stage re-extracts if the pose moved
+                break
+            border, moved = maybe_reextract(border, pose)
+            if not moved:
+                break
+        interior_pose = pose
+        interior = _BACKGROUND.submit(unexplained_edge_ratio, bank, pose, ideal, seg_roi, size)
+    else:
+        interior_pose = interior = None
 
-        def interior_at(p: Pose) -> float:
-            if started is not None and _moved(Border(border.p_obj, border.tan_obj, started[0]), p,
-                                              ideal)[0] <= INTERIOR_REUSE_PX:
-                return started[1].result()
-            return unexplained_edge_ratio(bank, p, ideal, seg_roi, size)
+    def interior_at(p: Pose) -> float:
+        if interior is not None and _moved(Border(border.p_obj, border.tan_obj, interior_pose), p,
+                                           ideal)[0] <= INTERIOR_REUSE_PX:
+            return interior.result()
+        return unexplained_edge_ratio(bank, p, ideal, seg_roi, size)
 
-        if residual in ("line", "dt+line"):
-            kind = "line"
-            gate = LINE_GATE_PX if residual == "dt+line" else max(LINE_GATE_PX, 2 * score_px)
-            border, _ = maybe_reextract(border, pose)
-            for k in range(LINE_ROUNDS):
-                out = _line_stage(border, pose, bank, distance_mm, ideal, seg_roi, loss, f_scale_px,
-                                  max_iter, gate)
-                if out is None:
-                    break
-                pose_new, res, thr = out
-                iterations += int(res.njev or 0)
-                converged, last = res.status > 0, res
-                step_px, _ = _moved(Border(border.p_obj, border.tan_obj, pose), pose_new, ideal)
-                pose = pose_new
-                border, moved = maybe_reextract(border, pose)
-                if step_px < 0.05 and not moved and k >= 1:
-                    break
+    if residual in ("line", "dt+line"):
+        kind = "line"
+        gate = LINE_GATE_PX if residual == "dt+line" else max(LINE_GATE_PX, 2 * score_px)
+        border, _ = maybe_reextract(border, pose)
+        for k in range(LINE_ROUNDS):
+            out = _line_stage(border, pose, bank, distance_mm, ideal, seg_roi, loss, f_scale_px,
+                              max_iter, gate)
+            if out is None:
+                break
+            pose_new, res, thr = out
+            iterations += int(res.njev or 0)
+            converged, last = res.status > 0, res
+            step_px, _ = _moved(Border(border.p_obj, border.tan_obj, pose), pose_new, ideal)
+            pose = pose_new
+            border, moved = maybe_reextract(border, pose)
+            if step_px < 0.05 and not moved and k >= 1:
+                break
 
-        score1, cost1, capped1 = verify(border, pose, ideal, dtt, score_px=score_px)
-        # Both poses are judged on the same 3D border points (re-extracted at the refined pose): borders
-        # sampled at different densities score a few tenths of a percent apart.
-        score0, cost0, capped0 = verify(border, pose0, ideal, dtt, score_px=score_px)
-        if last is None or score1 <= 0.0 or score1 < score0 - SCORE_SLACK or capped1 > capped0 + 1e-9:
-            return RefineResult(_symmetric_canonical(pose0, bank), cost0, score0, iterations, score0, False,
-                                interior_at(pose0))
-        r = np.abs(last.fun)
-        inl_thr = thr if thr is not None else (score_px if kind == "dt" else 1.0)
-        inl = r <= inl_thr
-        inlier_ratio = float(min(inl.sum() / len(border.p_obj), 1.0))
-        cost = float(r[inl].mean()) if inl.any() else cost1
-        # The interior check reads the pose as refined: spinning a revolved part changes no pixel of it,
-        # but moves the border points that interior_at compares.
-        return RefineResult(_symmetric_canonical(pose, bank), cost, score1, iterations, inlier_ratio,
-                            bool(converged), interior_at(pose))
+    score1, cost1, capped1 = verify(border, pose, ideal, dtt, score_px=score_px)
+    # Both poses are judged on the same 3D border points (re-extracted at the refined pose): borders
+    # sampled at different densities score a few tenths of a percent apart.
+    score0, cost0, capped0 = verify(border, pose0, ideal, dtt, score_px=score_px)
+    if last is None or score1 <= 0.0 or score1 < score0 - SCORE_SLACK or capped1 > capped0 + 1e-9:
+        return RefineResult(_symmetric_canonical(pose0, bank), cost0, score0, iterations, score0, False,
+                            interior_at(pose0))
+    r = np.abs(last.fun)
+    inl_thr = thr if thr is not None else (score_px if kind == "dt" else 1.0)
+    inl = r <= inl_thr
+    inlier_ratio = float(min(inl.sum() / len(border.p_obj), 1.0))
+    cost = float(r[inl].mean()) if inl.any() else cost1
+    # The interior check reads the pose as refined: spinning a revolved part changes no pixel of it,
+    # but moves the border points that interior_at compares.
+    return RefineResult(_symmetric_canonical(pose, bank), cost, score1, iterations, inlier_ratio,
+                        bool(converged), interior_at(pose))
