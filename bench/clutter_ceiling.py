@@ -18,7 +18,6 @@ Per clutter image (distance not given, as the benchmark runs it), with the pipel
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 
@@ -30,11 +29,11 @@ from bench.accuracy import DATA_DIR, load_bank, load_model_info, read_gt, read_m
 from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, FOUND_MIN_REFINED_SCORE, estimate  # noqa: E402
 from service.vision import coarse  # noqa: E402
 from service.vision.camera import Intrinsics  # noqa: E402
-from service.vision.chamfer import distance_tensor, sample  # noqa: E402
+from service.vision.chamfer import distance_tensor  # noqa: E402
 from service.vision.edges import detect_segments, to_grey_u8  # noqa: E402
 from service.vision.frames import Pose  # noqa: E402
-from service.vision.interior import model_edges  # noqa: E402
-from service.vision.refine import border_points, verify  # noqa: E402
+from service.vision.refine import PoseParams, border_points, dt_residuals, verify  # noqa: E402
+from service.vision.render import render  # noqa: E402
 
 REGION_BAND_PX = 20
 REGION_BINS = 8  # per Lab channel
@@ -57,32 +56,19 @@ def separability(bgr: np.ndarray, mask: np.ndarray) -> float:
     return float(p_in[code[inner]].mean() + (1.0 - p_in[code[outer]]).mean() - 1.0)
 
 
-def full_mask(bank, pose: Pose, intr: Intrinsics, w: int, h: int) -> np.ndarray:
-    mask, _, (u0, v0) = model_edges(bank, pose, intr, (w, h))
-    out = np.zeros((h, w), bool)
-    mh, mw = mask.shape
-    a, b = max(v0, 0), max(u0, 0)
-    c, d = min(v0 + mh, h), min(u0 + mw, w)
-    if c > a and d > b:
-        out[a:c, b:d] = mask[a - v0:c - v0, b - u0:d - u0]
-    return out
+def silhouette(bank, pose: Pose, intr: Intrinsics, w: int, h: int) -> np.ndarray:
+    return render(bank.vertices_mm, bank.faces, pose, intr.K, (w, h)).mask
 
 
-def truth_cost(border, pose: Pose, K: np.ndarray, dtt, tau_px: float) -> float:
-    p = pose.apply(border.p_obj)
-    q = pose.apply(border.p_obj + border.tan_obj)
-    f = np.array([K[0, 0], K[1, 1]])
-    uv = p[:, :2] / p[:, 2:] * f + K[:2, 2]
-    d = q[:, :2] / q[:, 2:] * f + K[:2, 2] - uv
-    val = sample(dtt, dtt.to_grid(uv), np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi)) / dtt.scale
-    return float(np.minimum(val, tau_px).mean())
+def truth_cost(border, pose: Pose, intr: Intrinsics, dtt, tau_px: float) -> float:
+    """Level B's ranking cost of ``border`` at ``pose``: mean DT3 read-out truncated at ``tau_px``."""
+    params = PoseParams(pose, np.zeros(3))
+    r, _ = dt_residuals(params, np.zeros(params.n), border, intr, dtt, with_jac=False)
+    return float(np.minimum(r, tau_px).mean())
 
 
 def level_a_rank(bank, intr: Intrinsics, dtt_b, shape, truth: Pose, p: coarse.SearchParams) -> int:
-    lo, hi = DEFAULT_DISTANCE_RANGE_MM
-    n = max(int(math.ceil(math.log(hi / lo) / math.log(1 + p.depth_step))), 1)
-    z_ref = math.sqrt(lo * hi)
-    scales = z_ref / (lo * (1 + p.depth_step) ** np.arange(n + 1))
+    z_ref, scales = coarse.depth_scales(DEFAULT_DISTANCE_RANGE_MM, p.depth_step)
     tpl = coarse.level_a_templates(bank, intr, shape, p, distance_mm=None, z_ref_mm=z_ref)
     dtt_a = coarse.distance_tensor_from_edges_scaled(dtt_b, p.level_scale)
     au, av, _, cost, _, _ = coarse.scan_level_a(dtt_a, tpl, scales, shape, p)
@@ -128,9 +114,9 @@ def main() -> None:
             verify(border, truth, intr, dtt_1, score_px=p.score_px)[0],
         ]
         rank = level_a_rank(bank, intr, dtt_b, (h, w), truth, p)
-        reg_t = separability(bgr, full_mask(bank, truth, intr, w, h))
-        reg_f = separability(bgr, full_mask(bank, best.pose, intr, w, h)) if best else float("nan")
-        c_truth = truth_cost(border, truth, K, dtt_b, p.rank_tau_px)
+        reg_t = separability(bgr, silhouette(bank, truth, intr, w, h))
+        reg_f = separability(bgr, silhouette(bank, best.pose, intr, w, h)) if best else float("nan")
+        c_truth = truth_cost(border, truth, intr, dtt_b, p.rank_tau_px)
         cells = [Path(g["image"]).name, m, f"{g['visible_fraction']:.2f}", f"{cols[0]:.2f}", f"{cols[1]:.2f}",
                  str(rank) if rank >= 0 else "pruned", f"{c_truth:.2f}",
                  f"{best.cost:.2f}" if best else "-", f"{mspd:.0f}", f"{reg_t:.2f}", f"{reg_f:.2f}"]

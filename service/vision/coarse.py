@@ -646,6 +646,15 @@ def polish(bank: TemplateBank, h: Hypothesis, dtt: DistanceTensor, K: np.ndarray
     return cur
 
 
+def depth_scales(distance_range_mm: tuple[float, float], depth_step: float) -> tuple[float, np.ndarray]:
+    """Level A's reference depth for a searched distance range (its geometric middle) and the scale
+    factors of the depths tried, ``depth_step`` apart from the near end to past the far end."""
+    lo, hi = distance_range_mm
+    n = max(int(math.ceil(math.log(hi / lo) / math.log(1 + depth_step))), 1)
+    z_ref = float(math.sqrt(lo * hi))
+    return z_ref, z_ref / (lo * (1 + depth_step) ** np.arange(n + 1))
+
+
 def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
                   image_shape: tuple[int, int], p: SearchParams, *, distance_mm: float | None,
                   distance_range_mm: tuple[float, float]) -> list[Hypothesis]:
@@ -653,15 +662,8 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
     ``fine_scale``; level A's grid is min-pooled from it."""
     K = intr.K
     dtt_a = distance_tensor_from_edges_scaled(dtt_b, p.level_scale)
-    if distance_mm is not None:
-        scales = np.array([1.0])
-        z_ref = distance_mm
-    else:
-        lo, hi = distance_range_mm
-        n = max(int(math.ceil(math.log(hi / lo) / math.log(1 + p.depth_step))), 1)
-        zs = lo * (1 + p.depth_step) ** (np.arange(n + 1))
-        z_ref = float(math.sqrt(lo * hi))
-        scales = z_ref / zs
+    z_ref, scales = (distance_mm, np.array([1.0])) if distance_mm is not None else \
+        depth_scales(distance_range_mm, p.depth_step)
     tpl = _cached_level_a(bank, intr, image_shape, p, distance_mm, z_ref)
     au, av, tile, cost, t, d = scan_level_a(dtt_a, tpl, scales, image_shape, p)
     radius = 0.25 * tpl.extent_px * float(np.median(scales))
