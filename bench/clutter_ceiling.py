@@ -5,7 +5,7 @@
 Per clutter image (distance not given, as the benchmark runs it), with the pipeline's own pieces:
 - ``cov 1/2`` / ``cov 1/1``: the true outline's edge coverage (``refine.verify``'s score at the
   ground-truth pose) on the coarse stage's half-resolution LSD and on full-resolution LSD (what the
-  found verdict reads; it asks for ``pipeline.FOUND_MIN_REFINED_SCORE``);
+  found verdict reads as its ``edge_support`` evidence);
 - ``A rank``: rank of the best level-A anchor within 2 level pixels of the truth's reference point
   among all anchors (level B only looks around ``SearchParams.n_peaks`` of them);
 - ``truth cost`` / ``found cost``: level B's ranking cost (mean DT3, truncated at
@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `python bench/clutter_ceiling.py`
 from bench.accuracy import DATA_DIR, load_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
-from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, FOUND_MIN_REFINED_SCORE, estimate  # noqa: E402
+from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, estimate  # noqa: E402
 from service.vision import coarse  # noqa: E402
 from service.vision.camera import Intrinsics  # noqa: E402
 from service.vision.chamfer import distance_tensor  # noqa: E402
@@ -88,7 +88,6 @@ def main() -> None:
     set_dir = DATA_DIR / "clutter"
     meta, rows, banks, infos = read_meta(set_dir), read_gt(set_dir), {}, {}
     p = coarse.SearchParams()
-    print(f"found bar (full-resolution coverage): {FOUND_MIN_REFINED_SCORE}\n")
     print("| image | model | visible | cov 1/2 | cov 1/1 | A rank | truth cost | found cost | found MSPD640 "
           "| region truth | region found |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")

@@ -2,7 +2,8 @@
 
 Meshes: STL (binary/ASCII), OBJ, PLY, OFF, GLB, read by trimesh; scenes are merged into one mesh;
 the declared unit is converted to mm here, once. Non-watertight meshes are fine.
-Images: PNG, JPEG, BMP, TIFF, 8- or 16-bit, grey or colour, read by OpenCV and returned grey.
+Images: PNG, JPEG, BMP, TIFF, 8- or 16-bit, grey or colour, read by OpenCV; colour stays BGR (the
+verdict reads it), alpha is dropped.
 
 Errors: a format we do not read or bytes that are not one -> ``UnsupportedMediaError`` (415); a file
 that is empty, truncated, or holds an unusable mesh/image -> ``UnprocessableError`` (422); an image
@@ -110,7 +111,8 @@ def image_size(data: bytes) -> tuple[int, int] | None:
 
 
 def decode_image(data: bytes, *, max_pixels: int | None = None) -> np.ndarray:
-    """Image file bytes -> grey (H, W) uint8 or uint16 (shape is (h, w); the API says (w, h))."""
+    """Image file bytes -> grey (H, W) or BGR (H, W, 3), uint8 or uint16 (shape is (h, w); the API says
+    (w, h))."""
     if not data:
         raise UnprocessableError("The image file is empty; upload the whole image")
     size = image_size(data)
@@ -132,11 +134,9 @@ def decode_image(data: bytes, *, max_pixels: int | None = None) -> np.ndarray:
         img = img[:, :, 0]
     elif img.ndim == 3 and img.shape[2] == 2:
         img = img[:, :, 0]  # grey + alpha
-    elif img.ndim == 3 and img.shape[2] == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     elif img.ndim == 3 and img.shape[2] == 4:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
-    if img.ndim != 2:
+        img = img[:, :, :3]  # colour is evidence for the verdict; alpha is not
+    if img.ndim != 2 and not (img.ndim == 3 and img.shape[2] == 3):
         raise UnprocessableError(f"The image has an unsupported shape {img.shape}; send a grey or colour "
                                  "image")
     if max_pixels is not None and img.shape[0] * img.shape[1] > max_pixels:

@@ -18,8 +18,9 @@ from service.vision.camera import Intrinsics
 from service.vision.chamfer import distance_tensor
 from service.vision.coarse import SearchParams, coarse_search, poses_of
 from service.vision.edges import detect_segments, to_grey_u8, undistort_segments
+from service.vision.evidence import ColourFrame, colour_frame, evidence
 from service.vision.frames import Pose, Rx, canonical_symmetric_R
-from service.vision.interior import unexplained_edge_ratio
+from service.vision.verdict import Verdict, decide
 
 DEFAULT_DISTANCE_RANGE_MM = (300.0, 1200.0)  # searched when the request gives no distance
 
@@ -46,7 +47,7 @@ class EstimateOutput:
     candidates: list[PoseCandidate]
     timing_ms: dict[str, float]  # edges, coarse, refine, total
     overlay_png: bytes | None = None
-    extra: dict = field(default_factory=dict)
+    verdict: Verdict = field(default_factory=lambda: decide(None))
 
 
 def build_templates(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | None = None,
@@ -62,22 +63,6 @@ def template_picture(bank: TemplateBank, k: int) -> np.ndarray:
     from service.vision.templates import draw_template
 
     return draw_template(bank, k)
-
-
-# Fraction of border points with a matching edge within score_px; an absent clutter scene reached 0.59.
-# Under this the coarse pose is not even checked; over it the verdict is the refined pose's, below.
-FOUND_MIN_SCORE = 0.65
-# The verdict is taken on the refined pose's score (full resolution, sub-pixel), also when refinement
-# is off (then it runs unreported, unless the coarse score already reaches this bar):
-# on the paper renders every true pose refines to >= 0.94, while wrong poses on the checkerboard
-# clutter stayed at 0.65-0.84 (one L-bracket match on the checkerboard's straight edges reached 0.99).
-FOUND_MIN_REFINED_SCORE = 0.85
-# ... and the image may show no more than this much edge length (per unit of silhouette perimeter)
-# inside the silhouette that the model's creases and depth steps do not explain
-# (interior.unexplained_edge_ratio). At the true pose: paper renders <= 0.06; clutter 0-0.36, and 0.59
-# for a sprayer behind an occluder. The one confident wrong pose left in clutter (an L-bracket fitted to
-# a block of checker squares, refined score 0.97) has 0.53.
-FOUND_MAX_UNEXPLAINED = 0.4
 
 
 def _candidate(bank: TemplateBank, pose: Pose, cost: float, score: float) -> PoseCandidate:
@@ -98,10 +83,20 @@ def _ms(t0: float) -> float:
     return (time.perf_counter() - t0) * 1000.0
 
 
+N_VERIFY = 3  # candidates refined and verified per frame at most (best chamfer cost first)
+
+
 def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance_mm: float | None = None,
              distance_range_mm: tuple[float, float] | None = None, refine: bool = True, top_k: int = 5,
-             overlay: bool = False, params: SearchParams | None = None) -> EstimateOutput:
-    """Grey (H, W) uint8/uint16 image + intrinsics -> ranked poses (see EstimateOutput)."""
+             overlay: bool = False, params: SearchParams | None = None,
+             min_score: float | None = None) -> EstimateOutput:
+    """Grey (H, W) or BGR (H, W, 3) image + intrinsics -> ranked poses and the verdict on the best.
+
+    The coarse search proposes; up to ``N_VERIFY`` candidates are refined (also with ``refine``
+    false: refinement is the check then, and ``refined`` stays null) and verified on the colour image
+    (``verdict``); the one with the highest verification score is reported, found when that score
+    reaches ``min_score`` (default ``verdict.MIN_SCORE``) and its distance lies in the searched range.
+    """
     p = params or SearchParams()
     t_start = time.perf_counter()
     grey = to_grey_u8(image)
@@ -119,37 +114,57 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     hyps = coarse_search(bank, dtt_b, intr, (h, w), p, distance_mm=distance_mm, distance_range_mm=rng)
     Rs, ts = poses_of(bank, hyps, intr.K, distance_mm) if hyps else (np.zeros((0, 3, 3)), np.zeros((0, 3)))
     cands = [_candidate(bank, Pose(R, t), hy.cost, hy.score) for R, t, hy in zip(Rs, ts, hyps, strict=True)]
-    cands = distinct_candidates(cands, bank, intr.K)[:top_k]
+    cands = distinct_candidates(cands, bank, intr.K)
     t_coarse = _ms(t0)
 
-    found = bool(cands) and cands[0].score >= FOUND_MIN_SCORE
-    coarse = cands[0] if found else None
-    refined, extra = None, {}
     t0 = time.perf_counter()
-    if found and (refine or coarse.score < FOUND_MIN_REFINED_SCORE):
-        # Refinement is also the check: with refine off it still runs, unreported, for a coarse score
-        # that wrong poses on textured floors reach too (0.65-0.76 in clutter).
-        checked, verified, extra["unexplained"] = _refine(bank, cands, grey, intr, distance_mm=distance_mm,
-                                                          n_channels=p.n_channels)
-        if verified < FOUND_MIN_REFINED_SCORE or extra["unexplained"] > FOUND_MAX_UNEXPLAINED:
-            # A grasp on a pose the image does not confirm is worse than no answer.
-            found, coarse = False, None
-        elif refine:
-            refined = checked
-    elif found:  # refine off and a coarse score as high as a refined one's: check its inside only
-        # on the coarse stage's half-resolution segments (paper renders' true poses <= 0.20 on them)
-        extra["unexplained"] = unexplained_edge_ratio(bank, coarse.pose, intr, seg, (w, h))
-        if extra["unexplained"] > FOUND_MAX_UNEXPLAINED:
-            found, coarse = False, None
+    frame = colour_frame(image)
+    checked = verify_candidates(bank, cands, grey, frame, intr, distance_mm=distance_mm,
+                                distance_range_mm=None if distance_mm is not None else rng,
+                                min_score=min_score, n_channels=p.n_channels)
+    best = checked[0] if checked else None
+    found = best is not None and best.verdict.found
+    coarse = best.candidate if found else None
+    refined = best.refined if found and refine else None
     t_refine = _ms(t0)
     png = None
     if overlay:
         from service.vision.overlay import draw_overlay, encode_png
 
         png = encode_png(draw_overlay(grey, bank, intr, coarse.pose if coarse else None,
-                                      refined.pose if refined else None))
+                                      refined.pose if refined else None,
+                                      rejected=None if found or best is None else best.refined.pose))
     timing = {"edges": t_edges, "coarse": t_coarse, "refine": t_refine, "total": _ms(t_start)}
-    return EstimateOutput((w, h), found, coarse, refined, cands, timing, png, extra)
+    v = best.verdict if best is not None else decide(None)
+    return EstimateOutput((w, h), found, coarse, refined, cands[:top_k], timing, png, v)
+
+
+@dataclass(frozen=True)
+class Checked:
+    candidate: PoseCandidate  # as the coarse search proposed it
+    refined: RefinedPose  # the pose refinement kept (the candidate itself when refinement lost score)
+    verdict: Verdict
+
+
+def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.ndarray, frame: ColourFrame,
+                      intr: Intrinsics, *, distance_mm: float | None,
+                      distance_range_mm: tuple[float, float] | None, min_score: float | None,
+                      n_channels: int) -> list[Checked]:
+    """Refine and verify the best ``N_VERIFY`` candidates, best verification score first. Stops at the
+    first found one: the search ranks by chamfer cost, and on a clean frame the first is the truth."""
+    out: list[Checked] = []
+    for cand in cands[:N_VERIFY]:
+        kept, verified, unexplained = _refine(bank, cand, grey, intr, distance_mm=distance_mm,
+                                              n_channels=n_channels)
+        ev = evidence(bank, kept.pose, intr, frame).as_dict()
+        ev |= {"edge_support": verified, "unexplained": unexplained}
+        v = decide(ev, z_mm=float(kept.pose.t_mm[2]), distance_range_mm=distance_range_mm,
+                   min_score=min_score)
+        out.append(Checked(cand, kept, v))
+        if v.found:
+            break
+    out.sort(key=lambda c: (c.verdict.found, c.verdict.score), reverse=True)
+    return out
 
 
 def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.ndarray) -> list[PoseCandidate]:
@@ -166,16 +181,15 @@ def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.nd
     return out
 
 
-def _refine(bank: TemplateBank, cands: list[PoseCandidate], grey: np.ndarray, intr: Intrinsics, *,
+def _refine(bank: TemplateBank, best: PoseCandidate, grey: np.ndarray, intr: Intrinsics, *,
             distance_mm: float | None, n_channels: int) -> tuple[RefinedPose, float, float]:
-    """Refine the best candidate; keep the refined pose only if it verifies at least as well.
+    """Refine a candidate; keep the refined pose only if it verifies at least as well.
 
     Also returns the verdict's evidence: the pose's score verified on the full-resolution edges (when
     the candidate is kept, the score it reports is the coarse, half-resolution one, which a textured
     floor can inflate), and its unexplained-edge ratio (``interior.unexplained_edge_ratio``)."""
     from service.vision.refine import refine_pose
 
-    best = cands[0]
     r = refine_pose(bank, best.pose, grey, intr, None, distance_mm=distance_mm, n_channels=n_channels)
     # r.score: the full-resolution score of r.pose, which is the candidate itself when refinement lost
     # score, else a pose scoring at least the candidate's there (less refine.SCORE_SLACK).
@@ -204,3 +218,30 @@ def warm_up() -> EstimateOutput:
     estimate(bank, img, intr)  # the unknown-distance path has kernels of its own
     return estimate(bank, img, intr, distance_mm=float(WARM_UP_POSE.t_mm[2]))
 
+
+
+# Many hypotheses, verified: the paper's search proposes, the evidence decides. The truth of a
+# cluttered frame often ranks past the 4th chamfer cost (clutter: in the top 5 on ... of 16).
+PROPOSAL_PARAMS = SearchParams(n_peaks=30, n_polish=12, peak_accept_ratio=3.0)
+
+
+def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance_mm: float | None = None,
+            distance_range_mm: tuple[float, float] | None = None, params: SearchParams | None = None):
+    """Edges and coarse search with many hypotheses kept: (distinct candidates best cost first,
+    full-image segments, timing_ms)."""
+    p = params or PROPOSAL_PARAMS
+    t0 = time.perf_counter()
+    grey = to_grey_u8(image)
+    h, w = grey.shape
+    seg = detect_segments(grey)
+    if intr.dist is not None:
+        seg = undistort_segments(seg, intr)
+    dtt_b = distance_tensor(seg, n_channels=p.n_channels, scale=p.fine_scale)
+    t_edges = _ms(t0)
+    t1 = time.perf_counter()
+    rng = distance_range_mm or DEFAULT_DISTANCE_RANGE_MM
+    hyps = coarse_search(bank, dtt_b, intr, (h, w), p, distance_mm=distance_mm, distance_range_mm=rng)
+    Rs, ts = poses_of(bank, hyps, intr.K, distance_mm) if hyps else (np.zeros((0, 3, 3)), np.zeros((0, 3)))
+    cands = [_candidate(bank, Pose(R, t), hy.cost, hy.score) for R, t, hy in zip(Rs, ts, hyps, strict=True)]
+    cands = distinct_candidates(cands, bank, intr.K)
+    return cands, seg, {"edges": t_edges, "coarse": _ms(t1)}

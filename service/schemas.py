@@ -63,7 +63,11 @@ class Options(_Request):
         None, description="[min, max] distance to search, mm, 0 < min < max (default: the pipeline's)")
     refine: bool = Field(True, description="run the Levenberg-Marquardt refinement")
     top_k: int = Field(5, ge=1, le=50, description="number of coarse candidates to return")
-    overlay: bool = Field(False, description="add overlay_png_base64 (coarse contour dashed, refined solid)")
+    overlay: bool = Field(False, description="add overlay_png_base64 (coarse contour dashed, refined solid; "
+                          "when nothing is found, the best rejected candidate dotted)")
+    min_score: float | None = Field(
+        None, ge=0, le=1, description="operating point of the verdict: found needs verdict.score >= this "
+        "(default: the service's, chosen for precision; lower finds more and trusts less)")
 
     @model_validator(mode="after")
     def _distances(self) -> Options:
@@ -125,6 +129,17 @@ class Timing(BaseModel):
     total: float
 
 
+class VerdictJSON(BaseModel):
+    found: bool
+    score: float = Field(description="0..1 verification score of the pose reported, or of the best rejected "
+                         "candidate when nothing is found")
+    reason: str = Field(description="found | no_candidate | outside_distance_range | outside_image | "
+                        "low_support | interior_edges | region_mismatch | low_score")
+    evidence: dict[str, float] = Field(description="the evidence the score was computed from: edge_support, "
+                                       "unexplained, colour_edge, polarity, region, region_low, in_image "
+                                       "(fractions; see docs/API.md)")
+
+
 class EstimateResult(BaseModel):
     model_id: str
     image_size: Annotated[list[int], Field(min_length=2, max_length=2)] = Field(description="[w, h], pixels")
@@ -134,6 +149,7 @@ class EstimateResult(BaseModel):
     candidates: list[Candidate] = Field(description="the top_k coarse placements, best first")
     timing_ms: Timing = Field(description="milliseconds per stage")
     overlay_png_base64: str | None = Field(None, description="PNG of the image with the contours (overlay)")
+    verdict: VerdictJSON | None = Field(None, description="why found is true or false, with its evidence")
 
     @classmethod
     def from_output(cls, model_id: str, out: EstimateOutput) -> EstimateResult:
@@ -145,6 +161,9 @@ class EstimateResult(BaseModel):
             candidates=[Candidate.from_candidate(c) for c in out.candidates],
             timing_ms=Timing(**{k: float(out.timing_ms.get(k, 0.0)) for k in Timing.model_fields}),
             overlay_png_base64=overlay,
+            verdict=VerdictJSON(found=out.verdict.found, score=float(out.verdict.score),
+                                reason=out.verdict.reason,
+                                evidence={k: float(v) for k, v in out.verdict.evidence.items()}),
         )
 
 

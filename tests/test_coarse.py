@@ -122,7 +122,7 @@ def test_paper_render_coarse_pose_with_30_percent_occluded(sprayer_bank, data_di
     img = img.copy()
     img[:cut, us.min() - 5: us.max() + 5] = int(np.median(img[~mask]))
     out = pipeline.estimate(sprayer_bank, img, intr, distance_mm=500.0, refine=False)
-    # The pose is right; the found verdict (score >= FOUND_MIN_SCORE) is not asserted: with 30 % of
+    # The pose is right; the found verdict is not asserted: with 30 % of
     # the border gone the score sits at ~0.6, where one cluttered absent scene also lands.
     best = out.candidates[0]
     assert _axis_err_deg(best.pose.R, truth.R) <= COARSE_OCCLUDED_AXIS_DEG

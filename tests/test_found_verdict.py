@@ -1,6 +1,6 @@
 """The found verdict guards the grasp: on the checkerboard clutter renders, where the search still
 lands on wrong poses, a pose the image does not confirm must come back as found=false, never as a
-confident wrong pose (``pipeline.FOUND_MIN_REFINED_SCORE``, ``pipeline.FOUND_MAX_UNEXPLAINED``)."""
+confident wrong pose (``service.vision.verdict``)."""
 
 from __future__ import annotations
 
@@ -50,8 +50,8 @@ def lbracket_bank(data_dir):
 @pytest.mark.slow
 def test_silhouette_fitted_to_checker_squares_is_not_found(lbracket_bank, data_dir):
     """clutter 0008: the L-bracket's rectangle-like silhouette fits a 4 x 2 block of checker squares
-    with 0.97 refined support; the checker lines running through its inside give it away
-    (``pipeline.FOUND_MAX_UNEXPLAINED``). The part itself is mostly hidden behind a cylinder."""
+    with 0.97 refined support; the checker lines running through its inside, and the colours inside
+    matching those outside, give it away. The part itself is mostly hidden behind a cylinder."""
     rows = [json.loads(s) for s in (data_dir / "clutter" / "gt.jsonl").read_text().splitlines()]
     g = next(r for r in rows if r["image"] == "images/0008.png")
     img = cv2.imread(str(data_dir / "clutter" / g["image"]), cv2.IMREAD_GRAYSCALE)
@@ -64,17 +64,19 @@ def test_silhouette_fitted_to_checker_squares_is_not_found(lbracket_bank, data_d
 
 def test_verdict_reads_the_full_resolution_score_not_the_candidates(sprayer_bank, data_dir, paper_gt):
     """When refinement cannot improve a candidate, the candidate is what gets reported, with its
-    coarse (half-resolution) score; the verdict must still read the full-resolution verification, or
-    an inflated coarse score passes the bar (clutter 0001 with chroma edges: 0.86 coarse, 0.70
-    verified). Here: a candidate 120 mm beside the paper render's sprayer, on the blank background,
-    claiming a perfect score."""
+    coarse (half-resolution) score; the verdict must read the full-resolution verification and the
+    image's colours, or an inflated coarse score passes the bar (clutter 0001 with chroma edges: 0.86
+    coarse, 0.70 verified). Here: a candidate 120 mm beside the paper render's sprayer, on the blank
+    background, claiming a perfect score."""
+    from service.vision.evidence import colour_frame
     from service.vision.frames import Pose
 
     img = cv2.imread(str(data_dir / "paper" / paper_gt["image"]), cv2.IMREAD_GRAYSCALE)
     beside = Pose(np.array(paper_gt["R"]), np.array(paper_gt["t_mm"]) + np.array([120.0, 0.0, 0.0]))
     claimed = pipeline.PoseCandidate(beside, cost=0.1, score=0.99)
     intr = Intrinsics.from_K(np.array(paper_gt["K"]))
-    checked, verified, _ = pipeline._refine(sprayer_bank, [claimed], img, intr, distance_mm=None,
-                                            n_channels=16)
-    assert checked.score == claimed.score  # the candidate is kept as it was...
-    assert verified < pipeline.FOUND_MIN_REFINED_SCORE  # ...but the image does not confirm it
+    checked = pipeline.verify_candidates(sprayer_bank, [claimed], img, colour_frame(img), intr,
+                                         distance_mm=None, distance_range_mm=None, min_score=None,
+                                         n_channels=16)
+    assert len(checked) == 1 and not checked[0].verdict.found
+    assert checked[0].verdict.evidence["edge_support"] < 0.5  # the image does not confirm it

@@ -24,7 +24,7 @@ def run_estimate(model: Loaded, data: bytes, cam: Camera, opts: Options,
     image = decode_image(data, max_pixels=settings.max_image_pixels)
     out = estimate_pose(model.bank, image, cam.to_intrinsics(), distance_mm=opts.distance_mm,
                         distance_range_mm=opts.distance_range_mm, refine=opts.refine, top_k=opts.top_k,
-                        overlay=opts.overlay)
+                        overlay=opts.overlay, min_score=opts.min_score)
     return EstimateResult.from_output(model.id, out)
 
 

@@ -17,6 +17,8 @@ from service.vision.render import render
 
 COARSE_BGR = (0, 200, 0)  # green, dashed
 REFINED_BGR = (0, 0, 255)  # red, solid
+REJECTED_BGR = (0, 165, 255)  # orange, dotted: the best candidate the verdict rejected
+DOT_PX = 3
 DASH_PX = 8  # dash and gap length along the contour, px
 THICKNESS_PX = 1
 
@@ -65,12 +67,16 @@ def _dashed(img: np.ndarray, poly: np.ndarray, color, dash_px: int, thickness: i
 
 
 def draw_overlay(image: np.ndarray, bank: TemplateBank, intr: Intrinsics, coarse_pose: Pose | None,
-                 refined_pose: Pose | None, *, dash_px: int = DASH_PX, thickness: int = THICKNESS_PX
-                 ) -> np.ndarray:
+                 refined_pose: Pose | None, *, dash_px: int = DASH_PX, thickness: int = THICKNESS_PX,
+                 rejected: Pose | None = None) -> np.ndarray:
     """(H, W) grey or (H, W, 3) BGR image -> (H, W, 3) uint8 BGR with the coarse border dashed
-    (``COARSE_BGR``) and the refined border solid (``REFINED_BGR``, drawn on top)."""
+    (``COARSE_BGR``) and the refined border solid (``REFINED_BGR``, drawn on top); when nothing was
+    found, the best rejected candidate's border dotted (``REJECTED_BGR``)."""
     out = to_bgr(image)
     h, w = out.shape[:2]
+    if rejected is not None:
+        for c in silhouette_contours(bank, rejected, intr, (w, h)):
+            _dashed(out, c, REJECTED_BGR, DOT_PX, thickness)
     if coarse_pose is not None:
         for c in silhouette_contours(bank, coarse_pose, intr, (w, h)):
             _dashed(out, c, COARSE_BGR, dash_px, thickness)

@@ -1,0 +1,132 @@
+"""Detection table per set: can a found answer be trusted? One estimate per gt line (image, model),
+run as the API runs it (colour image, distance not given unless --distance-given), judged by MSPD
+at 640 px width (BOP).
+
+Columns: queries; found; right found (MSPD < 20 px); **wrong found** (found with MSPD >= 20 px, or
+found on an absent image: the failure that matters most); recall at MSPD < 5 px and < 20 px over
+the targets at least half visible; precision (right / found); latency p50 / p95 of the whole
+estimate, ms. Sets: names under ../shared/data (paper, clutter, clutter2, absent, absent2,
+lmo_dev) or any folder in the same format (e.g. a bench/synth_scenes.py output).
+
+    python bench/detection.py --sets clutter,absent,paper,lmo_dev [--limit N] [--repeat R]
+
+With ``--repeat R`` every set is run R times and each figure printed as the mean with its run-to-run
+range (latency varies; detections do not, the pipeline being deterministic).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from bench.accuracy import (  # noqa: E402
+    DATA_DIR,
+    MIN_VISIBLE,
+    OUT_DIR,
+    load_bank,
+    load_model_info,
+    read_gt,
+    read_meta,
+    stage_errors,
+)
+from bench.hypotheses import read_colour  # noqa: E402
+from service.pipeline import estimate  # noqa: E402
+from service.vision.camera import Intrinsics  # noqa: E402
+
+RIGHT_PX = 20.0
+FINE_PX = 5.0
+
+
+def set_dir_of(name: str) -> Path:
+    p = Path(name)
+    return p if p.is_dir() else DATA_DIR / name
+
+
+def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: float | None) -> list[dict]:
+    set_dir = set_dir_of(name)
+    meta = read_meta(set_dir)
+    gts = read_gt(set_dir)[:limit] if limit else read_gt(set_dir)
+    minfo: dict = {}
+    recs = []
+    for g in gts:
+        bank = load_bank(g["model"], set_dir / "models" / f"{g['model']}.stl", None)
+        image = read_colour(set_dir / g["image"])
+        intr = Intrinsics.from_K(np.asarray(g["K"], float))
+        absent = bool(g.get("absent", False))
+        dist = float(g["t_mm"][2]) if distance_given and not absent else None
+        t0 = time.perf_counter()
+        out = estimate(bank, image, intr, distance_mm=dist, min_score=min_score)
+        ms = 1000 * (time.perf_counter() - t0)
+        pose = (out.refined or out.coarse).pose if out.found else None
+        mspd = float("inf")
+        if pose is not None and not absent:
+            info = load_model_info(set_dir, g["model"], meta, minfo)
+            mspd = stage_errors(pose, g, info, np.asarray(g["K"], float), int(g["width"]))["mspd640_px"]
+        recs.append({"image": g["image"], "model": g["model"], "absent": absent, "found": out.found,
+                     "mspd640": mspd, "visible": float(g.get("visible_fraction", 0.0 if absent else 1.0)),
+                     "reason": out.verdict.reason, "score": out.verdict.score, "ms": ms})
+    return recs
+
+
+def summarise(recs: list[dict]) -> dict:
+    found = [r for r in recs if r["found"]]
+    right = [r for r in found if not r["absent"] and r["mspd640"] < RIGHT_PX]
+    targets = [r for r in recs if not r["absent"] and r["visible"] >= MIN_VISIBLE]
+    ms = np.array([r["ms"] for r in recs])
+    return {"queries": len(recs), "found": len(found), "right": len(right), "wrong": len(found) - len(right),
+            "recall5": sum(r["found"] and r["mspd640"] < FINE_PX for r in targets) / max(len(targets), 1),
+            "recall20": sum(r["found"] and r["mspd640"] < RIGHT_PX for r in targets) / max(len(targets), 1),
+            "precision": len(right) / len(found) if found else float("nan"),
+            "p50": float(np.median(ms)), "p95": float(np.percentile(ms, 95)), "targets": len(targets)}
+
+
+def _cell(vals: list[float], fmt: str) -> str:
+    if len(vals) == 1 or max(vals) == min(vals):
+        return format(vals[0], fmt)
+    return f"{format(float(np.mean(vals)), fmt)} ({format(min(vals), fmt)}-{format(max(vals), fmt)})"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--sets", default="clutter,absent,paper,lmo_dev")
+    ap.add_argument("--limit", type=int, default=None)
+    ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--distance-given", action="store_true")
+    ap.add_argument("--min-score", type=float, default=None)
+    a = ap.parse_args(argv)
+    rows = []
+    dump = {}
+    for name in a.sets.split(","):
+        runs = [summarise(recs) for recs in
+                [run_set(name, limit=a.limit, distance_given=a.distance_given, min_score=a.min_score)
+                 for _ in range(a.repeat)]]
+        dump[name] = runs
+        col = {k: [r[k] for r in runs] for k in runs[0]}
+        cells = [Path(name).name, f"{col['queries'][0]} ({col['targets'][0]})", _cell(col["found"], "d"),
+                 _cell(col["right"], "d"), f"**{_cell(col['wrong'], 'd')}**", _cell(col["recall5"], ".0%"),
+                 _cell(col["recall20"], ".0%"), _cell(col["precision"], ".0%"),
+                 f"{_cell(col['p50'], '.0f')} / {_cell(col['p95'], '.0f')}"]
+        rows.append("| " + " | ".join(cells) + " |")
+        print(rows[-1], file=sys.stderr)
+    dist = "given" if a.distance_given else "not given"
+    print(f"\nDistance {dist}; MSPD at 640 px width; recall over targets >= {MIN_VISIBLE:.0%} visible.\n")
+    print("| set | queries (targets) | found | right | wrong found | recall <5px | recall <20px | precision "
+          "| latency p50 / p95 ms |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    print("\n".join(rows))
+    OUT_DIR.mkdir(parents=True, exist_ok=True)
+    (OUT_DIR / "detection.json").write_text(json.dumps(dump, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

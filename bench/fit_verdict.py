@@ -1,0 +1,122 @@
+"""Fit the verdict's verification score on hypothesis features, and read its operating points.
+
+Input: the ``*-features.pkl`` files of ``bench/hypotheses.py features`` (one row per refined
+hypothesis, labelled right when its refined MSPD (640 px) is under 20 px). A logistic regression on
+the evidence (``service.vision.verdict.FEATURES``) is fitted on the sets given with ``--fit``; every
+set is then judged per query as the pipeline judges it: the hypothesis with the highest verification
+score is reported, found when the score reaches the threshold.
+
+    python bench/fit_verdict.py --fit synth-a --report clutter,absent,paper,lmo_dev
+"""
+
+from __future__ import annotations
+
+import argparse
+import pickle
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from service.vision.verdict import FEATURES, feature_vector  # noqa: E402
+
+OUT = ROOT / "bench" / "out" / "hyps"
+RIGHT_PX = 20.0
+
+
+def load(name: str) -> list[dict]:
+    rows = []
+    for p in sorted(OUT.glob(f"{name}-*features.pkl")):
+        rows += [r | {"set": name} for r in pickle.loads(p.read_bytes())]
+    return rows
+
+
+def design(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    X = np.array([feature_vector(r) for r in rows], float)
+    y = np.array([(not r["absent"]) and r["mspd1"] < RIGHT_PX for r in rows], float)
+    return X, y
+
+
+def fit_logistic(X: np.ndarray, y: np.ndarray, l2: float = 1e-2, iters: int = 50) -> np.ndarray:
+    """Newton's method on the L2-regularised log-loss; returns (bias, weights...)."""
+    A = np.hstack([np.ones((len(X), 1)), X])
+    w = np.zeros(A.shape[1])
+    reg = l2 * np.eye(A.shape[1])
+    reg[0, 0] = 0.0
+    for _ in range(iters):
+        p = 1.0 / (1.0 + np.exp(-A @ w))
+        g = A.T @ (p - y) + reg @ w
+        H = (A * (p * (1 - p))[:, None]).T @ A + reg
+        step = np.linalg.solve(H, g)
+        w -= step
+        if np.abs(step).max() < 1e-8:
+            break
+    return w
+
+
+def judge(rows: list[dict], w: np.ndarray, thr: float) -> dict:
+    """Per query: the best-scoring hypothesis is the answer; found if its score >= thr."""
+    by_q: dict = {}
+    for r in rows:
+        by_q.setdefault((r["set"], r["q"]), []).append(r)
+    n = found = right = wrong = evaluated = recall5 = recall20 = 0
+    for rs in by_q.values():
+        n += 1
+        X, _ = design(rs)
+        s = 1.0 / (1.0 + np.exp(-(w[0] + X @ w[1:])))
+        b = int(np.argmax(s))
+        best = rs[b]
+        ev = (not best["absent"]) and best["vis"] >= 0.5
+        evaluated += ev
+        if s[b] >= thr:
+            found += 1
+            ok = (not best["absent"]) and best["mspd1"] < RIGHT_PX
+            right += ok
+            wrong += not ok
+            recall20 += ev and ok
+            recall5 += ev and best["mspd1"] < 5.0
+    return {"queries": n, "found": found, "right": right, "wrong": wrong, "evaluated": evaluated,
+            "recall5": recall5 / max(evaluated, 1), "recall20": recall20 / max(evaluated, 1),
+            "precision": right / max(found, 1)}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--fit", required=True, help="comma-separated feature sets to fit on")
+    ap.add_argument("--report", default="", help="comma-separated feature sets to report on")
+    ap.add_argument("--precision", type=float, default=0.995, help="operating point on the fit sets")
+    a = ap.parse_args(argv)
+    fit_rows = [r for s in a.fit.split(",") for r in load(s)]
+    X, y = design(fit_rows)
+    mu, sd = X.mean(0), X.std(0) + 1e-9
+    w_std = fit_logistic((X - mu) / sd, y)
+    w = np.concatenate([[w_std[0] - (w_std[1:] * mu / sd).sum()], w_std[1:] / sd])
+    print(f"fitted on {len(fit_rows)} hypotheses, {int(y.sum())} right")
+    names = ("bias",) + FEATURES
+    print("weights:", {f: round(float(v), 3) for f, v in zip(names, w, strict=True)})
+    print("\n| threshold | found | right | wrong | recall<5px | recall<20px | precision |")
+    print("|---|---|---|---|---|---|---|")
+    chosen = None
+    for thr in (0.3, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98, 0.99):
+        j = judge(fit_rows, w, thr)
+        print(f"| {thr} | {j['found']} | {j['right']} | {j['wrong']} | {j['recall5']:.0%} "
+              f"| {j['recall20']:.0%} | {j['precision']:.1%} |")
+        if chosen is None and j["precision"] >= a.precision:
+            chosen = thr
+    chosen = chosen or 0.99
+    print(f"\noperating point: {chosen}")
+    print("\n| set | queries | found | right | wrong | recall<5px | recall<20px | precision |")
+    print("|---|---|---|---|---|---|---|---|")
+    for s in [x for x in a.report.split(",") if x]:
+        j = judge(load(s), w, chosen)
+        print(f"| {s} | {j['queries']} | {j['found']} | {j['right']} | {j['wrong']} | {j['recall5']:.0%} | "
+              f"{j['recall20']:.0%} | {j['precision']:.1%} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,168 @@
+"""Proposals and their evidence, per query, cached: the data the verdict is fitted and judged on.
+
+For every query (one gt line: an image and a model) of a set it runs the proposal engine (edges and
+the coarse search, with many hypotheses kept) once and caches the hypotheses with their MSPD against
+the ground truth in ``bench/out/hyps/<set>.pkl``; ``features`` then computes every hypothesis's
+evidence (refined or not) so a verdict can be fitted without re-running the search.
+
+Usage:
+  python bench/hypotheses.py proposals --set clutter [--limit N] [--data DIR]
+  python bench/hypotheses.py recall --set clutter          # is the truth among the proposals at all?
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import pickle
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from bench.accuracy import (  # noqa: E402
+    DATA_DIR,
+    load_bank,
+    load_model_info,
+    read_gt,
+    read_meta,
+    stage_errors,
+)
+from service.vision.camera import Intrinsics  # noqa: E402
+from service.vision.frames import Pose  # noqa: E402
+
+OUT = ROOT / "bench" / "out" / "hyps"
+RIGHT_PX = 20.0  # MSPD at 640 px width: a pose under this is "right" (BOP's loosest threshold)
+
+
+def set_dir_of(name: str, data: Path | None) -> Path:
+    p = Path(name)
+    if p.is_dir():
+        return p
+    return (data or DATA_DIR) / name
+
+
+def read_colour(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise OSError(f"cannot read {path}")
+    return img
+
+
+def queries(set_dir: Path, limit: int | None) -> list[dict]:
+    gts = read_gt(set_dir)
+    return gts[:limit] if limit else gts
+
+
+def proposals(set_dir: Path, *, limit: int | None, distance_given: bool, params=None) -> list[dict]:
+    from service.pipeline import propose
+
+    meta = read_meta(set_dir)
+    minfo: dict = {}
+    recs = []
+    for i, g in enumerate(queries(set_dir, limit)):
+        bank = load_bank(g["model"], set_dir / "models" / f"{g['model']}.stl", None)
+        image = read_colour(set_dir / g["image"])
+        intr = Intrinsics.from_K(np.asarray(g["K"], float))
+        dist = float(g["t_mm"][2]) if distance_given and not g.get("absent") else None
+        t0 = time.perf_counter()
+        cands, seg, timing = propose(bank, image, intr, distance_mm=dist, params=params)
+        wall = 1000 * (time.perf_counter() - t0)
+        info = load_model_info(set_dir, g["model"], meta, minfo)
+        hyps = []
+        for c in cands:
+            e = {} if g.get("absent") else stage_errors(c.pose, g, info, np.asarray(g["K"], float),
+                                                        int(g["width"]))
+            hyps.append({"R": c.pose.R, "t": c.pose.t_mm, "cost": c.cost, "score": c.score,
+                         "mspd640": e.get("mspd640_px", float("inf"))})
+        recs.append({"i": i, "g": g, "hyps": hyps, "wall_ms": wall, "timing": timing})
+        best = min((h["mspd640"] for h in hyps), default=float("inf"))
+        print(f"{i:4d} {g['image']} {g['model']:9s} n={len(hyps):2d} best_mspd={best:7.1f} "
+              f"rank0={hyps[0]['mspd640'] if hyps else float('inf'):7.1f} {wall:6.0f} ms", file=sys.stderr)
+    return recs
+
+
+def features(set_dir: Path, recs: list[dict], *, max_refine: int = 12) -> list[dict]:
+    """Per hypothesis: its coarse cost/score, its evidence, then the same at its refined pose."""
+    from service.pipeline import canonical_pose
+    from service.vision.edges import to_grey_u8
+    from service.vision.evidence import colour_frame, evidence
+    from service.vision.refine import refine_pose
+
+    meta = read_meta(set_dir)
+    minfo: dict = {}
+    rows = []
+    for r in recs:
+        g = r["g"]
+        bank = load_bank(g["model"], set_dir / "models" / f"{g['model']}.stl", None)
+        image = read_colour(set_dir / g["image"])
+        grey = to_grey_u8(image)
+        frame = colour_frame(image)
+        intr = Intrinsics.from_K(np.asarray(g["K"], float))
+        info = load_model_info(set_dir, g["model"], meta, minfo)
+        for j, h in enumerate(r["hyps"][:max_refine]):
+            pose = Pose(np.asarray(h["R"]), np.asarray(h["t"]))
+            e0 = evidence(bank, pose, intr, frame)
+            t0 = time.perf_counter()
+            rp = refine_pose(bank, pose, grey, intr)
+            t_ref = 1000 * (time.perf_counter() - t0)
+            pose1 = canonical_pose(bank, rp.pose)
+            e1 = evidence(bank, pose1, intr, frame)
+            m1 = float("inf") if g.get("absent") else stage_errors(
+                pose1, g, info, np.asarray(g["K"], float), int(g["width"]))["mspd640_px"]
+            rows.append({"q": r["i"], "rank": j, "absent": bool(g.get("absent")), "image": g["image"],
+                         "model": g["model"], "vis": float(g.get("visible_fraction", 0.0)),
+                         "cost": h["cost"], "score": h["score"], "mspd0": h["mspd640"],
+                         **{f"{k}0": v for k, v in e0.as_dict().items()},
+                         "rscore": rp.score, "rcost": rp.cost, "unexplained": rp.unexplained,
+                         "inlier": rp.inlier_ratio, "mspd1": m1, "z1": float(pose1.t_mm[2]),
+                         "t_refine": t_ref, **{f"{k}1": v for k, v in e1.as_dict().items()}})
+        print(f"{r['i']:4d} {g['image']} {g['model']}", file=sys.stderr)
+    return rows
+
+
+def cache_path(set_name: str, tag: str) -> Path:
+    return OUT / f"{Path(set_name).name}-{tag}.pkl"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("cmd", choices=["proposals", "recall", "features"])
+    ap.add_argument("--set", required=True)
+    ap.add_argument("--data", type=Path, default=None)
+    ap.add_argument("--limit", type=int, default=None)
+    ap.add_argument("--distance-given", action="store_true")
+    ap.add_argument("--tag", default="default")
+    a = ap.parse_args(argv)
+    set_dir = set_dir_of(a.set, a.data)
+    path = cache_path(a.set, a.tag + ("-dist" if a.distance_given else ""))
+    if a.cmd == "proposals":
+        recs = proposals(set_dir, limit=a.limit, distance_given=a.distance_given)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(pickle.dumps(recs))
+    recs = pickle.loads(path.read_bytes())
+    if a.cmd == "features":
+        rows = features(set_dir, recs)
+        fpath = path.with_name(path.stem + "-features.pkl")
+        fpath.write_bytes(pickle.dumps(rows))
+        print(f"{len(rows)} rows -> {fpath}")
+        return 0
+    ev = [r for r in recs if not r["g"].get("absent") and r["g"].get("visible_fraction", 1) >= 0.5]
+    for k in (1, 3, 5, 10, 20, 40):
+        hit = sum(any(h["mspd640"] < RIGHT_PX for h in r["hyps"][:k]) for r in ev)
+        print(f"truth (MSPD<{RIGHT_PX:.0f}px) in top {k:2d}: {hit}/{len(ev)}")
+    w = np.array([r["wall_ms"] for r in recs])
+    print(f"proposal time p50 {np.median(w):.0f} ms, p95 {np.percentile(w, 95):.0f} ms; "
+          f"hypotheses per query {np.mean([len(r['hyps']) for r in recs]):.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PYTHONHASHSEED", "0")
+    sys.exit(main())
