@@ -25,7 +25,7 @@ import numpy as np
 from service.vision.bank import TemplateBank
 from service.vision.camera import Intrinsics
 from service.vision.frames import Pose
-from service.vision.render import rasterise_roi
+from service.vision.render import face_normals_cam, rasterise_roi
 
 BAND_FRACTION = 0.12  # region band width as a fraction of the silhouette's equivalent radius ...
 BAND_MIN_PX, BAND_MAX_PX = 3, 14  # ... within these bounds
@@ -47,16 +47,21 @@ class Evidence:
     region_low: float  # the second-worst sector's separability (a varied background spoils a few)
     region_global: float  # separability of the whole inside band against the whole outside band
     coherence: float  # |sum of inside-outside colour differences| / sum of their norms along the outline
+    shading_r2: float  # share of the inside's grey variance explained by a quadratic in the normals
+    shading_std: float  # grey-level standard deviation inside (small: the fit above says little)
     visible_px: int  # silhouette pixels inside the image
     in_image: float  # fraction of the silhouette's pixels inside the image
 
     def as_dict(self) -> dict[str, float]:
         return {"colour_edge": self.colour_edge, "polarity": self.polarity, "region": self.region,
                 "region_low": self.region_low, "region_global": self.region_global,
-                "coherence": self.coherence, "in_image": self.in_image}
+                "coherence": self.coherence, "shading_r2": self.shading_r2, "shading_std": self.shading_std,
+                "in_image": self.in_image}
 
 
-NO_EVIDENCE = Evidence(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0.0)
+NO_EVIDENCE = Evidence(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0.0)
+SHADING_ERODE_PX = 2  # the outline's mixed pixels and the pose's last pixel of error are not "inside"
+MIN_SHADING_PIXELS = 50
 
 
 @dataclass(frozen=True)
@@ -216,6 +221,20 @@ def _region(win: _Window, mask: np.ndarray, band_px: int) -> tuple[float, float,
     return float(seps.mean()), float(seps[min(1, len(seps) - 1)]), overall
 
 
+def _shading(win: _Window, fid: np.ndarray, normals_cam: np.ndarray) -> tuple[float, float]:
+    inner = cv2.erode((fid >= 0).astype(np.uint8), np.ones((2 * SHADING_ERODE_PX + 1,) * 2, np.uint8)) > 0
+    if inner.sum() < MIN_SHADING_PIXELS:
+        return 0.0, 0.0
+    grey = cv2.cvtColor(win.bgr, cv2.COLOR_BGR2GRAY)[inner].astype(np.float64)
+    n = normals_cam[fid[inner]].astype(np.float64)
+    A = np.hstack([np.ones((len(n), 1)), n, n * n, n[:, [0]] * n[:, [1]], n[:, [1]] * n[:, [2]],
+                   n[:, [0]] * n[:, [2]]])
+    coef, *_ = np.linalg.lstsq(A, grey, rcond=None)
+    res = grey - A @ coef
+    var = float(grey.var())
+    return (float(1.0 - res.var() / var) if var > 0 else 0.0), float(np.sqrt(var))
+
+
 def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFrame) -> Evidence:
     """The colour, polarity and region evidence for ``pose`` (T_cam_obj) in ``frame`` (ideal camera
     ``intr``, i.e. undistorted image coordinates)."""
@@ -234,5 +253,7 @@ def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFram
     in_image = (u >= 1) & (u < W - 1) & (v >= 1) & (v < H - 1)
     colour_edge, polarity, coherence = _edge_and_polarity(win, p, n, in_image)
     region, region_low, region_global = _region(win, mask, band)
-    return Evidence(colour_edge, polarity, region, region_low, region_global, coherence, n_px,
-                    float(in_image.mean()))
+    normals = face_normals_cam(bank.vertices_mm, bank.faces, pose.R, pose.t_mm)
+    shading_r2, shading_std = _shading(win, fid, normals)
+    return Evidence(colour_edge, polarity, region, region_low, region_global, coherence, shading_r2,
+                    shading_std, n_px, float(in_image.mean()))

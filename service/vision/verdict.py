@@ -16,7 +16,7 @@ import numpy as np
 
 # Order of the weights below; each is a fraction in [0, 1] (``unexplained`` may exceed 1).
 FEATURES = ("edge_support", "unexplained", "colour_edge", "polarity", "region", "region_low", "region_global",
-            "coherence")
+            "coherence", "shading_r2", "shading_std")
 WEIGHTS = {"bias": -61.513, "edge_support": -3.189, "unexplained": 18.647, "colour_edge": 8.324,
            "polarity": 8.876, "region": 19.825, "region_low": 31.617, "region_global": 0.0, "coherence": 0.0}
 # Operating point: on the fit data the precision of found answers reaches 99.5 % at this score.
