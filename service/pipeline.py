@@ -14,12 +14,12 @@ import numpy as np
 import trimesh
 
 from service.vision.bank import TemplateBank
-from service.vision.camera import Intrinsics
-from service.vision.chamfer import distance_tensor
-from service.vision.coarse import SearchParams, coarse_search, poses_of
-from service.vision.edges import detect_segments, to_grey_u8, undistort_segments
-from service.vision.frames import Pose, Rx, canonical_symmetric_R
-from service.vision.interior import unexplained_edge_ratio
+from service.vision.estimate.chamfer import distance_tensor
+from service.vision.estimate.coarse import SearchParams, coarse_search, poses_of
+from service.vision.estimate.edges import detect_segments, to_grey_u8, undistort_segments
+from service.vision.estimate.interior import unexplained_edge_ratio
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose, Rx, canonical_symmetric_R
 
 DEFAULT_DISTANCE_RANGE_MM = (300.0, 1200.0)  # searched when the request gives no distance
 
@@ -52,14 +52,14 @@ class EstimateOutput:
 def build_templates(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | None = None,
                     progress: Callable[[float], None] | None = None) -> TemplateBank:
     """Mesh in mm -> template bank. ``symmetry``: "auto" | "none" | "x" | "y" | "z"."""
-    from service.vision.templates import build_bank
+    from service.vision.build.templates import build_bank
 
     return build_bank(mesh, symmetry=symmetry, grid=grid or {}, progress=progress)
 
 
 def template_picture(bank: TemplateBank, k: int) -> np.ndarray:
     """(H, W, 3) uint8 BGR picture of template k: projected mesh | extracted borderline."""
-    from service.vision.templates import draw_template
+    from service.vision.build.templates import draw_template
 
     return draw_template(bank, k)
 
@@ -173,7 +173,7 @@ def _refine(bank: TemplateBank, cands: list[PoseCandidate], grey: np.ndarray, in
     Also returns the verdict's evidence: the pose's score verified on the full-resolution edges (when
     the candidate is kept, the score it reports is the coarse, half-resolution one, which a textured
     floor can inflate), and its unexplained-edge ratio (``interior.unexplained_edge_ratio``)."""
-    from service.vision.refine import refine_pose
+    from service.vision.estimate.refine import refine_pose
 
     best = cands[0]
     r = refine_pose(bank, best.pose, grey, intr, None, distance_mm=distance_mm, n_channels=n_channels)
@@ -194,7 +194,7 @@ def warm_up() -> EstimateOutput:
     """Run the whole pipeline once on a small synthetic scene (a cylinder rendered 300 mm away), so
     that a fresh process loads or compiles its numba kernels before the first real frame (~0.5 s).
     Returns the estimate of the rendered cylinder (its known answer: ``WARM_UP_POSE``)."""
-    from service.vision.render import render_shaded
+    from service.vision.geometry.render import render_shaded
 
     mesh = trimesh.creation.cylinder(radius=20.0, height=60.0, sections=24)
     bank = build_templates(mesh, symmetry="auto", grid={"view_step_deg": 30.0, "tilt_step_deg": 15.0,

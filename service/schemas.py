@@ -16,8 +16,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from service.pipeline import EstimateOutput, PoseCandidate, RefinedPose
 from service.vision.bank import TemplateBank
-from service.vision.camera import Intrinsics
-from service.vision.frames import Pose, euler_xyz_deg_from_R, quat_xyzw_from_R
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose, euler_xyz_deg_from_R, quat_xyzw_from_R
 
 Units = Literal["mm", "cm", "m", "in"]
 SymmetryOption = Literal["auto", "none", "x", "y", "z"]

@@ -40,8 +40,8 @@ class Settings(BaseSettings):
         "the first real estimate does not pay ~0.5 s of kernel loading")
     template_grid: dict[str, Any] = Field(
         default_factory=dict,
-        description="template-grid defaults (keys of service.vision.templates); an upload's `templates` "
-        "JSON overrides them key by key")
+        description="template-grid defaults (keys of service.vision.build.templates); an upload's "
+        "`templates` JSON overrides them key by key")
 
     @field_validator("api_key", mode="before")
     @classmethod

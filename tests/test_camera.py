@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from service.vision.camera import (
+from service.vision.geometry.camera import (
     Intrinsics,
     project,
     project_distorted,

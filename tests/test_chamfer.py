@@ -3,7 +3,7 @@
 import cv2
 import numpy as np
 
-from service.vision.chamfer import (
+from service.vision.estimate.chamfer import (
     distance_tensor_from_edges,
     integral_dt,
     line_cost_idt,

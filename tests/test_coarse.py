@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from service import pipeline
-from service.vision.camera import Intrinsics
-from service.vision.frames import Pose, Rx, Rz, rotation_angle_deg
-from service.vision.render import render, render_shaded
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose, Rx, Rz, rotation_angle_deg
+from service.vision.geometry.render import render, render_shaded
 from tests.tolerances import (
     COARSE_AXIS_DEG,
     COARSE_FREE_AXIS_DEG,
@@ -192,7 +192,7 @@ def _brute_best(dt, tau_q, off_u, off_v, chan, au, av):
 def test_scan_with_a_shared_bound_finds_the_brute_force_best():
     """The local scans prune every anchor against the best any anchor has reached; the overall best
     must be exactly the brute-force one, also with template points falling outside the image."""
-    from service.vision.coarse import _scan
+    from service.vision.estimate.coarse import _scan
 
     rng = np.random.default_rng(7)
     H, W, C, T, P = 30, 40, 4, 9, 12
@@ -214,7 +214,7 @@ def test_scan_with_a_shared_bound_finds_the_brute_force_best():
 
 
 def test_ray_rotations_take_the_optical_axis_onto_each_pixel_ray():
-    from service.vision.coarse import ray_rotations
+    from service.vision.estimate.coarse import ray_rotations
 
     uv = np.array([[643.0, 477.0], [0.0, 0.0], [1279.0, 959.0], [100.0, 900.0]])
     d, R = ray_rotations(uv, INTR.K)
@@ -228,7 +228,7 @@ def test_ray_rotations_take_the_optical_axis_onto_each_pixel_ray():
 
 
 def test_views_within_adds_a_revolved_parts_mirror_tilt(sprayer_bank):
-    from service.vision.coarse import views_within
+    from service.vision.estimate.coarse import views_within
 
     tilt = sprayer_bank.view_params_deg[:, 0]
     v30 = int(np.argmin(np.abs(tilt - 30.0)))
@@ -239,7 +239,7 @@ def test_views_within_adds_a_revolved_parts_mirror_tilt(sprayer_bank):
 
 @pytest.mark.parametrize("count", [16, 48, 80, 160])
 def test_spread_order_is_a_permutation_whose_prefixes_cover_the_border_evenly(count):
-    from service.vision.coarse import spread_order
+    from service.vision.estimate.coarse import spread_order
 
     order = spread_order(count)
     assert sorted(order.tolist()) == list(range(count))
@@ -252,7 +252,7 @@ def test_spread_order_is_a_permutation_whose_prefixes_cover_the_border_evenly(co
 def test_window_offsets_equal_the_projected_posed_border(sprayer_bank):
     """The compiled window templates against an independent path: poses_of (ray, in-plane angle,
     bank view, known distance) then the pinhole projection of the same 3D border points."""
-    from service.vision.coarse import (
+    from service.vision.estimate.coarse import (
         Hypothesis,
         Window,
         _window_offsets,
@@ -292,8 +292,8 @@ def test_window_offsets_equal_the_projected_posed_border(sprayer_bank):
 
 
 def test_min_pool_is_the_cell_minimum_in_coarser_pixels():
-    from service.vision.chamfer import DistanceTensor
-    from service.vision.coarse import distance_tensor_from_edges_scaled
+    from service.vision.estimate.chamfer import DistanceTensor
+    from service.vision.estimate.coarse import distance_tensor_from_edges_scaled
 
     rng = np.random.default_rng(5)
     dt = rng.uniform(0, 10, (3, 23, 37)).astype(np.float32)
@@ -304,7 +304,7 @@ def test_min_pool_is_the_cell_minimum_in_coarser_pixels():
 
 
 def test_scaled_offsets_are_the_rounded_products_and_are_made_once():
-    from service.vision.coarse import LevelATemplates, scaled_offsets
+    from service.vision.estimate.coarse import LevelATemplates, scaled_offsets
 
     rng = np.random.default_rng(2)
     off_u = rng.uniform(-40, 40, (3, 5, 7)).astype(np.float32)

@@ -228,7 +228,7 @@ def test_dockerfile_keeps_the_deployment_promises():
 
 def test_dockerignore_keeps_tests_caches_and_git_out():
     patterns = dockerignore_patterns()
-    for kept in ("pyproject.toml", "service/main.py", "service/vision/chamfer.py"):
+    for kept in ("pyproject.toml", "service/main.py", "service/vision/estimate/chamfer.py"):
         assert not ignored(kept, patterns), kept
     for left_out in (".git/HEAD", "tests/test_docker.py", "templates_cache/cache.db", "bench/accuracy.py",
                      "service/__pycache__/main.cpython-311.pyc", ".venv/bin/python", ".pytest_cache/v/x",

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from service import pipeline
-from service.vision.camera import Intrinsics
+from service.vision.geometry.camera import Intrinsics
 from tests.tolerances import FOUND_POSE_AXIS_DEG, FOUND_POSE_T_MM
 
 
@@ -68,7 +68,7 @@ def test_verdict_reads_the_full_resolution_score_not_the_candidates(sprayer_bank
     an inflated coarse score passes the bar (clutter 0001 with chroma edges: 0.86 coarse, 0.70
     verified). Here: a candidate 120 mm beside the paper render's sprayer, on the blank background,
     claiming a perfect score."""
-    from service.vision.frames import Pose
+    from service.vision.geometry.frames import Pose
 
     img = cv2.imread(str(data_dir / "paper" / paper_gt["image"]), cv2.IMREAD_GRAYSCALE)
     beside = Pose(np.array(paper_gt["R"]), np.array(paper_gt["t_mm"]) + np.array([120.0, 0.0, 0.0]))

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service.vision import frames
-from service.vision.frames import (
+from service.vision.geometry import frames
+from service.vision.geometry.frames import (
     Pose,
     R_between,
     R_from_euler_xyz_deg,

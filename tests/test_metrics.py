@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service.vision import metrics as m
-from service.vision.frames import Rx, Ry, Rz, canonical_symmetric_R
+from service.vision.geometry.frames import Rx, Ry, Rz, canonical_symmetric_R
+from service.vision.reference import metrics as m
 from tests.tolerances import METRIC_ATOL, ROUND_TRIP_ATOL, SYM_DISCRETISATION_DEG
 
 SEED = 20240603

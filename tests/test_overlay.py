@@ -6,10 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-from service.vision.camera import Intrinsics
-from service.vision.frames import Pose
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose
+from service.vision.geometry.render import render
 from service.vision.overlay import COARSE_BGR, REFINED_BGR, draw_overlay, encode_png
-from service.vision.render import render
 from tests.tolerances import OVERLAY_ON_BORDER_PX
 
 INTR = Intrinsics(fx=1100.0, fy=1100.0, cx=643.0, cy=477.0)
@@ -20,7 +20,7 @@ COARSE = Pose.from_euler_xyz_deg((25.0, -35.0, 15.0), (52.0, -30.0, 500.0))  # 1
 
 @pytest.fixture(scope="module")
 def bank(tless06_mesh):
-    from service.vision.templates import build_bank
+    from service.vision.build.templates import build_bank
 
     return build_bank(tless06_mesh, symmetry="none", grid={"render_px": 100, "supersample": 1,
                                                            "view_step_deg": 60.0})

@@ -9,11 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from service.vision.camera import Intrinsics, undistort_points
-from service.vision.chamfer import sample, sample_with_grad
-from service.vision.edges import Segments, detect_segments
-from service.vision.frames import Pose, R_from_rotvec, canonical_symmetric_R, rotation_angle_deg
-from service.vision.refine import (
+from service.vision.estimate.chamfer import sample, sample_with_grad
+from service.vision.estimate.edges import Segments, detect_segments
+from service.vision.estimate.refine import (
     Border,
     PoseParams,
     border_points,
@@ -24,7 +22,9 @@ from service.vision.refine import (
     refine_pose,
     segment_distance_tensor,
 )
-from service.vision.render import render, render_shaded
+from service.vision.geometry.camera import Intrinsics, undistort_points
+from service.vision.geometry.frames import Pose, R_from_rotvec, canonical_symmetric_R, rotation_angle_deg
+from service.vision.geometry.render import render, render_shaded
 from tests.tolerances import (
     REFINE_ANGLE_DEG,
     REFINE_DEPTH_MM,
@@ -49,14 +49,14 @@ TINY_GRID = {"render_px": 100, "supersample": 1}
 
 @pytest.fixture(scope="module")
 def tless_bank(tless06_mesh):
-    from service.vision.templates import build_bank
+    from service.vision.build.templates import build_bank
 
     return build_bank(tless06_mesh, symmetry="none", grid={**TINY_GRID, "view_step_deg": 60.0})
 
 
 @pytest.fixture(scope="module")
 def sprayer_bank(sprayer_mesh):
-    from service.vision.templates import build_bank
+    from service.vision.build.templates import build_bank
 
     return build_bank(sprayer_mesh, symmetry="auto", grid={**TINY_GRID, "tilt_step_deg": 30.0})
 
@@ -230,7 +230,7 @@ def test_paper_eq18_median_threshold_option_also_converges(tless_bank):
 
 
 def test_refined_pose_is_never_worse_than_the_start_on_a_seeded_batch(tless_bank):
-    from service.vision.refine import SCORE_SLACK, verify
+    from service.vision.estimate.refine import SCORE_SLACK, verify
 
     img = synthetic(tless_bank, TLESS_POSE, seed=7)
     dtt = segment_distance_tensor(detect_segments(img, scale=1.0), (0, 0, SIZE[0], SIZE[1]))

@@ -9,9 +9,7 @@ import pytest
 import trimesh
 
 from service.vision.bank import TemplateBank
-from service.vision.camera import Intrinsics, project
-from service.vision.frames import Pose, R_from_rotvec, Rx, Ry, rotation_angle_deg
-from service.vision.templates import (
+from service.vision.build.templates import (
     GRID_DEFAULTS,
     border_at_pose,
     build_bank,
@@ -22,6 +20,8 @@ from service.vision.templates import (
     look_from_R,
     merge_grid,
 )
+from service.vision.geometry.camera import Intrinsics, project
+from service.vision.geometry.frames import Pose, R_from_rotvec, Rx, Ry, rotation_angle_deg
 from tests.tolerances import (
     BACKPROJECT_PX,
     BORDER_RADIAL_PX,
@@ -103,7 +103,7 @@ def test_open_mesh_border_is_traced():
     sph = trimesh.creation.icosphere(subdivisions=5, radius=100.0)
     keep = sph.triangles_center[:, 2] < 90.0  # cut a cap off the far side
     open_mesh = trimesh.Trimesh(sph.vertices, sph.faces[keep], process=False)
-    from service.vision.templates import mesh_topology
+    from service.vision.build.templates import mesh_topology
 
     assert not mesh_topology(open_mesh.vertices, open_mesh.faces).closed
     assert mesh_topology(sph.vertices, sph.faces).closed
@@ -287,7 +287,7 @@ def test_merge_grid_keeps_defaults_and_types():
 
 
 def test_draw_template_shows_mesh_and_border(sprayer_bank):
-    from service.vision.templates import draw_template
+    from service.vision.build.templates import draw_template
 
     bank, _ = sprayer_bank
     intr, (w, h) = canonical_intrinsics(bank)
@@ -317,8 +317,8 @@ def _segment_distance(p, a, b):
     "case", ["x10", "x45", "x90", "z-30", "z30"],  # the paper's Tables I and III
 )
 def test_paper_scanline_border_matches_contour_border(sprayer_mesh, case):
-    from service.vision.frames import Rz
-    from service.vision.scanline import scanline_border
+    from service.vision.geometry.frames import Rz
+    from service.vision.reference.scanline import scanline_border
 
     K = np.array([[1100.0, 0.0, 643.0], [0.0, 1100.0, 477.0], [0.0, 0.0, 1.0]])
     angle = float(case[1:])

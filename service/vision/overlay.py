@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 
 from service.vision.bank import TemplateBank
-from service.vision.camera import Intrinsics, project_distorted
-from service.vision.frames import Pose
-from service.vision.render import render
+from service.vision.geometry.camera import Intrinsics, project_distorted
+from service.vision.geometry.frames import Pose
+from service.vision.geometry.render import render
 
 COARSE_BGR = (0, 200, 0)  # green, dashed
 REFINED_BGR = (0, 0, 255)  # red, solid
@@ -23,7 +23,7 @@ THICKNESS_PX = 1
 
 def to_bgr(image: np.ndarray) -> np.ndarray:
     """(H, W) grey or (H, W, 3|4) colour, any of uint8/uint16/float -> (H, W, 3) uint8 BGR copy."""
-    from service.vision.edges import to_grey_u8
+    from service.vision.estimate.edges import to_grey_u8
 
     img = np.asarray(image)
     if img.ndim == 3 and img.shape[2] in (3, 4) and img.dtype == np.uint8:

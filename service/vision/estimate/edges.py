@@ -136,7 +136,7 @@ def edge_channels(seg: Segments, n_channels: int, shape_hw: tuple[int, int], *, 
 def undistort_segments(seg: Segments, intr) -> Segments:
     """Segments of a distorted image -> segments in the ideal pinhole image (endpoints undistorted;
     LSD segments are short enough that their midpoints stay on the straightened line)."""
-    from service.vision.camera import undistort_points
+    from service.vision.geometry.camera import undistort_points
 
     if intr.dist is None or len(seg) == 0:
         return seg

@@ -19,8 +19,8 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from service.vision.camera import Intrinsics
-from service.vision.frames import Pose
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose
 
 Z_NEAR_MM = 1e-3  # triangles with any vertex closer than this (camera z, mm) are culled
 _EDGE_EPS = 1e-9  # inclusive edge test, relative (barycentric); closes cracks between shared edges

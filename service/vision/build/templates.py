@@ -49,10 +49,10 @@ import trimesh
 from scipy.ndimage import gaussian_filter1d
 
 from service.vision.bank import TemplateBank
-from service.vision.camera import Intrinsics
-from service.vision.frames import Pose, R_align_axis_to_y, Rx
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose, R_align_axis_to_y, Rx
 from service.vision.memo import Memo
-from service.vision.render import as_intrinsics, rasterise_roi
+from service.vision.geometry.render import as_intrinsics, rasterise_roi
 
 GRID_DEFAULTS: dict = {
     # symmetric parts: tilt of the symmetry axis towards the camera, degrees
@@ -473,7 +473,7 @@ def _resolve_symmetry(mesh: trimesh.Trimesh, symmetry: str):
     if symmetry == "none":
         return None, None
     if symmetry == "auto":
-        from service.vision.symmetry import detect_symmetry
+        from service.vision.build.symmetry import detect_symmetry
 
         found = detect_symmetry(mesh)
         return (None, None) if found is None else found
@@ -604,7 +604,7 @@ def draw_template(bank: TemplateBank, k: int) -> np.ndarray:
     points joined along each contour and coloured by edge orientation (hue = theta over [0, pi)).
     A caption line above gives the view parameters and the number of points.
     """
-    from service.vision.render import render_shaded
+    from service.vision.geometry.render import render_shaded
 
     if not 0 <= k < bank.n_templates:
         raise IndexError(f"template {k} out of range 0..{bank.n_templates - 1}.")

@@ -42,11 +42,16 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from service.vision.bank import TemplateBank
-from service.vision.camera import Intrinsics, project_distorted, undistort_points
-from service.vision.chamfer import DEFAULT_LAMBDA_PX_PER_RAD, DEFAULT_TAU_PX, DistanceTensor, sample_with_grad
-from service.vision.edges import Segments, channel_of, detect_segments
-from service.vision.frames import Pose, canonical_symmetric_R, rotation_angle_deg
-from service.vision.interior import unexplained_edge_ratio
+from service.vision.estimate.chamfer import (
+    DEFAULT_LAMBDA_PX_PER_RAD,
+    DEFAULT_TAU_PX,
+    DistanceTensor,
+    sample_with_grad,
+)
+from service.vision.estimate.edges import Segments, channel_of, detect_segments
+from service.vision.estimate.interior import unexplained_edge_ratio
+from service.vision.geometry.camera import Intrinsics, project_distorted, undistort_points
+from service.vision.geometry.frames import Pose, canonical_symmetric_R, rotation_angle_deg
 
 ROI_MARGIN_PX = 30  # edges are detected in the bbox of the projected model plus this margin
 BORDER_SPACING_PX = 3.0  # spacing of the border points used in the residuals
@@ -126,7 +131,7 @@ def border_points(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, 
                   spacing_px: float | None = None, supersample: int | None = None) -> Border:
     """The outer border at ``pose`` (ideal pinhole ``intr``; ``image_size = (w, h)``) from
     ``templates.border_at_pose``, with 3D tangents from the neighbouring border points."""
-    from service.vision.templates import border_at_pose
+    from service.vision.build.templates import border_at_pose
 
     spacing_px = BORDER_SPACING_PX if spacing_px is None else spacing_px
     supersample = BORDER_SUPERSAMPLE if supersample is None else supersample

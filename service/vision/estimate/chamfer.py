@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from service.vision.edges import Segments, channel_of, edge_channels
+from service.vision.estimate.edges import Segments, channel_of, edge_channels
 
 DEFAULT_CHANNELS = 16
 DEFAULT_TAU_PX = 20.0  # truncation: an edge further than this is as bad as no edge (robust to clutter)

@@ -28,9 +28,9 @@ import numba as nb
 import numpy as np
 
 from service.vision.bank import TemplateBank
-from service.vision.camera import Intrinsics
-from service.vision.chamfer import DistanceTensor, sample
-from service.vision.frames import Rz
+from service.vision.estimate.chamfer import DistanceTensor, sample
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Rz
 from service.vision.memo import Memo
 
 DT_QUANT = 8  # level-A DT3 stored as uint8 in 1/8 px: 4x less memory traffic than float32
@@ -227,7 +227,7 @@ def _level_a_views(bank: TemplateBank, view_step_deg: float) -> np.ndarray:
 
 def level_a_templates(bank: TemplateBank, intr: Intrinsics, image_shape: tuple[int, int], p: SearchParams,
                       *, distance_mm: float | None, z_ref_mm: float) -> LevelATemplates:
-    from service.vision.edges import channel_of
+    from service.vision.estimate.edges import channel_of
 
     K = intr.K
     h, w = image_shape
