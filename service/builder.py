@@ -52,7 +52,7 @@ def register_upload(store: Store, settings: Settings, data: bytes, *, filename: 
     (the vision code tells an explicit option from a default).
     """
     from service.schemas import Symmetry  # the wire form of the record's symmetry
-    from service.vision.build.templates import merge_grid
+    from service.vision.build.grid import merge_grid
 
     grid = {**settings.template_grid, **(templates or {})}
     try:  # bad options fail the upload now (422), not the build later

@@ -12,7 +12,6 @@ import pytest
 from service.vision.estimate.chamfer import sample, sample_with_grad
 from service.vision.estimate.edges import Segments, detect_segments
 from service.vision.estimate.refine import (
-    Border,
     PoseParams,
     border_points,
     dt_residuals,
@@ -25,6 +24,7 @@ from service.vision.estimate.refine import (
 from service.vision.geometry.camera import Intrinsics, undistort_points
 from service.vision.geometry.frames import Pose, R_from_rotvec, canonical_symmetric_R, rotation_angle_deg
 from service.vision.geometry.render import render, render_shaded
+from service.vision.geometry.silhouette import Border
 from tests.tolerances import (
     REFINE_ANGLE_DEG,
     REFINE_DEPTH_MM,

@@ -9,19 +9,17 @@ import pytest
 import trimesh
 
 from service.vision.bank import TemplateBank
-from service.vision.build.templates import (
+from service.vision.build.grid import (
     GRID_DEFAULTS,
-    border_at_pose,
-    build_bank,
-    canonical_intrinsics,
-    canonical_pose,
     fibonacci_directions,
     grid_rotations,
     look_from_R,
     merge_grid,
 )
+from service.vision.build.templates import build_bank, canonical_intrinsics, canonical_pose
 from service.vision.geometry.camera import Intrinsics, project
 from service.vision.geometry.frames import Pose, R_from_rotvec, Rx, Ry, rotation_angle_deg
+from service.vision.geometry.silhouette import border_at_pose
 from tests.tolerances import (
     BACKPROJECT_PX,
     BORDER_RADIAL_PX,
@@ -103,7 +101,7 @@ def test_open_mesh_border_is_traced():
     sph = trimesh.creation.icosphere(subdivisions=5, radius=100.0)
     keep = sph.triangles_center[:, 2] < 90.0  # cut a cap off the far side
     open_mesh = trimesh.Trimesh(sph.vertices, sph.faces[keep], process=False)
-    from service.vision.build.templates import mesh_topology
+    from service.vision.geometry.silhouette import mesh_topology
 
     assert not mesh_topology(open_mesh.vertices, open_mesh.faces).closed
     assert mesh_topology(sph.vertices, sph.faces).closed

@@ -52,6 +52,7 @@ from service.vision.estimate.edges import Segments, channel_of, detect_segments
 from service.vision.estimate.interior import unexplained_edge_ratio
 from service.vision.geometry.camera import Intrinsics, project_distorted, undistort_points
 from service.vision.geometry.frames import Pose, canonical_symmetric_R, rotation_angle_deg
+from service.vision.geometry.silhouette import Border, border_with_tangents
 
 ROI_MARGIN_PX = 30  # edges are detected in the bbox of the projected model plus this margin
 BORDER_SPACING_PX = 3.0  # spacing of the border points used in the residuals
@@ -100,46 +101,14 @@ class RefineResult:
 # --- border points at a pose --------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class Border:
-    """Outer silhouette border at ``pose``: 3D model points and their 3D border tangents."""
-
-    p_obj: np.ndarray  # (M, 3) float64 mm, object frame
-    tan_obj: np.ndarray  # (M, 3) float64 unit, object frame (direction of the border through p)
-    pose: Pose  # the pose it was extracted at
-
-
-def _tangents_from_order(p_obj: np.ndarray, uv: np.ndarray, spacing_px: float) -> np.ndarray:
-    """3D tangents of an ordered border from its neighbours (one-sided across gaps)."""
-    M = len(p_obj)
-    if M < 2:
-        return np.tile([1.0, 0.0, 0.0], (M, 1))
-    nxt = np.r_[np.arange(1, M), 0]
-    prv = np.r_[M - 1, np.arange(M - 1)]
-    gap = 3.0 * spacing_px
-    ok_n = np.linalg.norm(uv[nxt] - uv, axis=1) <= gap
-    ok_p = np.linalg.norm(uv[prv] - uv, axis=1) <= gap
-    a = np.where(ok_p[:, None], p_obj[prv], p_obj)
-    b = np.where(ok_n[:, None], p_obj[nxt], p_obj)
-    T = b - a
-    nrm = np.linalg.norm(T, axis=1, keepdims=True)
-    T = np.where(nrm > 1e-12, T / np.maximum(nrm, 1e-12), [1.0, 0.0, 0.0])
-    return T
-
-
 def border_points(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, *,
                   spacing_px: float | None = None, supersample: int | None = None) -> Border:
-    """The outer border at ``pose`` (ideal pinhole ``intr``; ``image_size = (w, h)``) from
-    ``templates.border_at_pose``, with 3D tangents from the neighbouring border points."""
-    from service.vision.build.templates import border_at_pose
-
+    """The bank's mesh's outer border at ``pose`` with 3D tangents (``silhouette.border_with_tangents``)
+    at the refinement's spacing and supersampling unless given."""
     spacing_px = BORDER_SPACING_PX if spacing_px is None else spacing_px
     supersample = BORDER_SUPERSAMPLE if supersample is None else supersample
-    ideal = Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy)
-    uv, _, p_obj = border_at_pose(bank.vertices_mm, bank.faces, pose, ideal, image_size,
-                                  spacing_px=spacing_px, supersample=supersample)
-    p_obj = np.asarray(p_obj, np.float64).reshape(-1, 3)
-    return Border(p_obj, _tangents_from_order(p_obj, np.asarray(uv, float).reshape(-1, 2), spacing_px), pose)
+    return border_with_tangents(bank.vertices_mm, bank.faces, pose, intr, image_size, spacing_px=spacing_px,
+                                supersample=supersample)
 
 
 # --- pose parametrisation -----------------------------------------------------------------------
