@@ -292,12 +292,11 @@ def test_window_offsets_equal_the_projected_posed_border(sprayer_bank):
 
 
 def test_min_pool_is_the_cell_minimum_in_coarser_pixels():
-    from service.vision.estimate.chamfer import DistanceTensor
-    from service.vision.estimate.coarse import distance_tensor_from_edges_scaled
+    from service.vision.estimate.chamfer import DistanceTensor, pooled_distance_tensor
 
     rng = np.random.default_rng(5)
     dt = rng.uniform(0, 10, (3, 23, 37)).astype(np.float32)
-    pooled = distance_tensor_from_edges_scaled(DistanceTensor(dt, 0.5, (0.0, 0.0), 10.0, 1.0), 0.125)
+    pooled = pooled_distance_tensor(DistanceTensor(dt, 0.5, (0.0, 0.0), 10.0, 1.0), 0.125)
     want = dt[:, :20, :36].reshape(3, 5, 4, 9, 4).min(axis=(2, 4)) / 4
     np.testing.assert_allclose(pooled.dt, want, rtol=1e-6)
     assert pooled.scale == 0.125 and pooled.tau_px == 2.5

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from service.vision.estimate.chamfer import sample, sample_with_grad
+from service.vision.estimate.chamfer import sample, sample_with_grad, segment_distance_tensor
 from service.vision.estimate.edges import Segments, detect_segments
 from service.vision.estimate.refine import (
     PoseParams,
@@ -19,7 +19,6 @@ from service.vision.estimate.refine import (
     match_lines,
     project_border,
     refine_pose,
-    segment_distance_tensor,
 )
 from service.vision.geometry.camera import Intrinsics, undistort_points
 from service.vision.geometry.frames import Pose, R_from_rotvec, canonical_symmetric_R, rotation_angle_deg

@@ -28,12 +28,16 @@ import numba as nb
 import numpy as np
 
 from service.vision.bank import TemplateBank
-from service.vision.estimate.chamfer import DistanceTensor, sample
+from service.vision.estimate.chamfer import (
+    DT_QUANT,
+    DistanceTensor,
+    pooled_distance_tensor,
+    quantised,
+    sample,
+)
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Rz
 from service.vision.memo import Memo
-
-DT_QUANT = 8  # level-A DT3 stored as uint8 in 1/8 px: 4x less memory traffic than float32
 
 
 @dataclass(frozen=True)
@@ -329,31 +333,6 @@ def _scale_offsets(off, scales):
     return out
 
 
-def distance_tensor_from_edges_scaled(dtt: DistanceTensor, scale: float) -> DistanceTensor:
-    """A coarser DT3 by min-pooling (an edge anywhere in a cell counts), distances rescaled."""
-    f = int(round(dtt.scale / scale))
-    if f <= 1:
-        return dtt
-    pooled = _min_pool(dtt.dt, f)
-    return DistanceTensor(pooled, scale, dtt.origin_uv, dtt.tau_px / f, dtt.lambda_px / f)
-
-
-@nb.njit(parallel=True, cache=True)
-def _min_pool(dt, f):  # numpy's strided min over (C, h, f, w, f) took 50 ms at 640 x 480 x 16
-    C, H, W = dt.shape
-    hh, ww = H // f, W // f
-    out = np.empty((C, hh, ww), np.float32)
-    for c in nb.prange(C):
-        for y in range(hh):
-            for x in range(ww):
-                m = dt[c, y * f, x * f]
-                for i in range(f):
-                    for j in range(f):
-                        m = min(m, dt[c, y * f + i, x * f + j])
-                out[c, y, x] = m / f
-    return out
-
-
 def pick_peaks(au, av, cost, n_peaks: int, radius_lvl: float) -> list[int]:
     """Indices of the lowest-cost anchors, greedily suppressing neighbours within ``radius_lvl``."""
     order = np.argsort(cost)
@@ -453,24 +432,6 @@ def views_within(bank: TemplateBank, view: int, angle_deg: float) -> np.ndarray:
         mirror = z[view] - 2 * (z[view] @ a) * a  # the viewing direction reflected in the axis' normal plane
         near |= z @ mirror >= math.cos(math.radians(angle_deg)) - 1e-9
     return np.flatnonzero(near)
-
-
-def quantised(dtt: DistanceTensor, tau_px: float) -> tuple[np.ndarray, int]:
-    """DT3 truncated at ``tau_px`` (grid px) as (H, W, C) uint8 in 1/DT_QUANT px (for ``_scan``), and
-    the truncation in those units."""
-    tau_q = min(int(round(min(tau_px, dtt.tau_px) * DT_QUANT)), 255)
-    return _quantise_hwc(dtt.dt, np.float32(DT_QUANT), np.float32(tau_q)), tau_q
-
-
-@nb.njit(parallel=True, cache=True)
-def _quantise_hwc(dt, factor, tau_q):  # numpy's transposed copy alone took 13 ms at 640 x 480 x 16
-    C, H, W = dt.shape
-    out = np.empty((H, W, C), np.uint8)
-    for y in nb.prange(H):
-        for x in range(W):
-            for c in range(C):
-                out[y, x, c] = np.uint8(min(dt[c, y, x] * factor, tau_q) + np.float32(0.5))
-    return out
 
 
 @dataclass(frozen=True)
@@ -661,7 +622,7 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
     """Ranked, polished, mutually distinct hypotheses (best first). ``dtt_b`` is the DT3 at
     ``fine_scale``; level A's grid is min-pooled from it."""
     K = intr.K
-    dtt_a = distance_tensor_from_edges_scaled(dtt_b, p.level_scale)
+    dtt_a = pooled_distance_tensor(dtt_b, p.level_scale)
     z_ref, scales = (distance_mm, np.array([1.0])) if distance_mm is not None else \
         depth_scales(distance_range_mm, p.depth_step)
     tpl = _cached_level_a(bank, intr, image_shape, p, distance_mm, z_ref)

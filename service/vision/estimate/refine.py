@@ -37,18 +37,12 @@ import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
-import numba as nb
 import numpy as np
 from scipy.optimize import least_squares
 
 from service.vision.bank import TemplateBank
-from service.vision.estimate.chamfer import (
-    DEFAULT_LAMBDA_PX_PER_RAD,
-    DEFAULT_TAU_PX,
-    DistanceTensor,
-    sample_with_grad,
-)
-from service.vision.estimate.edges import Segments, channel_of, detect_segments
+from service.vision.estimate.chamfer import DistanceTensor, sample_with_grad, segment_distance_tensor
+from service.vision.estimate.edges import Segments, detect_segments
 from service.vision.estimate.interior import unexplained_edge_ratio
 from service.vision.geometry.camera import Intrinsics, project_distorted, undistort_points
 from service.vision.geometry.frames import Pose, canonical_symmetric_R, rotation_angle_deg
@@ -255,71 +249,6 @@ def dt_residuals(params: PoseParams, x: np.ndarray, border: Border, intr: Intrin
     # d grid / d uv = scale; r = val / scale.
     J = gu[:, None] * duv[:, 0] + gv[:, None] * duv[:, 1] + (gth / dtt.scale)[:, None] * dth
     return r, J
-
-
-# --- DT3 from segments, exact in a band -------------------------------------------------------
-
-
-@nb.njit(cache=True, nogil=True)
-def _segment_dt(dt, p0, p1, chan, lam, tau):  # pragma: no cover - compiled
-    """dt (C, h, w) float32 initialised to tau: min over segments of the exact point-to-segment
-    distance plus ``lam`` per cyclic channel step (eq. 11 without rasterising the edges)."""
-    C, h, w = dt.shape
-    for s in range(p0.shape[0]):
-        ax = p0[s, 0]
-        ay = p0[s, 1]
-        dx = p1[s, 0] - ax
-        dy = p1[s, 1] - ay
-        L2 = dx * dx + dy * dy
-        u_lo = max(int(math.floor(min(ax, ax + dx) - tau)), 0)
-        u_hi = min(int(math.ceil(max(ax, ax + dx) + tau)), w - 1)
-        v_lo = max(int(math.floor(min(ay, ay + dy) - tau)), 0)
-        v_hi = min(int(math.ceil(max(ay, ay + dy) + tau)), h - 1)
-        cs = chan[s]
-        for v in range(v_lo, v_hi + 1):
-            for u in range(u_lo, u_hi + 1):
-                t = 0.0
-                if L2 > 0.0:
-                    t = ((u - ax) * dx + (v - ay) * dy) / L2
-                    t = min(max(t, 0.0), 1.0)
-                ex = u - (ax + t * dx)
-                ey = v - (ay + t * dy)
-                d = math.sqrt(ex * ex + ey * ey)
-                if d >= tau:
-                    continue
-                if d < dt[cs, v, u]:
-                    dt[cs, v, u] = d
-                reach = min(int((tau - d) / lam) if lam > 0 else C, C // 2)
-                for j in range(1, reach + 1):
-                    val = d + lam * j
-                    k = (cs + j) % C
-                    if val < dt[k, v, u]:
-                        dt[k, v, u] = val
-                    k = (cs - j) % C
-                    if val < dt[k, v, u]:
-                        dt[k, v, u] = val
-
-
-def segment_distance_tensor(seg: Segments, roi: tuple[int, int, int, int], *, n_channels: int = 16,
-                            scale: float = 1.0, tau_px: float | None = None,
-                            lambda_px: float | None = None) -> DistanceTensor:
-    """DT3 (eq. 11, same layout and meaning as ``chamfer.distance_tensor``) of the window
-    ``roi = (u0, v0, w, h)`` computed from the segments' exact geometry: the distance at each grid
-    pixel is to the nearest segment itself, not to its rasterised pixels (no quantisation), and
-    only a band of ``tau`` around each segment is visited (fast for the few segments of a ROI).
-    ``tau_px`` and ``lambda_px`` are in grid pixels, as in ``DistanceTensor``."""
-    u0, v0, w, h = roi
-    C = int(n_channels)
-    shape = (max(int(round(h * scale)), 1), max(int(round(w * scale)), 1))
-    tau = float(DEFAULT_TAU_PX * scale if tau_px is None else tau_px)
-    lam = float(DEFAULT_LAMBDA_PX_PER_RAD * (np.pi / C) * scale if lambda_px is None else lambda_px)
-    dt = np.full((C,) + shape, tau, np.float32)
-    if len(seg):
-        org = np.array([u0, v0], np.float64)
-        g0 = (seg.uv0.astype(np.float64) - org + 0.5) * scale - 0.5
-        g1 = (seg.uv1.astype(np.float64) - org + 0.5) * scale - 0.5
-        _segment_dt(dt, g0, g1, channel_of(seg.theta_rad, C).astype(np.int64), lam, tau)
-    return DistanceTensor(dt, float(scale), (float(u0), float(v0)), tau, lam)
 
 
 # --- point-to-LSD-line residual -----------------------------------------------------------------
