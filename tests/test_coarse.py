@@ -10,6 +10,7 @@ from service import pipeline
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Rz, rotation_angle_deg
 from service.vision.geometry.render import render, render_shaded
+from tests.lens import distort_image
 from tests.tolerances import (
     COARSE_AXIS_DEG,
     COARSE_FREE_AXIS_DEG,
@@ -76,6 +77,25 @@ def test_sprayer_coarse_pose_distance_given(sprayer_bank, alpha, gamma, t_mm):
     assert est.t_mm[2] == pytest.approx(t_mm[2])
     # canonical spin: the reported rotation has no spin about the axis (euler ry = 0 for +y)
     assert abs(est.euler_xyz_deg()[1]) < 1e-6
+
+
+def test_lens_distortion_k1_minus_0_2_coarse_pose(sprayer_bank):
+    """The coarse search works on the undistorted segments (the refinement's own use of
+    undistort_segments is tested in test_refine.py)."""
+    import cv2
+
+    lens = Intrinsics(INTR.fx, INTR.fy, INTR.cx, INTR.cy, (-0.2, 0.0, 0.0, 0.0))
+    truth = Pose(Rx(60.0) @ Rz(50.0), np.array([190.0, 120.0, 500.0]))  # near a corner: ~10 px of distortion
+    fine = INTR.scaled(2)
+    big = render_shaded(sprayer_bank.vertices_mm, sprayer_bank.faces, truth, fine.K, (2 * W, 2 * H))
+    big = distort_image(big, Intrinsics(fine.fx, fine.fy, fine.cx, fine.cy, lens.dist))
+    img = _noisy(cv2.resize(big, (W, H), interpolation=cv2.INTER_AREA), 7)
+    out = pipeline.estimate(sprayer_bank, img, lens, distance_mm=500.0, refine=False)
+    assert out.found
+    assert _axis_err_deg(out.coarse.pose.R, truth.R) <= COARSE_AXIS_DEG
+    assert np.all(np.abs(out.coarse.pose.t_mm[:2] - truth.t_mm[:2]) <= COARSE_XY_MM)
+    # Ignoring the lens loses the part (the check above is not vacuous).
+    assert not pipeline.estimate(sprayer_bank, img, INTR, distance_mm=500.0, refine=False).found
 
 
 @KNOWN_MISS

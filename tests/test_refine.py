@@ -20,10 +20,11 @@ from service.vision.estimate.refine import (
     project_border,
     refine_pose,
 )
-from service.vision.geometry.camera import Intrinsics, undistort_points
+from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, R_from_rotvec, canonical_symmetric_R, rotation_angle_deg
 from service.vision.geometry.render import render, render_shaded
 from service.vision.geometry.silhouette import Border
+from tests.lens import distort_image
 from tests.tolerances import (
     REFINE_ANGLE_DEG,
     REFINE_DEPTH_MM,
@@ -269,22 +270,12 @@ def test_occluded_target_still_refines(tless_bank):
     assert res.inlier_ratio < 0.9  # the hidden part is recognised as outliers
 
 
-def _distort_image(img: np.ndarray, intr: Intrinsics) -> np.ndarray:
-    """The picture the lens ``intr.dist`` would take of the ideal pinhole picture ``img``."""
-    h, w = img.shape
-    vv, uu = np.mgrid[0:h, 0:w]
-    src = undistort_points(np.stack([uu.ravel(), vv.ravel()], 1).astype(np.float64), intr)
-    mx = src[:, 0].reshape(h, w).astype(np.float32)
-    my = src[:, 1].reshape(h, w).astype(np.float32)
-    return cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-
-
 def test_lens_distortion_k1_minus_0_2_recovers_the_pose_as_well(tless_bank):
     intr_d = Intrinsics(INTR.fx, INTR.fy, INTR.cx, INTR.cy, (-0.2, 0.0, 0.0, 0.0))
     # Render at twice the resolution, then distort and reduce (anti-aliased like the others).
     pose = Pose(TLESS_POSE.R, np.array([170.0, 110.0, 500.0]))  # off-centre: distortion ~10 px here
     big = synthetic(tless_bank, pose, intr=INTR.scaled(2), size=(2 * SIZE[0], 2 * SIZE[1]))
-    img = _distort_image(big, Intrinsics(*[getattr(INTR.scaled(2), k) for k in ("fx", "fy", "cx", "cy")],
+    img = distort_image(big, Intrinsics(*[getattr(INTR.scaled(2), k) for k in ("fx", "fy", "cx", "cy")],
                                          intr_d.dist))
     img = cv2.resize(img, SIZE, interpolation=cv2.INTER_AREA)
     start = perturb(pose, np.random.default_rng(50), 3.0, 5.0, keep_z=True)

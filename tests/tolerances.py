@@ -3,6 +3,10 @@
 # --- conventions (frames, camera) ---
 ROUND_TRIP_ATOL = 1e-9  # pure float round trips: euler <-> R <-> quat, project <-> unproject
 DISTORTION_ROUND_TRIP_PX = 1e-3  # undistort(distort(uv)) against uv
+# Undistorted LSD segments of a straight edge against the ideal line: their mean signed offset (an
+# anti-aliased step edge is located without bias, so what is left is the lens model's doing) ...
+UNDISTORTED_EDGE_BIAS_PX = 0.25
+UNDISTORTED_EDGE_NEAR_PX = 5.0  # ... over the sampled points this close to the line (not other edges)
 DATASET_ANGLE_ATOL_DEG = 1e-6  # our euler / alpha-gamma against the numbers stored in gt.jsonl
 RESIZE_CENTROID_PX = 0.02  # blob centroid after cv2.resize against Intrinsics.scaled's pixel-centre rule
 METRIC_ATOL = 1e-6  # pose-error metrics (mm, px, deg) that are exactly 0 by construction

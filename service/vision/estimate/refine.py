@@ -42,9 +42,9 @@ from scipy.optimize import least_squares
 
 from service.vision.bank import TemplateBank
 from service.vision.estimate.chamfer import DistanceTensor, sample_with_grad, segment_distance_tensor
-from service.vision.estimate.edges import Segments, detect_segments
+from service.vision.estimate.edges import Segments, detect_segments, undistort_segments
 from service.vision.estimate.interior import unexplained_edge_ratio
-from service.vision.geometry.camera import Intrinsics, project_distorted, undistort_points
+from service.vision.geometry.camera import Intrinsics, project_distorted
 from service.vision.geometry.frames import Pose, canonical_symmetric_R, rotation_angle_deg
 from service.vision.geometry.silhouette import Border, border_with_tangents
 
@@ -69,7 +69,6 @@ LINE_TOL = 1e-6  # ... of the line stage
 LINE_MATCH_DEG = 20.0  # "line" residual: orientation gate between border point and LSD segment
 LINE_GATE_PX = 3.0  # ... and distance gate (full-resolution px)
 LINE_ROUNDS = 4  # line-stage rounds (match, solve, re-match ...)
-SPLIT_PX = 16.0  # segments are split into pieces this long before undistortion
 MEDIAN_CONST_PX = 2.0  # eq. 18: tr = max(median(residual), tr_const)
 # Never worse: the refined pose is kept when its DT3 distances, each capped at score_px, average no
 # more than the start pose's, and its score (fraction within score_px) is at most this much lower. The
@@ -325,29 +324,6 @@ def _roi(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, margin: i
     if u1 - u0 < 8 or v1 - v0 < 8:
         return None
     return (u0, v0, u1 - u0 + 1, v1 - v0 + 1)
-
-
-def undistort_segments(seg: Segments, intr: Intrinsics, *, split_px: float = SPLIT_PX) -> Segments:
-    """Segments of the distorted image -> segments of the ideal pinhole camera ``intr.K``.
-
-    Each segment is split into pieces of at most ``split_px`` (a straight line of the distorted
-    image is a curve of the ideal one) and the endpoints are undistorted once.
-    """
-    if intr.dist is None or len(seg) == 0:
-        return seg
-    L = seg.lengths_px
-    k = np.maximum(np.ceil(L / split_px).astype(np.int64), 1)
-    sid = np.repeat(np.arange(len(seg)), k)
-    start = np.repeat(np.cumsum(k) - k, k)
-    i = np.arange(int(k.sum())) - start
-    kk = np.repeat(k, k)
-    a = seg.uv0[sid] + (seg.uv1[sid] - seg.uv0[sid]) * (i / kk)[:, None]
-    b = seg.uv0[sid] + (seg.uv1[sid] - seg.uv0[sid]) * ((i + 1) / kk)[:, None]
-    ua = undistort_points(a, intr).astype(np.float32)
-    ub = undistort_points(b, intr).astype(np.float32)
-    d = ub - ua
-    theta = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi).astype(np.float32)
-    return Segments(ua, ub, theta, seg.image_shape)
 
 
 # --- the refinement -----------------------------------------------------------------------------
