@@ -19,7 +19,7 @@ from service.vision.estimate.coarse import SearchParams, coarse_search, poses_of
 from service.vision.estimate.edges import detect_segments, to_grey_u8, undistort_segments
 from service.vision.estimate.interior import unexplained_edge_ratio
 from service.vision.geometry.camera import Intrinsics
-from service.vision.geometry.frames import Pose, Rx, canonical_symmetric_R
+from service.vision.geometry.frames import Pose, Rx, canonical_spin
 
 DEFAULT_DISTANCE_RANGE_MM = (300.0, 1200.0)  # searched when the request gives no distance
 
@@ -81,17 +81,9 @@ FOUND_MAX_UNEXPLAINED = 0.4
 
 
 def _candidate(bank: TemplateBank, pose: Pose, cost: float, score: float) -> PoseCandidate:
-    return PoseCandidate(canonical_pose(bank, pose), float(cost), float(score))
-
-
-def canonical_pose(bank: TemplateBank, pose: Pose) -> Pose:
-    """For a revolved part, the pose with spin 0 about its axis (API.md: one canonical angle)."""
-    if bank.symmetry_axis_obj is None:
-        return pose
-    R = canonical_symmetric_R(pose.R, bank.symmetry_axis_obj)
-    p0 = np.zeros(3) if bank.symmetry_point_obj is None else np.asarray(bank.symmetry_point_obj, float)
-    # Spinning about an axis through p0 keeps p0 where it was.
-    return Pose(R, pose.R @ p0 + pose.t_mm - R @ p0)
+    # A revolved part is reported with spin 0 about its axis (API.md: one canonical angle).
+    return PoseCandidate(canonical_spin(pose, bank.symmetry_axis_obj, bank.symmetry_point_obj), float(cost),
+                         float(score))
 
 
 def _ms(t0: float) -> float:
@@ -182,7 +174,7 @@ def _refine(bank: TemplateBank, cands: list[PoseCandidate], grey: np.ndarray, in
     if r.score < best.score:
         kept = RefinedPose(best.pose, best.cost, best.score, r.iterations, r.inlier_ratio)
     else:
-        kept = RefinedPose(canonical_pose(bank, r.pose), float(r.cost), float(r.score), int(r.iterations),
+        kept = RefinedPose(r.pose, float(r.cost), float(r.score), int(r.iterations),
                            float(r.inlier_ratio))
     return kept, float(r.score), r.unexplained
 

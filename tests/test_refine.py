@@ -21,7 +21,7 @@ from service.vision.estimate.refine import (
     refine_pose,
 )
 from service.vision.geometry.camera import Intrinsics
-from service.vision.geometry.frames import Pose, R_from_rotvec, canonical_symmetric_R, rotation_angle_deg
+from service.vision.geometry.frames import Pose, R_from_rotvec, canonical_spin, rotation_angle_deg
 from service.vision.geometry.render import render, render_shaded
 from service.vision.geometry.silhouette import Border
 from tests.lens import distort_image
@@ -215,7 +215,7 @@ def test_symmetric_part_converges_back_and_reports_the_canonical_spin(sprayer_ba
     res = refine_pose(sprayer_bank, start, img, INTR, distance_mm=float(SPRAYER_POSE.t_mm[2]))
     assert axis_error_deg(sprayer_bank, res.pose, SPRAYER_POSE) <= REFINE_ANGLE_DEG
     assert symmetric_translation_error_mm(sprayer_bank, res.pose, SPRAYER_POSE).max() <= REFINE_TRANS_MM
-    np.testing.assert_allclose(res.pose.R, canonical_symmetric_R(res.pose.R, sprayer_bank.symmetry_axis_obj),
+    np.testing.assert_allclose(res.pose.R, canonical_spin(res.pose, sprayer_bank.symmetry_axis_obj).R,
                                atol=1e-9)
     # The held distance is the object origin's camera z, also after the spin is canonicalised.
     assert res.pose.t_mm[2] == pytest.approx(SPRAYER_POSE.t_mm[2], abs=1e-6)
@@ -328,7 +328,7 @@ def test_symmetric_result_is_canonical_and_keeps_the_held_distance(sprayer_bank)
     img = synthetic(sprayer_bank, SPRAYER_POSE)
     start = perturb(SPRAYER_POSE, np.random.default_rng(21), 1.0, 2.0, keep_z=True)
     res = refine_pose(sprayer_bank, start, img, INTR, distance_mm=float(SPRAYER_POSE.t_mm[2]))
-    np.testing.assert_allclose(res.pose.R, canonical_symmetric_R(res.pose.R, sprayer_bank.symmetry_axis_obj),
+    np.testing.assert_allclose(res.pose.R, canonical_spin(res.pose, sprayer_bank.symmetry_axis_obj).R,
                                atol=1e-9)
     assert res.pose.t_mm[2] == pytest.approx(SPRAYER_POSE.t_mm[2], abs=1e-6)
     # The translation stays consistent with the spin removed: the axis point is where it was.

@@ -16,7 +16,7 @@ from service.vision.build.grid import (
     look_from_R,
     merge_grid,
 )
-from service.vision.build.templates import build_bank, canonical_intrinsics, canonical_pose
+from service.vision.build.templates import build_bank, template_camera, template_pose
 from service.vision.geometry.camera import Intrinsics, project
 from service.vision.geometry.frames import Pose, R_from_rotvec, Rx, Ry, rotation_angle_deg
 from service.vision.geometry.silhouette import border_at_pose
@@ -170,9 +170,9 @@ def test_sprayer_bank_layout(sprayer_bank):
 
 def test_template_points_back_project(sprayer_bank):
     bank, _ = sprayer_bank
-    intr, _ = canonical_intrinsics(bank)
+    intr, _ = template_camera(bank)
     for k in range(bank.n_templates):
-        pose = canonical_pose(bank, k)
+        pose = template_pose(bank, k)
         sl = bank.points(k)
         p_cam = pose.apply(bank.p_obj[sl].astype(np.float64))
         xy = p_cam[:, :2] / p_cam[:, 2:]
@@ -184,7 +184,7 @@ def test_template_border_scales_with_render_px(sprayer_bank):
     bank, _ = sprayer_bank
     k = int(np.argmin(np.abs(bank.view_params_deg[:, 0])))  # tilt 0: side view, axis along image v
     xy = bank.xy_n[bank.points(k)]
-    f, _ = canonical_intrinsics(bank)
+    f, _ = template_camera(bank)
     height_px = (xy[:, 1].max() - xy[:, 1].min()) * f.fx
     # 200 mm tall at ~600 mm: about render_px * 200 / diameter pixels (perspective makes it a bit more).
     expected = bank.grid["render_px"] * 200.0 / bank.diameter_mm
@@ -288,7 +288,7 @@ def test_draw_template_shows_mesh_and_border(sprayer_bank):
     from service.vision.build.templates import draw_template
 
     bank, _ = sprayer_bank
-    intr, (w, h) = canonical_intrinsics(bank)
+    intr, (w, h) = template_camera(bank)
     k = bank.n_templates // 2
     img = draw_template(bank, k)
     assert img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3

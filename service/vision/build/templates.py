@@ -1,11 +1,11 @@
 """Borderline templates (the paper's section II.A): the bank of a mesh.
 
 A template is the model seen from one orientation ``R_tpl_obj`` of the grid (``grid.py``) with its
-reference point ``centre_obj`` on the optical axis at ``reference_distance_mm`` (the *canonical view*),
+reference point ``centre_obj`` on the optical axis at ``reference_distance_mm`` (the *template view*),
 and its borderline (``geometry/silhouette.py``): the OUTER contour of the projected silhouette,
 resampled at about ``spacing_px``, each point carrying
 
-- ``xy_n``: normalised image coordinates ``((u - cx) / f, (v - cy) / f)`` of the canonical camera,
+- ``xy_n``: normalised image coordinates ``((u - cx) / f, (v - cy) / f)`` of the template camera,
 - ``theta_rad``: the undirected edge orientation in the image, [0, pi),
 - ``p_obj``: the model point it came from (the paper's eq. 7), mm, object frame; projecting it with
   the template pose gives back ``xy_n`` (to float precision).
@@ -158,21 +158,21 @@ def build_bank(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | No
 
 
 def canvas_px(vertices_mm: np.ndarray, centre_obj: np.ndarray, d_ref: float, f: float, render_px: int) -> int:
-    """Width = height of the canonical image: about 1.4 x ``render_px``, and large enough for the
+    """Width = height of the template view's image: about 1.4 x ``render_px``, and large enough for the
     model in any orientation (the cone tangent to its bounding sphere about ``centre_obj``)."""
     r_b = float(np.linalg.norm(np.asarray(vertices_mm, float) - centre_obj, axis=1).max())
     half = f * r_b / math.sqrt(max(d_ref**2 - r_b**2, 1e-9)) + 4.0
     return int(max(math.ceil(1.4 * render_px), 2 * math.ceil(half) + 1))
 
 
-def canonical_pose(bank: TemplateBank, k: int) -> Pose:
-    """``T_cam_obj`` of template k's canonical view."""
+def template_pose(bank: TemplateBank, k: int) -> Pose:
+    """``T_cam_obj`` of template k's view."""
     R = np.asarray(bank.R_tpl_obj[k], float)
     return Pose(R, np.array([0.0, 0.0, bank.reference_distance_mm]) - R @ np.asarray(bank.centre_obj, float))
 
 
-def canonical_intrinsics(bank: TemplateBank) -> tuple[Intrinsics, tuple[int, int]]:
-    """The canonical camera of the bank and its image size (w, h)."""
+def template_camera(bank: TemplateBank) -> tuple[Intrinsics, tuple[int, int]]:
+    """The camera the bank's templates were seen with, and its image size (w, h)."""
     g = bank.grid
     f = g["render_px"] * bank.reference_distance_mm / bank.diameter_mm
     size = canvas_px(np.asarray(bank.vertices_mm, float), np.asarray(bank.centre_obj, float),
@@ -187,7 +187,7 @@ def canonical_intrinsics(bank: TemplateBank) -> tuple[Intrinsics, tuple[int, int
 def draw_template(bank: TemplateBank, k: int) -> np.ndarray:
     """(H, W, 3) uint8 BGR picture of template ``k``, laid out as the paper's Tables I-III.
 
-    Left: the projected (Lambert-shaded) mesh in the canonical view; right: its extracted borderline,
+    Left: the projected (Lambert-shaded) mesh in the template view; right: its extracted borderline,
     points joined along each contour and coloured by edge orientation (hue = theta over [0, pi)).
     A caption line above gives the view parameters and the number of points.
     """
@@ -195,8 +195,8 @@ def draw_template(bank: TemplateBank, k: int) -> np.ndarray:
 
     if not 0 <= k < bank.n_templates:
         raise IndexError(f"template {k} out of range 0..{bank.n_templates - 1}.")
-    intr, (w, h) = canonical_intrinsics(bank)
-    pose = canonical_pose(bank, k)
+    intr, (w, h) = template_camera(bank)
+    pose = template_pose(bank, k)
     left = render_shaded(np.asarray(bank.vertices_mm, float), np.asarray(bank.faces), pose, intr, (w, h),
                          background=40)
     left = cv2.cvtColor(left, cv2.COLOR_GRAY2BGR)

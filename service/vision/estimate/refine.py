@@ -45,7 +45,7 @@ from service.vision.estimate.chamfer import DistanceTensor, sample_with_grad, se
 from service.vision.estimate.edges import Segments, detect_segments, undistort_segments
 from service.vision.estimate.interior import unexplained_edge_ratio
 from service.vision.geometry.camera import Intrinsics, project_distorted
-from service.vision.geometry.frames import Pose, canonical_symmetric_R, rotation_angle_deg
+from service.vision.geometry.frames import Pose, canonical_spin, rotation_angle_deg
 from service.vision.geometry.silhouette import Border, border_with_tangents
 
 ROI_MARGIN_PX = 30  # edges are detected in the bbox of the projected model plus this margin
@@ -333,14 +333,6 @@ def _rho(loss: str):
     return "linear" if loss == "median" else loss
 
 
-def _symmetric_canonical(pose: Pose, bank: TemplateBank) -> Pose:
-    if bank.symmetry_axis_obj is None:
-        return pose
-    Rc = canonical_symmetric_R(pose.R, bank.symmetry_axis_obj)
-    q = np.zeros(3) if bank.symmetry_point_obj is None else np.asarray(bank.symmetry_point_obj, float)
-    return Pose(Rc, pose.t_mm + (pose.R - Rc) @ q)
-
-
 def _moved(border: Border, pose: Pose, intr: Intrinsics) -> tuple[float, float]:
     """Largest image displacement (px) of the border points and rotation change (deg) since the
     border was extracted."""
@@ -458,6 +450,10 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
         raise ValueError("residual must be 'dt', 'line' or 'dt+line'.")
     H, W = grey.shape[:2]
     size = (W, H)
+
+    def reported(p: Pose) -> Pose:  # a revolved part's pose with spin 0 about its axis
+        return canonical_spin(p, bank.symmetry_axis_obj, bank.symmetry_point_obj)
+
     ideal = Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy)
     # A background thread overlaps the border rasterisation with LSD + DT, and the interior check
     # (unexplained_edge_ratio) with the line stage.
@@ -465,10 +461,10 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     img = _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px)
     border = fut.result()
     if img is None or len(border.p_obj) < 6:
-        return RefineResult(_symmetric_canonical(pose0, bank), float("inf"), 0.0, 0, 0.0, False)
+        return RefineResult(reported(pose0), float("inf"), 0.0, 0, 0.0, False)
     roi, seg_roi, dtt = img
     if len(seg_roi) == 0:  # nothing to refine against
-        return RefineResult(_symmetric_canonical(pose0, bank), float("inf"), 0.0, 0, 0.0, False)
+        return RefineResult(reported(pose0), float("inf"), 0.0, 0, 0.0, False)
     pose, iterations, converged, thr, last = pose0, 0, False, None, None
     kind = "dt"
 
@@ -523,7 +519,7 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     # sampled at different densities score a few tenths of a percent apart.
     score0, cost0, capped0 = verify(border, pose0, ideal, dtt, score_px=score_px)
     if last is None or score1 <= 0.0 or score1 < score0 - SCORE_SLACK or capped1 > capped0 + 1e-9:
-        return RefineResult(_symmetric_canonical(pose0, bank), cost0, score0, iterations, score0, False,
+        return RefineResult(reported(pose0), cost0, score0, iterations, score0, False,
                             interior_at(pose0))
     r = np.abs(last.fun)
     inl_thr = thr if thr is not None else (score_px if kind == "dt" else 1.0)
@@ -532,5 +528,5 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     cost = float(r[inl].mean()) if inl.any() else cost1
     # The interior check reads the pose as refined: spinning a revolved part changes no pixel of it,
     # but moves the border points that interior_at compares.
-    return RefineResult(_symmetric_canonical(pose, bank), cost, score1, iterations, inlier_ratio,
+    return RefineResult(reported(pose), cost, score1, iterations, inlier_ratio,
                         bool(converged), interior_at(pose))
