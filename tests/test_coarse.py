@@ -233,20 +233,6 @@ def test_scan_with_a_shared_bound_finds_the_brute_force_best():
                            chan[t[a]:t[a] + 1], au[a:a + 1], av[a:a + 1])[0] == pytest.approx(want_cost)
 
 
-def test_ray_rotations_take_the_optical_axis_onto_each_pixel_ray():
-    from service.vision.estimate.coarse import ray_rotations
-
-    uv = np.array([[643.0, 477.0], [0.0, 0.0], [1279.0, 959.0], [100.0, 900.0]])
-    d, R = ray_rotations(uv, INTR.K)
-    for k in range(len(uv)):
-        assert R[k] @ np.array([0.0, 0.0, 1.0]) == pytest.approx(d[k], abs=1e-12)
-        assert R[k] @ R[k].T == pytest.approx(np.eye(3), abs=1e-12)
-        assert np.linalg.det(R[k]) == pytest.approx(1.0)
-        # the ray really passes through the pixel
-        assert (INTR.K @ d[k])[:2] / d[k][2] == pytest.approx(uv[k], abs=1e-9)
-    assert R[0] == pytest.approx(np.eye(3), abs=1e-12)
-
-
 def test_views_within_adds_a_revolved_parts_mirror_tilt(sprayer_bank):
     from service.vision.estimate.coarse import views_within
 
@@ -278,8 +264,8 @@ def test_window_offsets_equal_the_projected_posed_border(sprayer_bank):
         _window_offsets,
         border_triplets,
         poses_of,
-        ray_rotation,
     )
+    from service.vision.geometry.camera import ray_rotation
 
     bank = sprayer_bank
     win = Window(np.array([3, 17, 40]), np.array([-12.0, 0.0, 33.0]), np.array([1.0, 1.07]),

@@ -35,7 +35,7 @@ from service.vision.estimate.chamfer import (
     quantised,
     sample,
 )
-from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.camera import Intrinsics, project, ray_rotation, ray_rotations
 from service.vision.geometry.frames import Rz
 from service.vision.memo import Memo
 
@@ -80,27 +80,6 @@ class Hypothesis:
 
 
 # --- geometry of a hypothesis ----------------------------------------------------------------------
-
-
-def ray_rotation(uv: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit viewing ray through pixel uv and the smallest rotation taking e_z onto it."""
-    d, R = ray_rotations(np.asarray(uv, float)[None], K)
-    return d[0], R[0]
-
-
-def ray_rotations(uv: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(M, 3) unit viewing rays through pixels uv (M, 2) and (M, 3, 3) rotations taking e_z onto them.
-
-    Rodrigues with k = e_z x d: R = I + [k]x + [k]x^2 / (1 + d_z); a ray never points backwards
-    (d_z > 0), so the formula never divides by zero.
-    """
-    d = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0], (uv[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(uv))], 1)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    kx = np.zeros((len(d), 3, 3))
-    kx[:, 0, 2], kx[:, 1, 2] = d[:, 0], d[:, 1]
-    kx[:, 2, 0], kx[:, 2, 1] = -d[:, 0], -d[:, 1]
-    R = np.eye(3) + kx + (kx @ kx) / (1.0 + d[:, 2])[:, None, None]
-    return d, R
 
 
 def view_dirs_obj(bank: TemplateBank) -> np.ndarray:
@@ -266,11 +245,9 @@ def level_a_templates(bank: TemplateBank, intr: Intrinsics, image_shape: tuple[i
         else:
             zc = np.full(T, z_ref_mm)
         centre = d[None, :] / d[2] * zc[:, None]  # (T, 3)
-        q = pc + centre[:, None, :]
-        u = K[0, 0] * q[..., 0] / q[..., 2] + K[0, 2]
-        v = K[1, 1] * q[..., 1] / q[..., 2] + K[1, 2]
-        off_u[j] = (u - uv[0]) * p.level_scale
-        off_v[j] = (v - uv[1]) * p.level_scale
+        uv_pts = project(pc + centre[:, None, :], K)
+        off_u[j] = (uv_pts[..., 0] - uv[0]) * p.level_scale
+        off_v[j] = (uv_pts[..., 1] - uv[1]) * p.level_scale
         z_ref[j] = zc
     extent = float(max(np.abs(off_u).max(), np.abs(off_v).max()))
     step = np.hypot(np.diff(off_u[0], axis=1), np.diff(off_v[0], axis=1))
@@ -386,9 +363,8 @@ def evaluate(bank: TemplateBank, views: np.ndarray, Rs: np.ndarray, ts: np.ndarr
     views = np.asarray(views, np.int64)
 
     def proj(ii):
-        q = bank.p_obj[ii].astype(np.float64) @ Rs.transpose(0, 2, 1) + ts[:, None, :]  # matmul: 10x einsum
-        u = K[0, 0] * q[..., 0] / q[..., 2] + K[0, 2]
-        return np.stack([u, K[1, 1] * q[..., 1] / q[..., 2] + K[1, 2]], -1)
+        # matmul: 10x faster than einsum here
+        return project(bank.p_obj[ii].astype(np.float64) @ Rs.transpose(0, 2, 1) + ts[:, None, :], K)
 
     uv = proj(idx_all[views])
     d = proj(nxt_all[views]) - proj(prev_all[views])

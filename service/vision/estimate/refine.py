@@ -316,7 +316,7 @@ def _roi(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, margin: i
     if len(pc) == 0:
         return None
     uv = project_distorted(pc, intr) if distorted else project_distorted(
-        pc, Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy))
+        pc, intr.pinhole())
     u0 = max(int(np.floor(uv[:, 0].min())) - margin, 0)
     v0 = max(int(np.floor(uv[:, 1].min())) - margin, 0)
     u1 = min(int(np.ceil(uv[:, 0].max())) + margin, w - 1)
@@ -454,7 +454,7 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     def reported(p: Pose) -> Pose:  # a revolved part's pose with spin 0 about its axis
         return canonical_spin(p, bank.symmetry_axis_obj, bank.symmetry_point_obj)
 
-    ideal = Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy)
+    ideal = intr.pinhole()
     # A background thread overlaps the border rasterisation with LSD + DT, and the interior check
     # (unexplained_edge_ratio) with the line stage.
     fut = _BACKGROUND.submit(border_points, bank, pose0, ideal, size)

@@ -23,9 +23,9 @@ import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.camera import Intrinsics, as_intrinsics, project, unproject
 from service.vision.geometry.frames import Pose
-from service.vision.geometry.render import as_intrinsics, rasterise_roi
+from service.vision.geometry.render import rasterise_roi
 from service.vision.memo import Memo
 
 MIN_BLOB_AREA_FRACTION = 0.05  # external contours smaller than this fraction of the largest are dropped
@@ -124,9 +124,7 @@ def extract_border(invz_ss: np.ndarray, fid_ss: np.ndarray, origin_ss: tuple[int
     ok = np.isfinite(dist2[np.arange(len(q)), best])
     z = 1.0 / invz_ss[cj[np.arange(len(q)), best], ci[np.arange(len(q)), best]].astype(np.float64)
     uv, theta, z = uv[ok], theta[ok], z[ok]
-    x = (uv[:, 0] - intr.cx) / intr.fx * z
-    y = (uv[:, 1] - intr.cy) / intr.fy * z
-    p_cam = np.stack([x, y, z], axis=1)
+    p_cam = unproject(uv, z, intr.K)
     if sil_edges_cam is not None and len(sil_edges_cam):
         uv, theta, p_cam = snap_to_edges(uv, theta, p_cam, sil_edges_cam, intr)
     p_obj = (p_cam - pose.t_mm) @ pose.R
@@ -155,8 +153,8 @@ def snap_to_edges(uv: np.ndarray, theta: np.ndarray, p_cam: np.ndarray, edges_ca
     P0, P1 = P0[ok_z], P1[ok_z]
     if len(P0) == 0 or len(uv) == 0:
         return uv, theta, p_cam
-    a = np.stack([intr.fx * P0[:, 0] / P0[:, 2] + intr.cx, intr.fy * P0[:, 1] / P0[:, 2] + intr.cy], axis=1)
-    b = np.stack([intr.fx * P1[:, 0] / P1[:, 2] + intr.cx, intr.fy * P1[:, 1] / P1[:, 2] + intr.cy], axis=1)
+    K = intr.K
+    a, b = project(P0, K), project(P1, K)
     # Keep only edges near the border's bounding box, then sample them for the candidate search.
     lo, hi = uv.min(axis=0) - 2.0, uv.max(axis=0) + 2.0
     near = ~((np.maximum(a, b) < lo).any(axis=1) | (np.minimum(a, b) > hi).any(axis=1))
@@ -190,8 +188,7 @@ def snap_to_edges(uv: np.ndarray, theta: np.ndarray, p_cam: np.ndarray, edges_ca
     p_cam = p_cam.copy()
     # uv from the 3D point (consistent to float precision with its projection)
     ps = p_snap[use]
-    uv[use] = np.stack([intr.fx * ps[:, 0] / ps[:, 2] + intr.cx, intr.fy * ps[:, 1] / ps[:, 2] + intr.cy],
-                       axis=1)
+    uv[use] = project(ps, K)
     dirs = (b - a)[best[use]]
     theta[use] = np.mod(np.arctan2(dirs[:, 1], dirs[:, 0]), np.pi)
     p_cam[use] = ps
@@ -341,8 +338,7 @@ def border_with_tangents(vertices_mm, faces, pose: Pose, intr: Intrinsics, image
                          supersample: int) -> Border:
     """The outer border at ``pose`` (``border_at_pose`` in the pinhole part of ``intr``; ``image_size =
     (w, h)``) with 3D tangents from the neighbouring border points."""
-    ideal = Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy)
-    uv, _, p_obj = border_at_pose(vertices_mm, faces, pose, ideal, image_size, spacing_px=spacing_px,
+    uv, _, p_obj = border_at_pose(vertices_mm, faces, pose, intr.pinhole(), image_size, spacing_px=spacing_px,
                                   supersample=supersample)
     p_obj = np.asarray(p_obj, np.float64).reshape(-1, 3)
     return Border(p_obj, _tangents_from_order(p_obj, np.asarray(uv, float).reshape(-1, 2), spacing_px), pose)

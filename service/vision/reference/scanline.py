@@ -23,9 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.vision.geometry.camera import project
+from service.vision.geometry.camera import as_intrinsics, project
 from service.vision.geometry.frames import Pose
-from service.vision.geometry.render import as_intrinsics
 
 LINE_MERGE_PX = 0.25  # scan lines closer than this are one line
 
