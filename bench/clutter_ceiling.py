@@ -5,7 +5,7 @@
 Per clutter image (distance not given, as the benchmark runs it), with the pipeline's own pieces:
 - ``cov 1/2`` / ``cov 1/1``: the true outline's edge coverage (``refine.verify``'s score at the
   ground-truth pose) on the coarse stage's half-resolution LSD and on full-resolution LSD (what the
-  found verdict reads; it asks for ``pipeline.FOUND_MIN_REFINED_SCORE``);
+  found verdict reads; it asks for ``verdict.FOUND_MIN_REFINED_SCORE``);
 - ``A rank``: rank of the best level-A anchor within 2 level pixels of the truth's reference point
   among all anchors (level B only looks around ``SearchParams.n_peaks`` of them);
 - ``truth cost`` / ``found cost``: level B's ranking cost (mean DT3, truncated at
@@ -26,11 +26,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `python bench/clutter_ceiling.py`
 from bench.accuracy import DATA_DIR, load_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
-from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, FOUND_MIN_REFINED_SCORE, estimate  # noqa: E402
+from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, estimate  # noqa: E402
 from service.vision.estimate import chamfer, coarse  # noqa: E402
 from service.vision.estimate.chamfer import distance_tensor  # noqa: E402
 from service.vision.estimate.edges import detect_segments, to_grey_u8  # noqa: E402
 from service.vision.estimate.refine import PoseParams, border_points, dt_residuals, verify  # noqa: E402
+from service.vision.estimate.verdict import FOUND_MIN_REFINED_SCORE  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
 from service.vision.geometry.render import render  # noqa: E402

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import trimesh
@@ -18,6 +18,7 @@ from service.vision.estimate.chamfer import distance_tensor
 from service.vision.estimate.coarse import SearchParams, coarse_search, poses_of
 from service.vision.estimate.edges import detect_segments, to_grey_u8, undistort_segments
 from service.vision.estimate.interior import unexplained_edge_ratio
+from service.vision.estimate.verdict import Verdict, decide, needs_refined_check, screen
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, canonical_spin
 
@@ -46,7 +47,9 @@ class EstimateOutput:
     candidates: list[PoseCandidate]
     timing_ms: dict[str, float]  # edges, coarse, refine, total
     overlay_png: bytes | None = None
-    extra: dict = field(default_factory=dict)
+    # the found/absent decision and the evidence it read (estimate/verdict.py); None from callers that
+    # make an EstimateOutput without the pipeline (bench/accuracy.py --selftest)
+    verdict: Verdict | None = None
 
 
 def build_templates(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | None = None,
@@ -62,22 +65,6 @@ def template_picture(bank: TemplateBank, k: int) -> np.ndarray:
     from service.vision.build.templates import draw_template
 
     return draw_template(bank, k)
-
-
-# Fraction of border points with a matching edge within score_px; an absent clutter scene reached 0.59.
-# Under this the coarse pose is not even checked; over it the verdict is the refined pose's, below.
-FOUND_MIN_SCORE = 0.65
-# The verdict is taken on the refined pose's score (full resolution, sub-pixel), also when refinement
-# is off (then it runs unreported, unless the coarse score already reaches this bar):
-# on the paper renders every true pose refines to >= 0.94, while wrong poses on the checkerboard
-# clutter stayed at 0.65-0.84 (one L-bracket match on the checkerboard's straight edges reached 0.99).
-FOUND_MIN_REFINED_SCORE = 0.85
-# ... and the image may show no more than this much edge length (per unit of silhouette perimeter)
-# inside the silhouette that the model's creases and depth steps do not explain
-# (interior.unexplained_edge_ratio). At the true pose: paper renders <= 0.06; clutter 0-0.36, and 0.59
-# for a sprayer behind an occluder. The one confident wrong pose left in clutter (an L-bracket fitted to
-# a block of checker squares, refined score 0.97) has 0.53.
-FOUND_MAX_UNEXPLAINED = 0.4
 
 
 def _candidate(bank: TemplateBank, pose: Pose, cost: float, score: float) -> PoseCandidate:
@@ -114,25 +101,22 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     cands = distinct_candidates(cands, bank, intr.K)[:top_k]
     t_coarse = _ms(t0)
 
-    found = bool(cands) and cands[0].score >= FOUND_MIN_SCORE
-    coarse = cands[0] if found else None
-    refined, extra = None, {}
+    best = cands[0] if cands else None
+    verdict = screen(None if best is None else best.score)
+    refined = None
     t0 = time.perf_counter()
-    if found and (refine or coarse.score < FOUND_MIN_REFINED_SCORE):
-        # Refinement is also the check: with refine off it still runs, unreported, for a coarse score
-        # that wrong poses on textured floors reach too (0.65-0.76 in clutter).
-        checked, verified, extra["unexplained"] = _refine(bank, cands, grey, intr, distance_mm=distance_mm,
-                                                          n_channels=p.n_channels)
-        if verified < FOUND_MIN_REFINED_SCORE or extra["unexplained"] > FOUND_MAX_UNEXPLAINED:
-            # A grasp on a pose the image does not confirm is worse than no answer.
-            found, coarse = False, None
-        elif refine:
+    if verdict is None and needs_refined_check(best.score, refine=refine):
+        checked, verified, unexplained = _refine(bank, cands, grey, intr, distance_mm=distance_mm,
+                                                 n_channels=p.n_channels)
+        verdict = decide(best.score, verified_score=verified, unexplained=unexplained)
+        if verdict.found and refine:
             refined = checked
-    elif found:  # refine off and a coarse score as high as a refined one's: check its inside only
-        # on the coarse stage's half-resolution segments (paper renders' true poses <= 0.20 on them)
-        extra["unexplained"] = unexplained_edge_ratio(bank, coarse.pose, intr, seg, (w, h))
-        if extra["unexplained"] > FOUND_MAX_UNEXPLAINED:
-            found, coarse = False, None
+    elif verdict is None:  # a coarse score as high as a refined one's: check its inside only, on the
+        # coarse stage's half-resolution segments (paper renders' true poses <= 0.20 on them)
+        unexplained = unexplained_edge_ratio(bank, best.pose, intr, seg, (w, h))
+        verdict = decide(best.score, unexplained=unexplained)
+    found = verdict.found
+    coarse = best if found else None
     t_refine = _ms(t0)
     png = None
     if overlay:
@@ -141,7 +125,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
         png = encode_png(draw_overlay(grey, bank, intr, coarse.pose if coarse else None,
                                       refined.pose if refined else None))
     timing = {"edges": t_edges, "coarse": t_coarse, "refine": t_refine, "total": _ms(t_start)}
-    return EstimateOutput((w, h), found, coarse, refined, cands, timing, png, extra)
+    return EstimateOutput((w, h), found, coarse, refined, cands, timing, png, verdict)
 
 
 def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.ndarray) -> list[PoseCandidate]:

@@ -1,6 +1,6 @@
 """The found verdict guards the grasp: on the checkerboard clutter renders, where the search still
 lands on wrong poses, a pose the image does not confirm must come back as found=false, never as a
-confident wrong pose (``pipeline.FOUND_MIN_REFINED_SCORE``, ``pipeline.FOUND_MAX_UNEXPLAINED``)."""
+confident wrong pose (``verdict.FOUND_MIN_REFINED_SCORE``, ``verdict.FOUND_MAX_UNEXPLAINED``)."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from service import pipeline
+from service.vision.estimate.verdict import FOUND_MIN_REFINED_SCORE, FOUND_MIN_SCORE
 from service.vision.geometry.camera import Intrinsics
 from tests.tolerances import FOUND_POSE_AXIS_DEG, FOUND_POSE_T_MM
 
@@ -38,6 +39,10 @@ def test_clutter_scene_is_either_right_or_not_found(sprayer_bank, data_dir, imag
     else:
         assert out.coarse is None and out.refined is None
     assert (out.refined is not None) == (refine and out.found)
+    assert out.verdict.found == out.found and out.verdict.reason
+    if out.verdict.evidence.get("coarse_score", 0.0) >= FOUND_MIN_SCORE:  # checked beyond the coarse stage
+        assert "unexplained" in out.verdict.evidence or out.verdict.evidence["verified_score"] < \
+            FOUND_MIN_REFINED_SCORE
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +56,7 @@ def lbracket_bank(data_dir):
 def test_silhouette_fitted_to_checker_squares_is_not_found(lbracket_bank, data_dir):
     """clutter 0008: the L-bracket's rectangle-like silhouette fits a 4 x 2 block of checker squares
     with 0.97 refined support; the checker lines running through its inside give it away
-    (``pipeline.FOUND_MAX_UNEXPLAINED``). The part itself is mostly hidden behind a cylinder."""
+    (``verdict.FOUND_MAX_UNEXPLAINED``). The part itself is mostly hidden behind a cylinder."""
     rows = [json.loads(s) for s in (data_dir / "clutter" / "gt.jsonl").read_text().splitlines()]
     g = next(r for r in rows if r["image"] == "images/0008.png")
     img = cv2.imread(str(data_dir / "clutter" / g["image"]), cv2.IMREAD_GRAYSCALE)
@@ -77,4 +82,4 @@ def test_verdict_reads_the_full_resolution_score_not_the_candidates(sprayer_bank
     checked, verified, _ = pipeline._refine(sprayer_bank, [claimed], img, intr, distance_mm=None,
                                             n_channels=16)
     assert checked.score == claimed.score  # the candidate is kept as it was...
-    assert verified < pipeline.FOUND_MIN_REFINED_SCORE  # ...but the image does not confirm it
+    assert verified < FOUND_MIN_REFINED_SCORE  # ...but the image does not confirm it
