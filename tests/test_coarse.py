@@ -42,7 +42,7 @@ def _axis_err_deg(R_a, R_b) -> float:
 
 KNOWN_MISS = pytest.mark.xfail(strict=False, reason=(
     "known weakness: with 30 % of the border hidden, level A's peaks are all tilted >20 deg from the "
-    "truth and the local scans do not reach it; see the closing note of issue 4"))
+    "truth and the local scans do not reach it"))
 
 
 @pytest.mark.parametrize(("alpha", "gamma", "t_mm"), [
@@ -180,7 +180,7 @@ def tless06_bank(tless06_mesh):
 
 FLIP = pytest.mark.xfail(strict=False, reason=(
     "known weakness: this near-symmetric part's 180 deg flip has almost the same silhouette; the search "
-    "returns the flip (position right); see the closing notes of issue 4"))
+    "returns the flip (position right)"))
 
 
 @pytest.mark.slow
@@ -234,7 +234,7 @@ def test_scan_with_a_shared_bound_finds_the_brute_force_best():
 
 
 def test_views_within_adds_a_revolved_parts_mirror_tilt(sprayer_bank):
-    from service.vision.estimate.coarse import views_within
+    from service.vision.bank import views_within
 
     tilt = sprayer_bank.view_params_deg[:, 0]
     v30 = int(np.argmin(np.abs(tilt - 30.0)))
@@ -245,7 +245,7 @@ def test_views_within_adds_a_revolved_parts_mirror_tilt(sprayer_bank):
 
 @pytest.mark.parametrize("count", [16, 48, 80, 160])
 def test_spread_order_is_a_permutation_whose_prefixes_cover_the_border_evenly(count):
-    from service.vision.estimate.coarse import spread_order
+    from service.vision.bank import spread_order
 
     order = spread_order(count)
     assert sorted(order.tolist()) == list(range(count))
@@ -258,13 +258,8 @@ def test_spread_order_is_a_permutation_whose_prefixes_cover_the_border_evenly(co
 def test_window_offsets_equal_the_projected_posed_border(sprayer_bank):
     """The compiled window templates against an independent path: poses_of (ray, in-plane angle,
     bank view, known distance) then the pinhole projection of the same 3D border points."""
-    from service.vision.estimate.coarse import (
-        Hypothesis,
-        Window,
-        _window_offsets,
-        border_triplets,
-        poses_of,
-    )
+    from service.vision.bank import border_triplets
+    from service.vision.estimate.coarse import Hypothesis, Window, _window_offsets, poses_of
     from service.vision.geometry.camera import ray_rotation
 
     bank = sprayer_bank

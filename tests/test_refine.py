@@ -167,7 +167,7 @@ def test_residuals_and_jacobian_agree_with_finite_differences(kind, tless_bank, 
     assert len(match.idx) > 20
     r, J = line_residuals(params, x, border, INTR, match)
     assert _jac_agrees(lambda x: line_residuals(params, x, border, INTR, match), x, params.n) == 1.0
-    # The DT residual is the chamfer read-out of the projected border (the definition).
+    # The DT residual is the chamfer read-out of the projected border (its definition).
     r_dt, _ = dt_residuals(params, x, border, INTR, dtt, with_jac=False)
     np.testing.assert_allclose(r_dt, sample(dtt, dtt.to_grid(uv), th), atol=REFINE_SAMPLE_ATOL)
 

@@ -42,8 +42,8 @@ COARSE_T_MM_NONSYM = 10.0
 # --- refinement ---
 REFINE_ANGLE_DEG = 0.1  # known answer: rotation (axis direction for a symmetric part) after 3 deg / 5 mm
 REFINE_TRANS_MM = 0.2  # known answer: translation after 3 deg / 5 mm, distance given
-REFINE_DEPTH_MM = 3.0  # |tz| when the distance is refined too (the target)
-REFINE_FREE_ANGLE_DEG = 0.3  # rotation when the distance is refined too (the target)
+REFINE_DEPTH_MM = 3.0  # |tz| when the distance is refined too (the accuracy target)
+REFINE_FREE_ANGLE_DEG = 0.3  # rotation when the distance is refined too (the accuracy target)
 REFINE_OCCLUDED_ANGLE_DEG = 0.3  # 30 % of the border hidden
 REFINE_OCCLUDED_TRANS_MM = 0.5
 REFINE_REAL_TRANS_MM = 0.2  # paper render 0001: |tx|, |ty| from gt perturbed by 1 deg / 2 mm

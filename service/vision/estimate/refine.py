@@ -7,7 +7,7 @@ The paper refines with Levenberg-Marquardt on matched point pairs kept under a m
   each came from, ``templates.border_at_pose``) is projected with the pose being refined; each
   point's image orientation is the projection of its 3D border tangent, so it moves continuously
   with the pose;
-- **residual "dt"** (the issue's): per border point, the directional chamfer distance read from
+- **residual "dt"**: per border point, the directional chamfer distance read from
   DT3 of the image's LSD segments at the projected point, bilinear in the image and linear,
   cyclic across orientation channels (smooth and sub-pixel, analytic Jacobian);
 - **residual "line"** (final iterations): the signed distance from the projected point to the
@@ -237,7 +237,7 @@ def project_border(params: PoseParams, x: np.ndarray, border: Border, intr: Intr
 
 def dt_residuals(params: PoseParams, x: np.ndarray, border: Border, intr: Intrinsics, dtt: DistanceTensor,
                  with_jac: bool = True):
-    """The issue's residual: directional chamfer distance (full-res px) per border point, and
+    """The "dt" residual: directional chamfer distance (full-res px) per border point, and
     its Jacobian (M, n)."""
     uv, theta, duv, dth = project_border(params, x, border, intr, with_jac)
     g = dtt.to_grid(uv)

@@ -65,10 +65,6 @@ def R_from_rotvec(rotvec_rad) -> np.ndarray:
     return Rotation.from_rotvec(np.asarray(rotvec_rad, float)).as_matrix()
 
 
-def rotvec_from_R(R: np.ndarray) -> np.ndarray:
-    return Rotation.from_matrix(np.asarray(R, float)).as_rotvec()
-
-
 def R_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The smallest rotation taking unit direction ``a`` onto unit direction ``b``."""
     a = np.asarray(a, float) / np.linalg.norm(a)
