@@ -25,8 +25,8 @@ def _settings(args: argparse.Namespace):
 
 def _ensure_built(args: argparse.Namespace, settings, store) -> dict:
     """Register the mesh (idempotent) and build its templates here and now unless they are ready."""
-    from service.api.deps import parse_json_object
     from service.builder import register_upload, run_build
+    from service.schemas import parse_json_object
 
     mesh = Path(args.mesh)
     templates = parse_json_object(args.templates, "templates")
@@ -101,9 +101,8 @@ def cmd_build(args: argparse.Namespace) -> int:
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:
-    from service.api.deps import Loaded, get_ready_model, parse_json_part
-    from service.api.estimate import run_estimate
-    from service.schemas import Camera, Options
+    from service.pipeline import estimate_image
+    from service.schemas import Camera, EstimateResult, Options, parse_json_part
     from service.store import Store
 
     settings = _settings(args)
@@ -112,8 +111,10 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     opts = parse_json_part(args.options, Options, "options")
     with Store(settings.cache_dir) as store:
         record = _ensure_built(args, settings, store)
-        model: Loaded = get_ready_model(record, store)  # 409 with the reason if the build failed
-        result = run_estimate(model, Path(args.image).read_bytes(), cam, opts, settings)
+        bank = store.ready_bank(record)  # 409 with the reason if the build failed
+        out = estimate_image(bank, Path(args.image).read_bytes(), cam.to_intrinsics(),
+                             max_pixels=settings.max_image_pixels, **opts.estimate_kwargs())
+    result = EstimateResult.from_output(record["id"], out)
     print(result.model_dump_json(indent=2))
     return 0
 

@@ -128,6 +128,15 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     return EstimateOutput((w, h), found, coarse, refined, cands, timing, png, verdict)
 
 
+def estimate_image(bank: TemplateBank, data: bytes, intr: Intrinsics, *, max_pixels: int,
+                   **options) -> EstimateOutput:
+    """Image file bytes -> ``estimate`` (blocking: the API calls it from a worker thread; the CLI
+    calls it too). ``options``: ``estimate``'s keyword arguments."""
+    from service.decode import decode_image
+
+    return estimate(bank, decode_image(data, max_pixels=max_pixels), intr, **options)
+
+
 def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.ndarray) -> list[PoseCandidate]:
     """Drop candidates whose object centre projects within a quarter diameter of a better one."""
     out: list[PoseCandidate] = []

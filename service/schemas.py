@@ -8,14 +8,16 @@ sees these classes. Lengths are millimetres, angles degrees, poses ``T_cam_obj``
 from __future__ import annotations
 
 import base64
+import json
+import math
 from datetime import datetime
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from service.errors import UnprocessableError, validation_sentence
 from service.pipeline import EstimateOutput, PoseCandidate, RefinedPose
-from service.vision.bank import TemplateBank
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, euler_xyz_deg_from_R, quat_xyzw_from_R
 
@@ -23,8 +25,6 @@ Units = Literal["mm", "cm", "m", "in"]
 SymmetryOption = Literal["auto", "none", "x", "y", "z"]
 Status = Literal["queued", "building", "ready", "failed"]
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
-
-_AXES = {"x": [1.0, 0.0, 0.0], "y": [0.0, 1.0, 0.0], "z": [0.0, 0.0, 1.0]}
 
 
 class _Request(BaseModel):
@@ -64,6 +64,11 @@ class Options(_Request):
     refine: bool = Field(True, description="run the Levenberg-Marquardt refinement")
     top_k: int = Field(5, ge=1, le=50, description="number of coarse candidates to return")
     overlay: bool = Field(False, description="add overlay_png_base64 (coarse contour dashed, refined solid)")
+
+    def estimate_kwargs(self) -> dict[str, Any]:
+        """The options as ``pipeline.estimate``'s keyword arguments."""
+        return {"distance_mm": self.distance_mm, "distance_range_mm": self.distance_range_mm,
+                "refine": self.refine, "top_k": self.top_k, "overlay": self.overlay}
 
     @model_validator(mode="after")
     def _distances(self) -> Options:
@@ -154,21 +159,6 @@ class Symmetry(BaseModel):
     type: Literal["none", "continuous"]
     axis: Vec3 | None = Field(description="unit axis in the model frame (continuous symmetry), else null")
 
-    @classmethod
-    def from_bank(cls, bank: TemplateBank) -> Symmetry:
-        if bank.symmetry_axis_obj is None:
-            return cls(type="none", axis=None)
-        return cls(type="continuous", axis=np.asarray(bank.symmetry_axis_obj, float).tolist())
-
-    @classmethod
-    def from_option(cls, option: str) -> Symmetry | None:
-        """What an upload's ``symmetry`` field already says (None for "auto": known after the build)."""
-        if option == "none":
-            return cls(type="none", axis=None)
-        if option in _AXES:
-            return cls(type="continuous", axis=_AXES[option])
-        return None
-
 
 class ModelInfo(BaseModel):
     id: str
@@ -195,3 +185,43 @@ class Health(BaseModel):
 
 class Error(BaseModel):
     detail: str = Field(description="one sentence: what is wrong and how to fix it")
+
+
+# --- parsing a form part's JSON into a wire model -------------------------------------------------
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def _finite(v: Any) -> bool:
+    if isinstance(v, float):
+        return math.isfinite(v)
+    if isinstance(v, dict):
+        return all(_finite(x) for x in v.values())
+    if isinstance(v, list):
+        return all(_finite(x) for x in v)
+    return True
+
+
+def parse_json_object(text: str | None, what: str) -> dict[str, Any]:
+    """A form part holding a JSON object -> dict; 422 (one sentence) on bad JSON, non-objects or NaN."""
+    if text is None or not text.strip():
+        return {}
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise UnprocessableError(f"The {what} part is not valid JSON ({e.msg} at character {e.pos}); send a "
+                                 "JSON object such as {\"key\": value}") from e
+    if not isinstance(value, dict):
+        raise UnprocessableError(f"The {what} part must be a JSON object, not {type(value).__name__}; send "
+                                 "{\"key\": value, ...}")
+    if not _finite(value):
+        raise UnprocessableError(f"The {what} part contains NaN or Infinity; send finite numbers only")
+    return value
+
+
+def parse_json_part(text: str | None, model: type[M], what: str) -> M:
+    """A form part holding JSON -> the wire model; 422 with one sentence naming the first problem."""
+    try:
+        return model.model_validate(parse_json_object(text, what))
+    except ValidationError as e:
+        raise UnprocessableError(validation_sentence(e.errors(), what=what)) from e

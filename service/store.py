@@ -31,6 +31,7 @@ from typing import Any
 import diskcache
 import numpy as np
 
+from service.errors import BuildFailedError, NotReadyError, clause
 from service.vision.bank import TemplateBank
 
 ID_HEX_CHARS = 20
@@ -144,6 +145,22 @@ class Store:
 
     def put_bank(self, mid: str, bank: TemplateBank) -> None:
         self._cache.set(f"bank:{mid}", bank_to_bytes(bank))
+
+    def ready_bank(self, record: dict[str, Any]) -> TemplateBank:
+        """The template bank of the model ``record``; 409 with the reason when its build failed, 409
+        (not ready, with its progress) while it is still queued or building."""
+        mid, status = record["id"], record["status"]
+        if status == "failed":
+            reason = clause(record.get("error") or "unknown reason")
+            raise BuildFailedError(f"Model '{mid}' failed to build: {reason}; fix the mesh or the template "
+                                   "options and upload it again")
+        bank = self.bank(mid) if status == "ready" else None
+        if bank is None:
+            done = 100 * float(record.get("progress") or 0.0)
+            raise NotReadyError(f"Model '{mid}' is not ready yet (template build {status}, {done:.0f}% "
+                                f"done); retry after Retry-After seconds or poll GET /models/{mid} until it "
+                                "is ready")
+        return bank
 
     def bank(self, mid: str) -> TemplateBank | None:
         """The model's template bank, from the in-process LRU or the cache; None if not built."""

@@ -9,10 +9,9 @@ from starlette.concurrency import run_in_threadpool
 
 from service import monitoring
 from service.api import error_responses
-from service.api.deps import Loaded, ReadyModel, SettingsDep, parse_json_part, read_upload
-from service.decode import decode_image
-from service.pipeline import estimate as estimate_pose
-from service.schemas import Camera, EstimateResult, Options
+from service.api.deps import Loaded, ReadyModel, SettingsDep, read_upload
+from service.pipeline import estimate_image
+from service.schemas import Camera, EstimateResult, Options, parse_json_part
 from service.settings import Settings
 
 router = APIRouter(tags=["estimate"])
@@ -20,11 +19,9 @@ router = APIRouter(tags=["estimate"])
 
 def run_estimate(model: Loaded, data: bytes, cam: Camera, opts: Options,
                  settings: Settings) -> EstimateResult:
-    """Image bytes -> EstimateResult (blocking: call it from a worker thread; the CLI calls it too)."""
-    image = decode_image(data, max_pixels=settings.max_image_pixels)
-    out = estimate_pose(model.bank, image, cam.to_intrinsics(), distance_mm=opts.distance_mm,
-                        distance_range_mm=opts.distance_range_mm, refine=opts.refine, top_k=opts.top_k,
-                        overlay=opts.overlay)
+    """Image bytes -> EstimateResult (blocking: call it from a worker thread)."""
+    out = estimate_image(model.bank, data, cam.to_intrinsics(), max_pixels=settings.max_image_pixels,
+                         **opts.estimate_kwargs())
     return EstimateResult.from_output(model.id, out)
 
 
