@@ -18,9 +18,12 @@ from service.errors import ServiceError
 
 def _settings(args: argparse.Namespace):
     from service.settings import Settings
+    from service.vision import threads
 
     overrides = {"cache_dir": args.cache_dir} if getattr(args, "cache_dir", None) else {}
-    return Settings(**overrides)
+    settings = Settings(**overrides)
+    threads.configure(settings.threads)
+    return settings
 
 
 def _ensure_built(args: argparse.Namespace, settings, store) -> dict:

@@ -198,6 +198,14 @@ def run_build(cache_dir: str, mid: str, lease_s: float) -> str:
             signal.signal(signal.SIGTERM, old_handler)
 
 
+def _start_build_process(log_level: str | None, threads_budget: int | None) -> None:
+    """A build process logs like its parent and keeps to the service's thread budget."""
+    from service.vision import threads
+
+    configure_like(log_level)
+    threads.configure(threads_budget)
+
+
 class Builder:
     """The build executor of one service process (created and shut down by the app's lifespan)."""
 
@@ -205,6 +213,7 @@ class Builder:
         self.cache_dir = str(Path(settings.cache_dir))
         self.lease_s = float(settings.build_lease_s)
         self.workers = int(settings.build_workers)
+        self.threads = settings.threads
         self._lock = threading.Lock()
         self._futures: dict[str, Future[str]] = {}
         self._deaths: dict[str, int] = {}  # pool processes that died building each model
@@ -213,7 +222,7 @@ class Builder:
 
     def _new_executor(self) -> ProcessPoolExecutor:
         return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=configure_like, initargs=(json_level(),))
+                                   initializer=_start_build_process, initargs=(json_level(), self.threads))
 
     def submit(self, mid: str) -> None:
         """Queue a build of ``mid`` unless this process already has one queued or running."""

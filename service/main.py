@@ -30,6 +30,7 @@ from service.errors import install_handlers, sentence
 from service.middleware import ApiKeyGuard, RequestContext
 from service.settings import Settings
 from service.store import Store
+from service.vision import threads
 
 log = logging.getLogger("service")
 
@@ -101,6 +102,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        threads.configure(settings.threads)
         settings.cache_dir.mkdir(parents=True, exist_ok=True)
         store = Store(settings.cache_dir)
         builder = Builder(settings)

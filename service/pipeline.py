@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from service.vision import threads
 from service.vision.bank import TemplateBank
 from service.vision.estimate.chamfer import distance_tensor
 from service.vision.estimate.coarse import SearchParams, coarse_search, poses_of
@@ -55,6 +56,7 @@ class EstimateOutput:
 def build_templates(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | None = None,
                     progress: Callable[[float], None] | None = None) -> TemplateBank:
     """Mesh in mm -> template bank. ``symmetry``: "auto" | "none" | "x" | "y" | "z"."""
+    threads.use_budget()
     from service.vision.build.templates import build_bank
 
     return build_bank(mesh, symmetry=symmetry, grid=grid or {}, progress=progress)
@@ -82,6 +84,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
              overlay: bool = False, params: SearchParams | None = None) -> EstimateOutput:
     """Grey (H, W) uint8/uint16 image + intrinsics -> ranked poses (see EstimateOutput)."""
     p = params or SearchParams()
+    threads.use_budget()
     t_start = time.perf_counter()
     grey = to_grey_u8(image)
     h, w = grey.shape

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
@@ -23,6 +22,7 @@ import cv2
 import numpy as np
 import trimesh
 
+from service.vision import threads
 from service.vision.bank import TemplateBank
 from service.vision.build.grid import MAX_VIEWS, count_views, grid_rotations, merge_grid
 from service.vision.geometry.camera import Intrinsics
@@ -125,9 +125,8 @@ def build_bank(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | No
         return xy.astype(np.float32), theta32, p_obj.astype(np.float32)
 
     results: list = [None] * len(R_all)
-    workers = max(1, min(2, os.cpu_count() or 1))
     done = 0
-    with ThreadPoolExecutor(max_workers=workers) as ex:
+    with ThreadPoolExecutor(max_workers=threads.budget()) as ex:  # not the shared pool: it ends here
         futs = {ex.submit(one, R): k for k, R in enumerate(R_all)}
         from concurrent.futures import as_completed
 

@@ -34,12 +34,12 @@ The paper refines with Levenberg-Marquardt on matched point pairs kept under a m
 from __future__ import annotations
 
 import math
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
 
+from service.vision import threads
 from service.vision.bank import TemplateBank
 from service.vision.estimate.chamfer import DistanceTensor, sample_with_grad, segment_distance_tensor
 from service.vision.estimate.edges import Segments, detect_segments, undistort_segments
@@ -59,8 +59,6 @@ REEXTRACT_DEG = 1.0  # ... or the rotation has changed this much since the extra
 # The interior check, started in the background at the DT stage's pose, stands for a final pose whose
 # border lies within this of it (the check erodes the silhouette by interior.ERODE_PX = 5 px anyway).
 INTERIOR_REUSE_PX = 1.5
-# Refinement's second thread (per request; the API's threadpool runs requests side by side).
-_BACKGROUND = ThreadPoolExecutor(max_workers=4, thread_name_prefix="refine")
 DT_SCALE = 1.0  # DT3 grid per full-resolution pixel (exact distances to segments at pixel centres)
 DT_TAU_PX = 12.0  # DT3 truncation for refinement (full-res px): the basin, not the coarse search
 DT_F_SCALE_PX = 4.0  # robust-loss scale of the DT stage (smaller scales converge much slower)
@@ -457,7 +455,7 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     ideal = intr.pinhole()
     # A background thread overlaps the border rasterisation with LSD + DT, and the interior check
     # (unexplained_edge_ratio) with the line stage.
-    fut = _BACKGROUND.submit(border_points, bank, pose0, ideal, size)
+    fut = threads.background().submit(border_points, bank, pose0, ideal, size)
     img = _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px)
     border = fut.result()
     if img is None or len(border.p_obj) < 6:
@@ -486,7 +484,7 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
             if not moved:
                 break
         interior_pose = pose
-        interior = _BACKGROUND.submit(unexplained_edge_ratio, bank, pose, ideal, seg_roi, size)
+        interior = threads.background().submit(unexplained_edge_ratio, bank, pose, ideal, seg_roi, size)
     else:
         interior_pose = interior = None
 
