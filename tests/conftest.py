@@ -16,6 +16,16 @@ MODELS_DIR = DATA_DIR / "models"
 os.environ.setdefault("POSE_WARM_UP", "false")
 
 
+@pytest.fixture(scope="session", autouse=True)
+def numba_kernels():
+    """Every compiled kernel, compiled (or loaded from numba's on-disk cache) once per session before
+    the first test: no test's duration includes it, and the servers the tests start load the kernels
+    from the cache instead of each compiling them."""
+    from service import pipeline
+
+    pipeline.warm_up()
+
+
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
     if not DATA_DIR.is_dir():

@@ -40,7 +40,7 @@ def _axis_err_deg(R_a, R_b) -> float:
     return float(np.degrees(np.arccos(np.clip(R_a[:, 1] @ R_b[:, 1], -1, 1))))
 
 
-KNOWN_MISS = pytest.mark.xfail(strict=False, reason=(
+KNOWN_MISS = pytest.mark.xfail(reason=(
     "known weakness: with 30 % of the border hidden, level A's peaks are all tilted >20 deg from the "
     "truth and the local scans do not reach it"))
 
@@ -178,7 +178,7 @@ def tless06_bank(tless06_mesh):
     return pipeline.build_templates(tless06_mesh, symmetry="none")  # the default grid, as users get it
 
 
-FLIP = pytest.mark.xfail(strict=False, reason=(
+FLIP = pytest.mark.xfail(reason=(
     "known weakness: this near-symmetric part's 180 deg flip has almost the same silhouette; the search "
     "returns the flip (position right)"))
 

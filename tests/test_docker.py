@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import httpx
+import pytest
 import yaml
 from prometheus_client.parser import text_string_to_metric_families
 
@@ -396,6 +397,7 @@ def metric_value(text: str, family: str, sample: str, **labels: str) -> float | 
     return None
 
 
+@pytest.mark.slow
 def test_image_replayed_serves_health_upload_estimate_and_metrics(tmp_path, sprayer_bytes, frame):
     image = replay(tmp_path)
     port = free_port()
