@@ -1,4 +1,4 @@
-"""Conventions of service/vision/camera.py: K, projection, pixel centres under resize and crop, distortion."""
+"""Conventions of geometry/camera.py: K, projection, pixel centres under resize and crop, distortion."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Known-answer tests of service/vision/metrics.py."""
+"""Known-answer tests of service/vision/reference/metrics.py."""
 
 from __future__ import annotations
 
