@@ -42,7 +42,8 @@ def test_base_from_cam_eye_to_hand_eye_in_hand_and_unknown():
     # camera 1 m above the base origin looking straight down: the camera's origin in base is (0, 0, 1000)
     # and a point 1000 mm in front of it (camera z) is the base origin.
     T_base_cam = rigid(Rx(180.0), [0.0, 0.0, 1000.0])
-    np.testing.assert_allclose((T_base_cam @ [0.0, 0.0, 1000.0, 1.0])[:3], [0.0, 0.0, 0.0], atol=CELL_EXACT_ATOL)
+    np.testing.assert_allclose((T_base_cam @ [0.0, 0.0, 1000.0, 1.0])[:3], [0.0, 0.0, 0.0],
+                               atol=CELL_EXACT_ATOL)
     assert base_from_cam(T_base_cam, None, None) is T_base_cam
     T_flange_cam = rigid(np.eye(3), [0.0, 0.0, 50.0])  # camera 50 mm along the flange's z
     T_base_flange = rigid(Rx(180.0), [400.0, 0.0, 600.0])  # flange pointing down at 600 mm
@@ -123,7 +124,8 @@ def test_revolved_part_grasp_is_spun_to_the_most_vertical_approach(seed):
 
 def test_best_spin_is_zero_when_every_spin_is_as_good():
     # approach along the axis itself: spinning does not move it
-    assert best_spin_rad(np.array([0.0, 1.0, 0.0]), np.array([0.3, 0.9, 0.1]), np.array([0.0, 1.0, 0.0])) == 0.0
+    y = np.array([0.0, 1.0, 0.0])
+    assert best_spin_rad(y, np.array([0.3, 0.9, 0.1]), y) == 0.0
 
 
 @pytest.mark.parametrize(("extents_mm", "units", "suggestion"), [
