@@ -120,6 +120,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app = FastAPI(
         title="posecell", version=VERSION, lifespan=lifespan,
+        docs_url=None, redoc_url=None,  # served from the package by service.ui (no CDN)
         description="6D pose of a CAD part from one camera image: borderline templates, directional "
                     "chamfer matching, LM refinement. Lengths in mm, angles in degrees, poses T_cam_obj "
                     "(OpenCV camera frame).",
@@ -135,4 +136,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for module in (models, grasps, estimate, cameras):  # behind the optional API key
         app.include_router(module.router, dependencies=[ApiKeyDocumented],
                            responses=error_responses(401))
+    ui.install(app)  # /ui, /docs, /redoc and their files
     return app

@@ -65,16 +65,14 @@ def png(img: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
-@pytest.fixture(scope="module")
-def lbracket(data_dir) -> tuple[bytes, trimesh.Trimesh]:
-    path = data_dir / "models" / "lbracket.stl"
-    return path.read_bytes(), trimesh.load(path, force="mesh")
+def render_scene(mesh: trimesh.Trimesh) -> bytes:
+    """PNG bytes of the L-bracket at ``T_CAM_OBJ`` (shaded, on a grey background)."""
+    return png(render_shaded(mesh.vertices, mesh.faces, Pose.from_matrix(T_CAM_OBJ), K, (W, H)))
 
 
 @pytest.fixture(scope="module")
 def scene(lbracket) -> bytes:
-    _, mesh = lbracket
-    return png(render_shaded(mesh.vertices, mesh.faces, Pose.from_matrix(T_CAM_OBJ), K, (W, H)))
+    return render_scene(lbracket[1])
 
 
 @pytest.fixture(scope="module")
