@@ -125,8 +125,10 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     if overlay:
         from service.vision.overlay import draw_overlay, encode_png
 
+        shown = refined or coarse or (cands[0] if cands else None)
         png = encode_png(draw_overlay(grey, bank, intr, coarse.pose if coarse else None,
-                                      refined.pose if refined else None))
+                                      refined.pose if refined else None, found=found,
+                                      score=shown.score if shown else None))
     timing = {"edges": t_edges, "coarse": t_coarse, "refine": t_refine, "total": _ms(t_start)}
     return EstimateOutput((w, h), found, coarse, refined, cands, timing, png, verdict)
 

@@ -64,3 +64,12 @@ def frame(data_dir, paper_gt) -> tuple[bytes, dict]:
     K = paper_gt["K"]
     return (data_dir / "paper" / paper_gt["image"]).read_bytes(), {"fx": K[0][0], "fy": K[1][1],
                                                                    "cx": K[0][2], "cy": K[1][2]}
+
+
+@pytest.fixture(scope="session")
+def lbracket(data_dir):
+    """models/lbracket.stl (mm, no symmetry): (its bytes, the trimesh)."""
+    import trimesh
+
+    path = data_dir / "models" / "lbracket.stl"
+    return path.read_bytes(), trimesh.load(path, force="mesh")

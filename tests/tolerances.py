@@ -65,3 +65,9 @@ WARM_UP_T_MM = 1.0  # the start-up warm-up's synthetic cylinder (320 x 240, 300 
 WARM_UP_AXIS_DEG = 2.0
 INTERIOR_TEXTURE_MIN = 0.5  # checkerboard lines inside an empty box silhouette, per unit of perimeter
 INTERIOR_PART_MAX = 0.1  # the shaded box really there: only its own creases inside
+
+# --- the cell: robot frame and grasps (tests/test_api_cell.py, tests/test_cell.py) ---
+CELL_GRASP_T_MM = 1.0  # base-frame grasp position against the known answer, rendered scene (the bar)
+CELL_GRASP_ROT_DEG = 0.5  # ... and its orientation
+CELL_EXACT_ATOL = 1e-9  # pure frame algebra (compositions, inverses, spins) against the closed form
+CELL_SPIN_GRID_DEG = 0.05  # spacing of the brute-force spin grid the closed-form best spin is checked on
