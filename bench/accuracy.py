@@ -9,10 +9,11 @@ Runs (``--sets``):
   absent        clutter without the part: ``found`` must be false
 
 Per run it prints the paper's Table VI layout (mean |tx|, |ty|, |tz| in mm; Rx, Rz in degrees with a
-symmetric part's axis written as Rx(alpha) Rz(gamma) e_y, see ``service.vision.metrics.paper_errors``),
-the rotation error, BOP MSPD recall at 5 and 20 px (errors scaled by 640 / width as BOP does), ADD-S
-recall at 10 % of the diameter, the found rate, a target table with pass/fail marks and the paper's
-own figures, and one latency table (edges / coarse / refine / total p50 and p95, ms).
+symmetric part's axis written as Rx(alpha) Rz(gamma) e_y, see
+``service.vision.reference.metrics.paper_errors``), the rotation error, BOP MSPD recall at 5 and 20 px
+(errors scaled by 640 / width as BOP does), ADD-S recall at 10 % of the diameter, the found rate, a
+target table with pass/fail marks and the paper's own figures, and one latency table (edges / coarse /
+refine / total p50 and p95, ms).
 
 Counting: targets with ``visible_fraction >= 0.5`` are evaluated (the others are listed under
 ``--verbose`` only). An image where ``found`` is false or the stage returned no pose is a miss for the
@@ -51,10 +52,10 @@ if str(ROOT) not in sys.path:  # `python bench/accuracy.py` without an installed
     sys.path.insert(0, str(ROOT))
 
 from service.pipeline import EstimateOutput, PoseCandidate, RefinedPose  # noqa: E402
-from service.vision import metrics  # noqa: E402
 from service.vision.bank import BANK_FORMAT_VERSION, TemplateBank  # noqa: E402
-from service.vision.camera import Intrinsics  # noqa: E402
-from service.vision.frames import Pose  # noqa: E402
+from service.vision.geometry.camera import Intrinsics  # noqa: E402
+from service.vision.geometry.frames import Pose  # noqa: E402
+from service.vision.reference import metrics  # noqa: E402
 
 DATA_DIR = Path(os.environ.get("POSE_DATA_DIR", ROOT.parent / "shared" / "data"))
 OUT_DIR = ROOT / "bench" / "out"
@@ -190,7 +191,10 @@ def load_model_info(set_dir: Path, model: str, meta: dict, cache: dict) -> Model
     return info
 
 
-BANK_SOURCES = ("templates", "render", "symmetry", "bank")
+VISION = ROOT / "service" / "vision"
+# The code that builds a bank: the build and geometry rooms, and the bank's own format.
+BANK_SOURCES = (*sorted((VISION / "build").glob("*.py")), *sorted((VISION / "geometry").glob("*.py")),
+                VISION / "bank.py")
 
 
 def bank_path(model: str, mesh_path: Path, grid: dict | None) -> Path:
@@ -198,10 +202,8 @@ def bank_path(model: str, mesh_path: Path, grid: dict | None) -> Path:
     h.update(json.dumps(grid or {}, sort_keys=True).encode())
     h.update(hashlib.sha1(mesh_path.read_bytes()).digest())
     h.update(str(BANK_FORMAT_VERSION).encode())
-    for mod in BANK_SOURCES:  # the code that builds a bank: a change invalidates the cache
-        src = ROOT / "service" / "vision" / f"{mod}.py"
-        if src.exists():
-            h.update(src.read_bytes())
+    for src in BANK_SOURCES:  # a change invalidates the cache
+        h.update(src.read_bytes())
     return OUT_DIR / "banks" / f"{model}-{h.hexdigest()[:12]}.npz"
 
 

@@ -27,13 +27,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `python bench/clutter_ceiling.py`
 from bench.accuracy import DATA_DIR, load_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
 from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, estimate  # noqa: E402
-from service.vision import coarse  # noqa: E402
-from service.vision.camera import Intrinsics  # noqa: E402
-from service.vision.chamfer import distance_tensor  # noqa: E402
-from service.vision.edges import detect_segments, to_grey_u8  # noqa: E402
-from service.vision.frames import Pose  # noqa: E402
-from service.vision.refine import PoseParams, border_points, dt_residuals, verify  # noqa: E402
-from service.vision.render import render  # noqa: E402
+from service.vision.estimate import chamfer, coarse  # noqa: E402
+from service.vision.estimate.chamfer import distance_tensor  # noqa: E402
+from service.vision.estimate.edges import detect_segments, to_grey_u8  # noqa: E402
+from service.vision.estimate.refine import PoseParams, border_points, dt_residuals, verify  # noqa: E402
+from service.vision.geometry.camera import Intrinsics  # noqa: E402
+from service.vision.geometry.frames import Pose  # noqa: E402
+from service.vision.geometry.render import render  # noqa: E402
 
 REGION_BAND_PX = 20
 REGION_BINS = 8  # per Lab channel
@@ -70,7 +70,7 @@ def truth_cost(border, pose: Pose, intr: Intrinsics, dtt, tau_px: float) -> floa
 def level_a_rank(bank, intr: Intrinsics, dtt_b, shape, truth: Pose, p: coarse.SearchParams) -> int:
     z_ref, scales = coarse.depth_scales(DEFAULT_DISTANCE_RANGE_MM, p.depth_step)
     tpl = coarse.level_a_templates(bank, intr, shape, p, distance_mm=None, z_ref_mm=z_ref)
-    dtt_a = coarse.distance_tensor_from_edges_scaled(dtt_b, p.level_scale)
+    dtt_a = chamfer.pooled_distance_tensor(dtt_b, p.level_scale)
     au, av, _, cost, _, _ = coarse.scan_level_a(dtt_a, tpl, scales, shape, p)
     c = truth.apply(bank.centre_obj[None])[0]
     uv = intr.K[:2, :2] @ (c[:2] / c[2]) + intr.K[:2, 2]

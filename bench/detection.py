@@ -40,7 +40,7 @@ from bench.accuracy import (  # noqa: E402
 )
 from bench.hypotheses import read_colour  # noqa: E402
 from service.pipeline import estimate  # noqa: E402
-from service.vision.camera import Intrinsics  # noqa: E402
+from service.vision.geometry.camera import Intrinsics  # noqa: E402
 
 RIGHT_PX = 20.0
 FINE_PX = 5.0

@@ -20,11 +20,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `python bench/edge_coverage.py`
 from bench.accuracy import DATA_DIR, load_bank, read_grey, read_gt  # noqa: E402
-from service.vision.camera import Intrinsics  # noqa: E402
-from service.vision.chamfer import DEFAULT_TAU_PX, distance_tensor, distance_tensor_from_edges  # noqa: E402
-from service.vision.edges import channel_of, detect_segments  # noqa: E402
-from service.vision.frames import Pose  # noqa: E402
-from service.vision.refine import border_points, verify  # noqa: E402
+from service.vision.estimate.chamfer import DEFAULT_TAU_PX, distance_tensor, distance_tensor_from_edges  # noqa: E402
+from service.vision.estimate.edges import channel_of, detect_segments  # noqa: E402
+from service.vision.estimate.refine import border_points, verify  # noqa: E402
+from service.vision.geometry.camera import Intrinsics  # noqa: E402
+from service.vision.geometry.frames import Pose  # noqa: E402
 
 SCALE = 0.5  # the pipeline's DT3 grid
 SCORE_PX = 3.0

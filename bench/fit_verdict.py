@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from service.vision.verdict import FEATURES, feature_vector  # noqa: E402
+from service.vision.estimate.verdict import FEATURES, feature_vector  # noqa: E402
 
 OUT = ROOT / "bench" / "out" / "hyps"
 RIGHT_PX = 20.0

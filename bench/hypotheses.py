@@ -34,8 +34,8 @@ from bench.accuracy import (  # noqa: E402
     read_meta,
     stage_errors,
 )
-from service.vision.camera import Intrinsics  # noqa: E402
-from service.vision.frames import Pose  # noqa: E402
+from service.vision.geometry.camera import Intrinsics  # noqa: E402
+from service.vision.geometry.frames import Pose  # noqa: E402
 
 OUT = ROOT / "bench" / "out" / "hyps"
 RIGHT_PX = 20.0  # MSPD at 640 px width: a pose under this is "right" (BOP's loosest threshold)
@@ -112,10 +112,10 @@ def truth_hypotheses(recs: list[dict], seed: int = 0) -> list[dict]:
 
 def features(set_dir: Path, recs: list[dict], *, max_refine: int = 12) -> list[dict]:
     """Per hypothesis: its coarse cost/score, its evidence, then the same at its refined pose."""
-    from service.pipeline import canonical_pose
-    from service.vision.edges import to_grey_u8
-    from service.vision.evidence import colour_frame, evidence
-    from service.vision.refine import refine_pose
+    from service.vision.estimate.edges import to_grey_u8
+    from service.vision.estimate.evidence import colour_frame, evidence
+    from service.vision.estimate.refine import refine_pose
+    from service.vision.geometry.frames import canonical_spin
 
     meta = read_meta(set_dir)
     minfo: dict = {}
@@ -134,7 +134,7 @@ def features(set_dir: Path, recs: list[dict], *, max_refine: int = 12) -> list[d
             t0 = time.perf_counter()
             rp = refine_pose(bank, pose, grey, intr)
             t_ref = 1000 * (time.perf_counter() - t0)
-            pose1 = canonical_pose(bank, rp.pose)
+            pose1 = canonical_spin(rp.pose, bank.symmetry_axis_obj, bank.symmetry_point_obj)
             e1 = evidence(bank, pose1, intr, frame)
             m1 = float("inf") if g.get("absent") else stage_errors(
                 pose1, g, info, np.asarray(g["K"], float), int(g["width"]))["mspd640_px"]
@@ -166,7 +166,7 @@ def main(argv=None) -> int:
     set_dir = set_dir_of(a.set, a.data)
     path = cache_path(a.set, a.tag + ("-dist" if a.distance_given else ""))
     if a.cmd == "proposals":
-        from service.vision.coarse import SearchParams
+        from service.vision.estimate.coarse import SearchParams
 
         wide = SearchParams(n_peaks=30, n_polish=12, peak_accept_ratio=3.0)
         recs = proposals(set_dir, limit=a.limit, distance_given=a.distance_given, params=wide)

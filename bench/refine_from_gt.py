@@ -18,10 +18,10 @@ import cv2
 import numpy as np
 import trimesh
 
-from service.vision.camera import Intrinsics
-from service.vision.frames import Pose, R_from_rotvec, axis_alpha_gamma_deg
-from service.vision.refine import refine_pose
-from service.vision.templates import build_bank
+from service.vision.build.templates import build_bank
+from service.vision.estimate.refine import refine_pose
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose, R_from_rotvec, axis_alpha_gamma_deg
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "paper"
 

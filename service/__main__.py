@@ -7,10 +7,12 @@
 from __future__ import annotations
 
 import argparse
+import base64
 import os
 import shutil
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 from service.errors import ServiceError
@@ -18,25 +20,73 @@ from service.errors import ServiceError
 
 def _settings(args: argparse.Namespace):
     from service.settings import Settings
+    from service.vision import threads
 
     overrides = {"cache_dir": args.cache_dir} if getattr(args, "cache_dir", None) else {}
-    return Settings(**overrides)
+    settings = Settings(**overrides)
+    threads.configure(settings.threads)
+    return settings
+
+
+class CliError(Exception):
+    """A mistake on the command line (a missing file, ...): printed as one line, exit status 2."""
+
+
+def _existing(path: str, what: str, hint: str) -> Path:
+    p = Path(path)
+    if not p.is_file():
+        raise CliError(f"{what} file not found: {path} ({'it is a directory; ' if p.is_dir() else ''}{hint})")
+    return p
+
+
+def _progress(cache_dir: Path, mid: str, done: threading.Event, stream=None) -> None:
+    """Until ``done``: one self-overwriting line on ``stream`` (stderr) with the build's progress."""
+    from service.store import Store
+
+    stream = stream or sys.stderr
+    with Store(cache_dir) as store:
+        while not done.wait(PROGRESS_EVERY_S):
+            rec = store.get(mid) or {}
+            stream.write(f"\rbuilding templates of {mid}: {rec.get('status', '?')} "
+                         f"{100 * float(rec.get('progress') or 0.0):3.0f}%")
+            stream.flush()
+    stream.write("\r\033[K")
+    stream.flush()
 
 
 def _ensure_built(args: argparse.Namespace, settings, store) -> dict:
-    """Register the mesh (idempotent) and build its templates here and now unless they are ready."""
-    from service.api.deps import parse_json_object
+    """Register the mesh (idempotent) and build its templates here and now unless they are ready.
+    On a terminal, a progress line on stderr while it builds."""
     from service.builder import register_upload, run_build
+    from service.schemas import parse_json_object
 
-    mesh = Path(args.mesh)
+    mesh = _existing(args.mesh, "mesh", "give an STL, OBJ, PLY, OFF or GLB file")
     templates = parse_json_object(args.templates, "templates")
     record, _ = register_upload(store, settings, mesh.read_bytes(), filename=mesh.name, name=args.name,
                                 units=args.units, symmetry=args.symmetry, templates=templates)
+    for warning in _warnings(record):
+        print(f"warning: {warning}", file=sys.stderr)
     if record["status"] != "ready":
-        run_build(str(settings.cache_dir), record["id"], settings.build_lease_s)
+        done = threading.Event()
+        shown = threading.Thread(target=_progress, args=(settings.cache_dir, record["id"], done), daemon=True)
+        if sys.stderr.isatty():
+            shown.start()
+        try:
+            run_build(str(settings.cache_dir), record["id"], settings.build_lease_s)
+        finally:
+            done.set()
+            if shown.is_alive():
+                shown.join()
     return store.get(record["id"]) or record
 
 
+def _warnings(record: dict) -> list[str]:
+    from service.cell import extent_warnings
+
+    return extent_warnings(record.get("extents_mm") or [], record.get("units") or "mm")
+
+
+PROGRESS_EVERY_S = 0.5  # how often the build's progress line is redrawn on a terminal
 METRICS_DIR_ENV = "PROMETHEUS_MULTIPROC_DIR"  # read by prometheus_client when it is imported
 
 
@@ -100,20 +150,38 @@ def cmd_build(args: argparse.Namespace) -> int:
     return 0 if record["status"] == "ready" else 1
 
 
+def _camera_text(arg: str) -> str:
+    """``--camera``: JSON text (starts with ``{``) or the name of a JSON file, which must exist."""
+    if arg.lstrip().startswith("{"):
+        return arg
+    return _existing(arg, "camera", 'give a JSON file such as examples/cam.json, or the JSON itself: '
+                     '\'{"fx": 1100, "fy": 1100, "cx": 643, "cy": 477}\'').read_text()
+
+
 def cmd_estimate(args: argparse.Namespace) -> int:
-    from service.api.deps import Loaded, get_ready_model, parse_json_part
-    from service.api.estimate import run_estimate
-    from service.schemas import Camera, Options
+    from service.cell_io import check_robot_pose, estimate_result, grasps_of, resolve_camera
+    from service.schemas import Options, parse_json_object, parse_json_part
     from service.store import Store
 
     settings = _settings(args)
-    camera_text = Path(args.camera).read_text() if Path(args.camera).is_file() else args.camera
-    cam = parse_json_part(camera_text, Camera, "camera")
+    camera_text = _camera_text(args.camera)
+    parse_json_object(camera_text, "camera")  # bad JSON fails before any file is read
     opts = parse_json_part(args.options, Options, "options")
+    image = _existing(args.image, "image", "give a PNG, JPEG, BMP or TIFF file")
+    if args.overlay_out:
+        opts.overlay = True
     with Store(settings.cache_dir) as store:
+        cam, camera_name = resolve_camera(camera_text, store)  # inline, or a camera registered in the cache
+        check_robot_pose(cam, opts, camera_name)
         record = _ensure_built(args, settings, store)
-        model: Loaded = get_ready_model(record, store)  # 409 with the reason if the build failed
-        result = run_estimate(model, Path(args.image).read_bytes(), cam, opts, settings)
+        bank = store.ready_bank(record)  # 409 with the reason if the build failed
+        result = estimate_result(record, bank, image.read_bytes(), cam, opts,
+                                 max_pixels=settings.max_image_pixels, camera_name=camera_name,
+                                 grasps=grasps_of(store.grasps(record["id"])))
+    if args.overlay_out and result.overlay_png_base64 is not None:
+        Path(args.overlay_out).write_bytes(base64.b64decode(result.overlay_png_base64))
+        result.overlay_png_base64 = None
+        print(f"overlay written to {args.overlay_out}", file=sys.stderr)
     print(result.model_dump_json(indent=2))
     return 0
 
@@ -145,8 +213,11 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("estimate", help="estimate a pose; print the API's EstimateResult JSON")
     _mesh_args(p)
     p.add_argument("image", help="PNG, JPEG, BMP or TIFF image")
-    p.add_argument("--camera", required=True, help='intrinsics JSON file or text: {"fx","fy","cx","cy"}')
+    p.add_argument("--camera", required=True, help='intrinsics JSON file (e.g. examples/cam.json) or text: '
+                   '{"fx","fy","cx","cy"}, or {"name": "<camera registered in the cache>"}')
     p.add_argument("--options", default=None, help='JSON text, e.g. {"distance_mm": 500}')
+    p.add_argument("--overlay-out", default=None, metavar="PNG",
+                   help="write the overlay (contours, axes, verdict) to this PNG file, not base64 in JSON")
     p.set_defaults(func=cmd_estimate)
 
     args = parser.parse_args(argv)
@@ -154,6 +225,9 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args))
     except ServiceError as e:
         print(f"error ({e.status_code}): {e.detail}", file=sys.stderr)
+        return 2
+    except CliError as e:
+        print(f"error: {e}", file=sys.stderr)
         return 2
 
 

@@ -32,6 +32,7 @@ from service.errors import UnprocessableError, clause, sentence
 from service.logs import configure_like, json_level
 from service.settings import Settings
 from service.store import Store, model_id
+from service.vision.bank import TemplateBank
 
 log = logging.getLogger("service")
 
@@ -51,8 +52,7 @@ def register_upload(store: Store, settings: Settings, data: bytes, *, filename: 
     overrides ``settings.template_grid`` key by key; the record keeps exactly what was asked for
     (the vision code tells an explicit option from a default).
     """
-    from service.schemas import Symmetry  # the wire form of the record's symmetry
-    from service.vision.templates import merge_grid
+    from service.vision.build.grid import merge_grid
 
     grid = {**settings.template_grid, **(templates or {})}
     try:  # bad options fail the upload now (422), not the build later
@@ -64,13 +64,12 @@ def register_upload(store: Store, settings: Settings, data: bytes, *, filename: 
     existing = store.get(mid)
     if existing is None:
         mesh = decode_mesh(data, filename, units)  # raises 415/422 now, not in the build
-        sym = Symmetry.from_option(symmetry)
         record = {
             "id": mid, "name": name or filename, "filename": filename, "units": units,
             "symmetry_option": symmetry, "templates": grid,
             "status": "queued", "progress": 0.0, "error": None, "n_templates": None,
             "extents_mm": [float(x) for x in mesh.extents],
-            "symmetry": None if sym is None else sym.model_dump(),
+            "symmetry": symmetry_of_option(symmetry),
             "created_at": datetime.now(UTC).isoformat(),
         }
         if store.create(record, data):
@@ -79,6 +78,26 @@ def register_upload(store: Store, settings: Settings, data: bytes, *, filename: 
     if existing is not None and existing["status"] == "failed":
         return store.update(mid, status="queued", progress=0.0, error=None) or existing, True
     return existing or {}, False
+
+
+_AXES = {"x": [1.0, 0.0, 0.0], "y": [0.0, 1.0, 0.0], "z": [0.0, 0.0, 1.0]}
+
+
+def symmetry_of_option(option: str) -> dict[str, Any] | None:
+    """The record's ``symmetry`` as an upload's ``symmetry`` option already says it (the wire form of
+    ``schemas.Symmetry``); None for "auto": known after the build."""
+    if option == "none":
+        return {"type": "none", "axis": None}
+    if option in _AXES:
+        return {"type": "continuous", "axis": list(_AXES[option])}
+    return None
+
+
+def symmetry_of_bank(bank: TemplateBank) -> dict[str, Any]:
+    """The record's ``symmetry`` as the build found it."""
+    if bank.symmetry_axis_obj is None:
+        return {"type": "none", "axis": None}
+    return {"type": "continuous", "axis": [float(x) for x in bank.symmetry_axis_obj]}
 
 
 class _DeletedError(Exception):
@@ -96,7 +115,6 @@ def run_build(cache_dir: str, mid: str, lease_s: float) -> str:
     would leave the model "building" until its lease ran out.
     """
     from service.pipeline import build_templates
-    from service.schemas import Symmetry
 
     store = Store(cache_dir)
     token: str | None = None
@@ -160,7 +178,7 @@ def run_build(cache_dir: str, mid: str, lease_s: float) -> str:
         store.put_bank(mid, bank)
         done = store.update(mid, status="ready", progress=1.0, error=None, n_templates=bank.n_templates,
                             extents_mm=[float(x) for x in bank.extents_mm],
-                            symmetry=Symmetry.from_bank(bank).model_dump())
+                            symmetry=symmetry_of_bank(bank))
         if done is None:  # deleted while we stored the bank: leave nothing behind
             store.delete(mid)
             return "deleted"
@@ -180,6 +198,14 @@ def run_build(cache_dir: str, mid: str, lease_s: float) -> str:
             signal.signal(signal.SIGTERM, old_handler)
 
 
+def _start_build_process(log_level: str | None, threads_budget: int | None) -> None:
+    """A build process logs like its parent and keeps to the service's thread budget."""
+    from service.vision import threads
+
+    configure_like(log_level)
+    threads.configure(threads_budget)
+
+
 class Builder:
     """The build executor of one service process (created and shut down by the app's lifespan)."""
 
@@ -187,6 +213,7 @@ class Builder:
         self.cache_dir = str(Path(settings.cache_dir))
         self.lease_s = float(settings.build_lease_s)
         self.workers = int(settings.build_workers)
+        self.threads = settings.threads
         self._lock = threading.Lock()
         self._futures: dict[str, Future[str]] = {}
         self._deaths: dict[str, int] = {}  # pool processes that died building each model
@@ -195,7 +222,7 @@ class Builder:
 
     def _new_executor(self) -> ProcessPoolExecutor:
         return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=configure_like, initargs=(json_level(),))
+                                   initializer=_start_build_process, initargs=(json_level(), self.threads))
 
     def submit(self, mid: str) -> None:
         """Queue a build of ``mid`` unless this process already has one queued or running."""

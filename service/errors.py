@@ -111,20 +111,22 @@ def _msg(err: Mapping[str, Any]) -> str:
     return msg
 
 
-def validation_sentence(errors: Sequence[Mapping[str, Any]], *, what: str | None = None) -> str:
+def validation_sentence(errors: Sequence[Mapping[str, Any]], *, what: str | None = None,
+                        body: str = _WHERE["body"]) -> str:
     """pydantic/FastAPI error list -> one sentence naming the first problem (and how many more).
 
     ``what`` names the JSON document the errors are about (e.g. "camera"); without it the first
-    element of each ``loc`` says where (body/path/query).
+    element of each ``loc`` says where (body/path/query); ``body`` is what a "body" is called (a form
+    part, or a JSON body's field).
     """
     if not errors:
         return sentence(f"The {what or 'request'} is invalid; check it against the API documentation")
     err = errors[0]
     loc = list(err.get("loc", ()))
     if what is None:
-        where = _WHERE.get(str(loc[0]), "field") if loc else "request"
+        where = (body if str(loc[0]) == "body" else _WHERE.get(str(loc[0]), "field")) if loc else "request"
         loc = loc[1:]
-        subject = f"{where} '{_loc_name(loc)}'" if loc else f"request {where}"
+        subject = f"{where} '{_loc_name(loc)}'" if loc else f"request {where.removesuffix(' field')}"
     else:
         subject = f"{what} field '{_loc_name(loc)}'" if loc else what
     more = f" (and {len(errors) - 1} more problem{'s' if len(errors) > 2 else ''})" if len(errors) > 1 else ""
@@ -146,7 +148,9 @@ async def _service_error(request: Request, exc: ServiceError) -> JSONResponse:
 
 
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
-    return _json(422, validation_sentence(exc.errors()))
+    json_body = request.headers.get("content-type", "").split(";")[0].strip() == "application/json"
+    body = "JSON body field" if json_body else _WHERE["body"]
+    return _json(422, validation_sentence(exc.errors(), body=body))
 
 
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:

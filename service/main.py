@@ -21,8 +21,8 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service import monitoring, pipeline
-from service.api import error_responses, estimate, health, metrics, models
+from service import monitoring, pipeline, ui
+from service.api import cameras, error_responses, estimate, grasps, health, metrics, models
 from service.api.deps import ApiKeyDocumented
 from service.api.health import VERSION
 from service.builder import Builder
@@ -30,6 +30,7 @@ from service.errors import install_handlers, sentence
 from service.middleware import ApiKeyGuard, RequestContext
 from service.settings import Settings
 from service.store import Store
+from service.vision import threads
 
 log = logging.getLogger("service")
 
@@ -101,6 +102,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        threads.configure(settings.threads)
         settings.cache_dir.mkdir(parents=True, exist_ok=True)
         store = Store(settings.cache_dir)
         builder = Builder(settings)
@@ -120,6 +122,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app = FastAPI(
         title="posecell", version=VERSION, lifespan=lifespan,
+        docs_url=None, redoc_url=None,  # served from the package by service.ui (no CDN)
         description="6D pose of a CAD part from one camera image: borderline templates, directional "
                     "chamfer matching, LM refinement. Lengths in mm, angles in degrees, poses T_cam_obj "
                     "(OpenCV camera frame).",
@@ -132,7 +135,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(RequestContext)
     for module in (health, metrics):
         app.include_router(module.router)
-    for module in (models, estimate):  # behind the optional API key
+    for module in (models, grasps, estimate, cameras):  # behind the optional API key
         app.include_router(module.router, dependencies=[ApiKeyDocumented],
                            responses=error_responses(401))
+    ui.install(app)  # /ui, /docs, /redoc and their files
     return app

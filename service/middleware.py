@@ -25,7 +25,11 @@ access_log = logging.getLogger("service.access")
 API_KEY_HEADER = "X-API-Key"
 # Open with an API key set: the health check (Docker and orchestrators call it without credentials),
 # the metrics (Prometheus scrapes without headers; neither shows model data) and the API docs.
-OPEN_PATHS = frozenset({"/health", "/metrics", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"})
+OPEN_PATHS = frozenset({"/health", "/metrics", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json",
+                        "/ui"})
+# ... and the files those pages load (service/ui/static: Swagger UI, ReDoc; no model data). The
+# operator page asks for the key itself and sends it with every API call.
+OPEN_PREFIXES = ("/static/",)
 # Polled every few seconds by machines: their access lines are debug, not info.
 QUIET_PATHS = frozenset({"/health", "/metrics"})
 
@@ -101,7 +105,8 @@ class ApiKeyGuard:
         self.api_key = api_key
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or self.api_key is None or scope["path"] in OPEN_PATHS:
+        if (scope["type"] != "http" or self.api_key is None or scope["path"] in OPEN_PATHS
+                or scope["path"].startswith(OPEN_PREFIXES)):
             await self.app(scope, receive, send)
             return
         presented = Headers(scope=scope).get(API_KEY_HEADER)

@@ -13,14 +13,15 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
+from service.vision import threads
 from service.vision.bank import TemplateBank
-from service.vision.camera import Intrinsics
-from service.vision.chamfer import distance_tensor
-from service.vision.coarse import SearchParams, coarse_search, poses_of
-from service.vision.edges import detect_segments, to_grey_u8, undistort_segments
-from service.vision.evidence import ColourFrame, colour_frame, evidence
-from service.vision.frames import Pose, Rx, canonical_symmetric_R
-from service.vision.verdict import Verdict, decide
+from service.vision.estimate.chamfer import distance_tensor
+from service.vision.estimate.coarse import SearchParams, coarse_search, poses_of
+from service.vision.estimate.edges import detect_segments, to_grey_u8, undistort_segments
+from service.vision.estimate.evidence import ColourFrame, colour_frame, evidence
+from service.vision.estimate.verdict import Verdict, decide
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose, Rx, canonical_spin
 
 DEFAULT_DISTANCE_RANGE_MM = (300.0, 1200.0)  # searched when the request gives no distance
 
@@ -47,36 +48,30 @@ class EstimateOutput:
     candidates: list[PoseCandidate]
     timing_ms: dict[str, float]  # edges, coarse, refine, total
     overlay_png: bytes | None = None
+    # the found/absent decision, its reason and the evidence it read (estimate/verdict.py)
     verdict: Verdict = field(default_factory=lambda: decide(None))
 
 
 def build_templates(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | None = None,
                     progress: Callable[[float], None] | None = None) -> TemplateBank:
     """Mesh in mm -> template bank. ``symmetry``: "auto" | "none" | "x" | "y" | "z"."""
-    from service.vision.templates import build_bank
+    threads.use_budget()
+    from service.vision.build.templates import build_bank
 
     return build_bank(mesh, symmetry=symmetry, grid=grid or {}, progress=progress)
 
 
 def template_picture(bank: TemplateBank, k: int) -> np.ndarray:
     """(H, W, 3) uint8 BGR picture of template k: projected mesh | extracted borderline."""
-    from service.vision.templates import draw_template
+    from service.vision.build.templates import draw_template
 
     return draw_template(bank, k)
 
 
 def _candidate(bank: TemplateBank, pose: Pose, cost: float, score: float) -> PoseCandidate:
-    return PoseCandidate(canonical_pose(bank, pose), float(cost), float(score))
-
-
-def canonical_pose(bank: TemplateBank, pose: Pose) -> Pose:
-    """For a revolved part, the pose with spin 0 about its axis (API.md: one canonical angle)."""
-    if bank.symmetry_axis_obj is None:
-        return pose
-    R = canonical_symmetric_R(pose.R, bank.symmetry_axis_obj)
-    p0 = np.zeros(3) if bank.symmetry_point_obj is None else np.asarray(bank.symmetry_point_obj, float)
-    # Spinning about an axis through p0 keeps p0 where it was.
-    return Pose(R, pose.R @ p0 + pose.t_mm - R @ p0)
+    # A revolved part is reported with spin 0 about its axis (API.md: one canonical angle).
+    return PoseCandidate(canonical_spin(pose, bank.symmetry_axis_obj, bank.symmetry_point_obj), float(cost),
+                         float(score))
 
 
 def _ms(t0: float) -> float:
@@ -96,12 +91,15 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     search -> (distinct candidates, lowest chamfer cost first; full-image segments; timing_ms with
     "edges" and "coarse")."""
     p = params or SEARCH_PARAMS
+    threads.use_budget()
     t0 = time.perf_counter()
     grey = to_grey_u8(image)
     h, w = grey.shape
     seg = detect_segments(grey)
     if intr.dist is not None:
+        # Straighten the edges once; everything after works in the ideal pinhole camera intr.K.
         seg = undistort_segments(seg, intr)
+    # Level A's coarse grid is pooled from level B's (coarse_search): one set of distance transforms.
     dtt_b = distance_tensor(seg, n_channels=p.n_channels, scale=p.fine_scale)
     t_edges = _ms(t0)
     t1 = time.perf_counter()
@@ -109,8 +107,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     hyps = coarse_search(bank, dtt_b, intr, (h, w), p, distance_mm=distance_mm, distance_range_mm=rng)
     Rs, ts = poses_of(bank, hyps, intr.K, distance_mm) if hyps else (np.zeros((0, 3, 3)), np.zeros((0, 3)))
     cands = [_candidate(bank, Pose(R, t), hy.cost, hy.score) for R, t, hy in zip(Rs, ts, hyps, strict=True)]
-    cands = distinct_candidates(cands, bank, intr.K)
-    return cands, seg, {"edges": t_edges, "coarse": _ms(t1)}
+    return distinct_candidates(cands, bank, intr.K), seg, {"edges": t_edges, "coarse": _ms(t1)}
 
 
 def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance_mm: float | None = None,
@@ -127,31 +124,28 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     p = params or SEARCH_PARAMS
     t_start = time.perf_counter()
     grey = to_grey_u8(image)
+    h, w = grey.shape
     cands, _, timing = propose(bank, grey, intr, distance_mm=distance_mm, distance_range_mm=distance_range_mm,
                                params=p)
-    rng = distance_range_mm or DEFAULT_DISTANCE_RANGE_MM
-    h, w = grey.shape
-
     t0 = time.perf_counter()
-    frame = colour_frame(image)
-    checked = verify_candidates(bank, cands, grey, frame, intr, distance_mm=distance_mm,
-                                distance_range_mm=None if distance_mm is not None else rng,
-                                min_score=min_score, n_channels=p.n_channels)
+    rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
+    checked = verify_candidates(bank, cands, grey, colour_frame(image), intr, distance_mm=distance_mm,
+                                distance_range_mm=rng, min_score=min_score, n_channels=p.n_channels)
     best = checked[0] if checked else None
-    found = best is not None and best.verdict.found
+    verdict = best.verdict if best is not None else decide(None)
+    found = verdict.found
     coarse = best.candidate if found else None
     refined = best.refined if found and refine else None
-    t_refine = _ms(t0)
+    timing["refine"] = _ms(t0)
     png = None
     if overlay:
         from service.vision.overlay import draw_overlay, encode_png
 
         png = encode_png(draw_overlay(grey, bank, intr, coarse.pose if coarse else None,
-                                      refined.pose if refined else None,
+                                      refined.pose if refined else None, found=found, score=verdict.score,
                                       rejected=None if found or best is None else best.refined.pose))
-    timing |= {"refine": t_refine, "total": _ms(t_start)}
-    v = best.verdict if best is not None else decide(None)
-    return EstimateOutput((w, h), found, coarse, refined, cands[:top_k], timing, png, v)
+    timing["total"] = _ms(t_start)
+    return EstimateOutput((w, h), found, coarse, refined, cands[:top_k], timing, png, verdict)
 
 
 @dataclass(frozen=True)
@@ -165,8 +159,8 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
                       intr: Intrinsics, *, distance_mm: float | None,
                       distance_range_mm: tuple[float, float] | None, min_score: float | None,
                       n_channels: int) -> list[Checked]:
-    """Refine and verify the best ``N_VERIFY`` candidates, best verification score first. Stops at the
-    first found one: the search ranks by chamfer cost, and on a clean frame the first is the truth."""
+    """Refine and verify the best ``N_VERIFY`` candidates, best verification first. Stops at the first
+    found one: the search ranks by chamfer cost, and on a clean frame the first is the truth."""
     out: list[Checked] = []
     for cand in cands[:N_VERIFY]:
         kept, verified, unexplained = _refine(bank, cand, grey, intr, distance_mm=distance_mm,
@@ -180,6 +174,15 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
             break
     out.sort(key=lambda c: (c.verdict.found, c.verdict.score), reverse=True)
     return out
+
+
+def estimate_image(bank: TemplateBank, data: bytes, intr: Intrinsics, *, max_pixels: int,
+                   **options) -> EstimateOutput:
+    """Image file bytes -> ``estimate`` (blocking: the API calls it from a worker thread; the CLI
+    calls it too). ``options``: ``estimate``'s keyword arguments."""
+    from service.decode import decode_image
+
+    return estimate(bank, decode_image(data, max_pixels=max_pixels), intr, **options)
 
 
 def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.ndarray) -> list[PoseCandidate]:
@@ -203,7 +206,7 @@ def _refine(bank: TemplateBank, best: PoseCandidate, grey: np.ndarray, intr: Int
     Also returns the verdict's evidence: the pose's score verified on the full-resolution edges (when
     the candidate is kept, the score it reports is the coarse, half-resolution one, which a textured
     floor can inflate), and its unexplained-edge ratio (``interior.unexplained_edge_ratio``)."""
-    from service.vision.refine import refine_pose
+    from service.vision.estimate.refine import refine_pose
 
     r = refine_pose(bank, best.pose, grey, intr, None, distance_mm=distance_mm, n_channels=n_channels)
     # r.score: the full-resolution score of r.pose, which is the candidate itself when refinement lost
@@ -211,7 +214,7 @@ def _refine(bank: TemplateBank, best: PoseCandidate, grey: np.ndarray, intr: Int
     if r.score < best.score:
         kept = RefinedPose(best.pose, best.cost, best.score, r.iterations, r.inlier_ratio)
     else:
-        kept = RefinedPose(canonical_pose(bank, r.pose), float(r.cost), float(r.score), int(r.iterations),
+        kept = RefinedPose(r.pose, float(r.cost), float(r.score), int(r.iterations),
                            float(r.inlier_ratio))
     return kept, float(r.score), r.unexplained
 
@@ -223,7 +226,7 @@ def warm_up() -> EstimateOutput:
     """Run the whole pipeline once on a small synthetic scene (a cylinder rendered 300 mm away), so
     that a fresh process loads or compiles its numba kernels before the first real frame (~0.5 s).
     Returns the estimate of the rendered cylinder (its known answer: ``WARM_UP_POSE``)."""
-    from service.vision.render import render_shaded
+    from service.vision.geometry.render import render_shaded
 
     mesh = trimesh.creation.cylinder(radius=20.0, height=60.0, sections=24)
     bank = build_templates(mesh, symmetry="auto", grid={"view_step_deg": 30.0, "tilt_step_deg": 15.0,
@@ -232,3 +235,4 @@ def warm_up() -> EstimateOutput:
     img = render_shaded(bank.vertices_mm, bank.faces, WARM_UP_POSE, intr.K, (320, 240))
     estimate(bank, img, intr)  # the unknown-distance path has kernels of its own
     return estimate(bank, img, intr, distance_mm=float(WARM_UP_POSE.t_mm[2]))
+

@@ -8,23 +8,24 @@ sees these classes. Lengths are millimetres, angles degrees, poses ``T_cam_obj``
 from __future__ import annotations
 
 import base64
+import json
+import math
 from datetime import datetime
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from service.cell import extent_warnings, nearest_rotation, rigid
+from service.errors import UnprocessableError, validation_sentence
 from service.pipeline import EstimateOutput, PoseCandidate, RefinedPose
-from service.vision.bank import TemplateBank
-from service.vision.camera import Intrinsics
-from service.vision.frames import Pose, euler_xyz_deg_from_R, quat_xyzw_from_R
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose, euler_xyz_deg_from_R, quat_xyzw_from_R
 
 Units = Literal["mm", "cm", "m", "in"]
 SymmetryOption = Literal["auto", "none", "x", "y", "z"]
 Status = Literal["queued", "building", "ready", "failed"]
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
-
-_AXES = {"x": [1.0, 0.0, 0.0], "y": [0.0, 1.0, 0.0], "z": [0.0, 0.0, 1.0]}
 
 
 class _Request(BaseModel):
@@ -68,6 +69,15 @@ class Options(_Request):
     min_score: float | None = Field(
         None, ge=0, le=1, description="operating point of the verdict: found needs verdict.score >= this "
         "(default: the service's, chosen for precision; lower finds more and trusts less)")
+    robot_pose: Transform | None = Field(
+        None, description="T_base_flange, the robot's flange pose when the image was taken: required for an "
+        "eye-in-hand camera (T_flange_cam), ignored otherwise")
+
+    def estimate_kwargs(self) -> dict[str, Any]:
+        """The options as ``pipeline.estimate``'s keyword arguments."""
+        return {"distance_mm": self.distance_mm, "distance_range_mm": self.distance_range_mm,
+                "refine": self.refine, "top_k": self.top_k, "overlay": self.overlay,
+                "min_score": self.min_score}
 
     @model_validator(mode="after")
     def _distances(self) -> Options:
@@ -82,8 +92,8 @@ class Options(_Request):
 
 # --- results ----------------------------------------------------------------------------------------
 
-class PoseJSON(BaseModel):
-    """``T_cam_obj``: a model point X (mm, model frame) lands at ``R @ X + t_mm`` in the camera frame."""
+class FramePose(BaseModel):
+    """``T_<to>_<from>``: a point X (mm) of frame ``from`` lands at ``R @ X + t_mm`` in frame ``to``."""
 
     R: list[Vec3] = Field(description="3x3 rotation, row-major", min_length=3, max_length=3)
     t_mm: Vec3 = Field(description="translation, mm, camera frame")
@@ -97,6 +107,20 @@ class PoseJSON(BaseModel):
         return {"R": R.tolist(), "t_mm": np.asarray(pose.t_mm, float).tolist(),
                 "euler_xyz_deg": euler_xyz_deg_from_R(R).tolist(),
                 "quaternion_xyzw": quat_xyzw_from_R(R).tolist()}
+
+    @classmethod
+    def from_matrix(cls, T: np.ndarray) -> FramePose:
+        """(4, 4) homogeneous transform, mm -> pose JSON."""
+        T = np.asarray(T, float)
+        return cls(**cls.fields_from(Pose(T[:3, :3], T[:3, 3])))
+
+
+class PoseJSON(FramePose):
+    """``T_cam_obj``: a model point X (mm, model frame) lands at ``R @ X + t_mm`` in the camera frame."""
+
+    T_base_obj: FramePose | None = Field(
+        None, description="the same pose in the robot's base frame, when the camera's extrinsics are known "
+        "(T_base_cam, or T_flange_cam with options.robot_pose); else null")
 
 
 class Candidate(PoseJSON):
@@ -149,6 +173,11 @@ class EstimateResult(BaseModel):
     candidates: list[Candidate] = Field(description="the top_k coarse placements, best first")
     timing_ms: Timing = Field(description="milliseconds per stage")
     overlay_png_base64: str | None = Field(None, description="PNG of the image with the contours (overlay)")
+    camera_name: str | None = Field(None, description="the registered camera the request named, else null")
+    grasps: list[PlacedGraspJSON] = Field(
+        default_factory=list, description="the model's grasps where the part was found (empty when not found "
+        "or none registered), most reachable first: by approach_angle_deg")
+    warnings: list[str] = Field(default_factory=list, description="the model's upload warnings (ModelInfo)")
     verdict: VerdictJSON | None = Field(None, description="why found is true or false, with its evidence")
 
     @classmethod
@@ -173,21 +202,6 @@ class Symmetry(BaseModel):
     type: Literal["none", "continuous"]
     axis: Vec3 | None = Field(description="unit axis in the model frame (continuous symmetry), else null")
 
-    @classmethod
-    def from_bank(cls, bank: TemplateBank) -> Symmetry:
-        if bank.symmetry_axis_obj is None:
-            return cls(type="none", axis=None)
-        return cls(type="continuous", axis=np.asarray(bank.symmetry_axis_obj, float).tolist())
-
-    @classmethod
-    def from_option(cls, option: str) -> Symmetry | None:
-        """What an upload's ``symmetry`` field already says (None for "auto": known after the build)."""
-        if option == "none":
-            return cls(type="none", axis=None)
-        if option in _AXES:
-            return cls(type="continuous", axis=_AXES[option])
-        return None
-
 
 class ModelInfo(BaseModel):
     id: str
@@ -201,10 +215,15 @@ class ModelInfo(BaseModel):
     symmetry: Symmetry | None = Field(description="continuous rotational symmetry; null until known")
     templates: dict[str, Any] = Field(description="template-grid options the model is built with")
     created_at: datetime
+    warnings: list[str] = Field(
+        default_factory=list, description="what looks wrong about the upload, e.g. a size that suggests the "
+        "wrong units (largest side outside 1 mm .. 3 m); empty when nothing does")
 
     @classmethod
     def from_record(cls, record: dict[str, Any]) -> ModelInfo:
-        return cls.model_validate({k: record.get(k) for k in cls.model_fields})
+        fields = {k: record.get(k) for k in cls.model_fields if k != "warnings"}
+        return cls.model_validate({**fields, "warnings": extent_warnings(record.get("extents_mm") or [],
+                                                                         record.get("units") or "mm")})
 
 
 class Health(BaseModel):
@@ -214,3 +233,168 @@ class Health(BaseModel):
 
 class Error(BaseModel):
     detail: str = Field(description="one sentence: what is wrong and how to fix it")
+
+
+# --- parsing a form part's JSON into a wire model -------------------------------------------------
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def _finite(v: Any) -> bool:
+    if isinstance(v, float):
+        return math.isfinite(v)
+    if isinstance(v, dict):
+        return all(_finite(x) for x in v.values())
+    if isinstance(v, list):
+        return all(_finite(x) for x in v)
+    return True
+
+
+def parse_json_object(text: str | None, what: str) -> dict[str, Any]:
+    """A form part holding a JSON object -> dict; 422 (one sentence) on bad JSON, non-objects or NaN."""
+    if text is None or not text.strip():
+        return {}
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise UnprocessableError(f"The {what} part is not valid JSON ({e.msg} at character {e.pos}); send a "
+                                 "JSON object such as {\"key\": value}") from e
+    if not isinstance(value, dict):
+        raise UnprocessableError(f"The {what} part must be a JSON object, not {type(value).__name__}; send "
+                                 "{\"key\": value, ...}")
+    if not _finite(value):
+        raise UnprocessableError(f"The {what} part contains NaN or Infinity; send finite numbers only")
+    return value
+
+
+def parse_json_part(text: str | None, model: type[M], what: str) -> M:
+    """A form part holding JSON -> the wire model; 422 with one sentence naming the first problem."""
+    try:
+        return model.model_validate(parse_json_object(text, what))
+    except ValidationError as e:
+        raise UnprocessableError(validation_sentence(e.errors(), what=what)) from e
+
+
+# --- the cell: cameras with extrinsics, robot poses, grasps (service.cell) ---------------------------
+
+CAMERA_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+
+
+class Transform(_Request):
+    """A rigid transform ``T_<to>_<from>`` as a client sends it: ``{"R": 3x3 row-major, "t_mm": [x, y, z]}``.
+
+    R must be a rotation within ``service.cell.ROTATION_ATOL`` and is snapped to the nearest one."""
+
+    R: list[Vec3] = Field(description="3x3 rotation, row-major", min_length=3, max_length=3)
+    t_mm: Vec3 = Field(description="translation, mm")
+
+    @field_validator("R")
+    @classmethod
+    def _rotation(cls, v: list[list[float]]) -> list[list[float]]:
+        return nearest_rotation(v).tolist()
+
+    def matrix(self) -> np.ndarray:
+        """(4, 4) float64 homogeneous transform, mm."""
+        return rigid(self.R, self.t_mm)
+
+
+class Plane(_Request):
+    """A plane in the camera frame: the points p (mm) with ``normal . p = d_mm``; kept with a unit normal."""
+
+    normal: Vec3 = Field(description="plane normal, camera frame (scaled to unit length, d_mm with it)")
+    d_mm: float = Field(description="offset: normal . p = d_mm for p on the plane, mm")
+
+    @model_validator(mode="after")
+    def _unit(self) -> Plane:
+        n = float(np.linalg.norm(self.normal))
+        if not n > 1e-12:
+            raise ValueError("plane.normal must not be the zero vector")
+        self.normal = [float(x) / n for x in self.normal]
+        self.d_mm = float(self.d_mm) / n
+        return self
+
+
+class CellCamera(Camera):
+    """A camera as an estimate may send it inline: the intrinsics, optionally the image size it takes
+    and its extrinsics (one of ``T_base_cam``, eye-to-hand, or ``T_flange_cam``, eye-in-hand)."""
+
+    width: int | None = Field(None, gt=0, description="image width the intrinsics belong to, pixels")
+    height: int | None = Field(None, gt=0, description="image height the intrinsics belong to, pixels")
+    T_base_cam: Transform | None = Field(
+        None, description="eye-to-hand: the camera's pose in the robot's base frame (hand-eye result)")
+    T_flange_cam: Transform | None = Field(
+        None, description="eye-in-hand: the camera's pose in the robot's flange frame (hand-eye result); "
+        "each estimate then needs options.robot_pose")
+
+    @model_validator(mode="after")
+    def _one_mounting(self) -> CellCamera:
+        if self.T_base_cam is not None and self.T_flange_cam is not None:
+            raise ValueError("give T_base_cam (a camera fixed in the cell, eye-to-hand) or T_flange_cam (a "
+                             "camera on the robot's flange, eye-in-hand), not both")
+        if (self.width is None) != (self.height is None):
+            raise ValueError("give width and height together (the image size the intrinsics belong to)")
+        return self
+
+    def mounting_kind(self) -> Literal["eye-to-hand", "eye-in-hand", "none"]:
+        if self.T_base_cam is not None:
+            return "eye-to-hand"
+        return "eye-in-hand" if self.T_flange_cam is not None else "none"
+
+
+class CameraSpec(CellCamera):
+    """``PUT /cameras/{name}``: intrinsics, the image size, optional extrinsics and supporting plane."""
+
+    width: int = Field(gt=0, description="image width the camera sends, pixels")
+    height: int = Field(gt=0, description="image height the camera sends, pixels")
+    plane: Plane | None = Field(None, description="default supporting plane, camera frame (stored and "
+                                "returned; not used by the estimate yet)")
+
+
+class CameraInfo(CameraSpec):
+    """A registered camera as stored, with its name and how it is mounted."""
+
+    name: str
+    mounting: Literal["eye-to-hand", "eye-in-hand", "none"] = Field(
+        description="eye-to-hand (T_base_cam), eye-in-hand (T_flange_cam) or none (no extrinsics)")
+
+
+class CameraRef(_Request):
+    """An estimate's ``camera`` part naming a registered camera."""
+
+    name: str = Field(description="the name of a camera registered with PUT /cameras/{name}")
+
+
+class GraspSpec(_Request):
+    """A gripper pose in the model frame."""
+
+    name: str = Field(min_length=1, max_length=64, description="unique among the model's grasps")
+    T_obj_grasp: Transform = Field(description="the grasp frame in the model frame (mm)")
+    approach_axis: Vec3 = Field(
+        [0.0, 0.0, 1.0], description="the direction the gripper moves in to close on the part, in the grasp "
+        "frame (default +z, the tool axis)")
+
+    @field_validator("approach_axis")
+    @classmethod
+    def _unit_axis(cls, v: list[float]) -> list[float]:
+        n = float(np.linalg.norm(v))
+        if not n > 1e-12:
+            raise ValueError("approach_axis must not be the zero vector")
+        return [float(x) / n for x in v]
+
+
+class PlacedGraspJSON(BaseModel):
+    """A grasp where the part was found."""
+
+    name: str
+    T_cam_grasp: FramePose = Field(description="the grasp in the camera frame")
+    T_base_grasp: FramePose | None = Field(description="the grasp in the robot's base frame (null without "
+                                           "extrinsics)")
+    approach_angle_deg: float = Field(
+        description="angle between the approach direction and straight down in the base frame (base -z), or, "
+        "without extrinsics, the camera's viewing direction (+z): the sort key, smallest first")
+    spin_deg: float = Field(description="rotation about a revolved part's symmetry axis applied to the grasp "
+                            "to make it the most reachable of its equivalent ones; 0 for other parts")
+
+
+Options.model_rebuild()
+EstimateResult.model_rebuild()

@@ -31,6 +31,10 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
     workers: int = Field(1, ge=1, description="uvicorn worker processes (they share the cache dir)")
+    threads: int | None = Field(
+        None, ge=1, description="per process: threads of numba's parallel kernels, and background threads "
+        "(refinement, view renders); unset: all cores. Budget: workers x threads ~ cores "
+        "(service.vision.threads)")
     log_level: str = Field("info", description="critical, error, warning, info or debug (JSON lines, stdout)")
     api_key: SecretStr | None = Field(
         None, description="when set, every route but /health and /metrics requires this value in the "
@@ -40,8 +44,8 @@ class Settings(BaseSettings):
         "the first real estimate does not pay ~0.5 s of kernel loading")
     template_grid: dict[str, Any] = Field(
         default_factory=dict,
-        description="template-grid defaults (keys of service.vision.templates); an upload's `templates` "
-        "JSON overrides them key by key")
+        description="template-grid defaults (keys of service.vision.build.grid.GRID_DEFAULTS); an upload's "
+        "`templates` JSON overrides them key by key")
 
     @field_validator("api_key", mode="before")
     @classmethod

@@ -10,6 +10,8 @@ Keys, for a model id ``<id>``::
     bank:<id>     the template bank, ``np.savez`` of ``TemplateBank.to_arrays()``
     lock:<id>     build lease: the token of the process building <id>; expires unless renewed
     builds:<id>   how many times a build of <id> has started (a crash-resumed build counts twice)
+    grasps:<id>   the model's grasps (list of dicts, as PUT /models/{id}/grasps sent them)
+    camera:<name> a registered camera (dict: intrinsics, image size, extrinsics, plane)
 
 Ids are content hashes (``model_id``): the same mesh bytes with the same options give the same id.
 """
@@ -31,6 +33,7 @@ from typing import Any
 import diskcache
 import numpy as np
 
+from service.errors import BuildFailedError, NotReadyError, clause
 from service.vision.bank import TemplateBank
 
 ID_HEX_CHARS = 20
@@ -131,7 +134,7 @@ class Store:
     def delete(self, mid: str) -> bool:
         """Remove every record of the model. False if it did not exist."""
         existed = self._cache.delete(f"model:{mid}")
-        for kind in ("mesh", "bank", "builds"):
+        for kind in ("mesh", "bank", "builds", "grasps"):
             self._cache.delete(f"{kind}:{mid}")
         with self._banks_lock:
             self._banks.pop(mid, None)
@@ -144,6 +147,22 @@ class Store:
 
     def put_bank(self, mid: str, bank: TemplateBank) -> None:
         self._cache.set(f"bank:{mid}", bank_to_bytes(bank))
+
+    def ready_bank(self, record: dict[str, Any]) -> TemplateBank:
+        """The template bank of the model ``record``; 409 with the reason when its build failed, 409
+        (not ready, with its progress) while it is still queued or building."""
+        mid, status = record["id"], record["status"]
+        if status == "failed":
+            reason = clause(record.get("error") or "unknown reason")
+            raise BuildFailedError(f"Model '{mid}' failed to build: {reason}; fix the mesh or the template "
+                                   "options and upload it again")
+        bank = self.bank(mid) if status == "ready" else None
+        if bank is None:
+            done = 100 * float(record.get("progress") or 0.0)
+            raise NotReadyError(f"Model '{mid}' is not ready yet (template build {status}, {done:.0f}% "
+                                f"done); retry after Retry-After seconds or poll GET /models/{mid} until it "
+                                "is ready")
+        return bank
 
     def bank(self, mid: str) -> TemplateBank | None:
         """The model's template bank, from the in-process LRU or the cache; None if not built."""
@@ -194,3 +213,30 @@ class Store:
 
     def lock_holder(self, mid: str) -> str | None:
         return self._cache.get(f"lock:{mid}")
+
+    # --- grasps and cameras (service.cell) --------------------------------------------------------
+
+    def put_grasps(self, mid: str, grasps: list[dict[str, Any]]) -> None:
+        self._cache.set(f"grasps:{mid}", list(grasps))
+
+    def grasps(self, mid: str) -> list[dict[str, Any]]:
+        return list(self._cache.get(f"grasps:{mid}", []))
+
+    def put_camera(self, name: str, camera: dict[str, Any]) -> bool:
+        """Register or replace camera ``name``: True if it is new."""
+        with self._cache.transact():
+            created = f"camera:{name}" not in self._cache
+            self._cache.set(f"camera:{name}", dict(camera))
+        return created
+
+    def camera(self, name: str) -> dict[str, Any] | None:
+        return self._cache.get(f"camera:{name}")
+
+    def cameras(self) -> list[tuple[str, dict[str, Any]]]:
+        """Every registered camera as (name, record), by name."""
+        names = sorted(k[len("camera:"):] for k in self._cache.iterkeys()
+                       if isinstance(k, str) and k.startswith("camera:"))
+        return [(n, c) for n, c in ((n, self.camera(n)) for n in names) if c is not None]
+
+    def delete_camera(self, name: str) -> bool:
+        return bool(self._cache.delete(f"camera:{name}"))

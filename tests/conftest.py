@@ -16,6 +16,16 @@ MODELS_DIR = DATA_DIR / "models"
 os.environ.setdefault("POSE_WARM_UP", "false")
 
 
+@pytest.fixture(scope="session", autouse=True)
+def numba_kernels():
+    """Every compiled kernel, compiled (or loaded from numba's on-disk cache) once per session before
+    the first test: no test's duration includes it, and the servers the tests start load the kernels
+    from the cache instead of each compiling them."""
+    from service import pipeline
+
+    pipeline.warm_up()
+
+
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
     if not DATA_DIR.is_dir():
@@ -54,3 +64,12 @@ def frame(data_dir, paper_gt) -> tuple[bytes, dict]:
     K = paper_gt["K"]
     return (data_dir / "paper" / paper_gt["image"]).read_bytes(), {"fx": K[0][0], "fy": K[1][1],
                                                                    "cx": K[0][2], "cy": K[1][2]}
+
+
+@pytest.fixture(scope="session")
+def lbracket(data_dir):
+    """models/lbracket.stl (mm, no symmetry): (its bytes, the trimesh)."""
+    import trimesh
+
+    path = data_dir / "models" / "lbracket.stl"
+    return path.read_bytes(), trimesh.load(path, force="mesh")

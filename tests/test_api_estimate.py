@@ -16,7 +16,7 @@ import pytest
 
 from service.main import create_app
 from service.settings import Settings
-from service.vision.frames import R_from_euler_xyz_deg, R_from_quat_xyzw
+from service.vision.geometry.frames import R_from_euler_xyz_deg, R_from_quat_xyzw
 from tests.api_helpers import wait_built
 from tests.tolerances import API_HELD_DISTANCE_MM, API_UNITS_CHECK_MM, ROUND_TRIP_ATOL
 

@@ -24,6 +24,11 @@ def test_error_responses_use_the_error_schema():
         ("/models/{model_id}", "delete"): {"404"},
         ("/models/{model_id}/templates/{k}.png", "get"): {"404", "409", "422"},
         ("/models/{model_id}/estimate", "post"): {"404", "409", "413", "415", "422"},
+        ("/models/{model_id}/grasps", "put"): {"404", "422"},
+        ("/models/{model_id}/grasps", "get"): {"404"},
+        ("/cameras/{name}", "put"): {"422"},
+        ("/cameras/{name}", "get"): {"404", "422"},
+        ("/cameras/{name}", "delete"): {"404", "422"},
     }
     for (path, method), codes in expected.items():
         responses = paths[path][method]["responses"]

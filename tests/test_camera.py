@@ -1,4 +1,4 @@
-"""Conventions of service/vision/camera.py: K, projection, pixel centres under resize and crop, distortion."""
+"""Conventions of geometry/camera.py: K, projection, pixel centres under resize and crop, distortion."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from service.vision.camera import (
+from service.vision.geometry.camera import (
     Intrinsics,
     project,
     project_distorted,
@@ -165,3 +165,29 @@ def test_distortion_round_trip_k1_minus_0p2():
     ideal = project(p, DIST_INTR.K)
     back = undistort_points(project_distorted(p, DIST_INTR), DIST_INTR)
     np.testing.assert_allclose(back, ideal, atol=DISTORTION_ROUND_TRIP_PX)
+
+
+def test_ray_rotations_take_the_optical_axis_onto_each_pixel_ray():
+    from service.vision.geometry.camera import ray_rotations
+
+    uv = np.array([[643.0, 477.0], [0.0, 0.0], [1279.0, 959.0], [100.0, 900.0]])
+    d, R = ray_rotations(uv, INTR.K)
+    for k in range(len(uv)):
+        assert R[k] @ np.array([0.0, 0.0, 1.0]) == pytest.approx(d[k], abs=1e-12)
+        assert R[k] @ R[k].T == pytest.approx(np.eye(3), abs=1e-12)
+        assert np.linalg.det(R[k]) == pytest.approx(1.0)
+        # the ray really passes through the pixel
+        assert (INTR.K @ d[k])[:2] / d[k][2] == pytest.approx(uv[k], abs=1e-9)
+    assert R[0] == pytest.approx(np.eye(3), abs=1e-12)
+
+
+def test_project_takes_any_batch_shape_and_pinhole_drops_only_the_lens():
+    rng = np.random.default_rng(3)
+    p = rng.uniform([-100, -100, 300], [100, 100, 900], (4, 5, 3))
+    uv = project(p, INTR.K)
+    assert uv.shape == (4, 5, 2)
+    np.testing.assert_allclose(uv.reshape(-1, 2), project(p.reshape(-1, 3), INTR.K), atol=ROUND_TRIP_ATOL)
+    # the origin on the optical axis projects to the principal point
+    np.testing.assert_allclose(project(np.array([0.0, 0.0, 500.0]), INTR.K), [INTR.cx, INTR.cy])
+    lens = Intrinsics(INTR.fx, INTR.fy, INTR.cx, INTR.cy, (-0.2, 0.0, 0.0, 0.0))
+    assert lens.pinhole() == Intrinsics(INTR.fx, INTR.fy, INTR.cx, INTR.cy)

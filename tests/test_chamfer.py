@@ -3,15 +3,8 @@
 import cv2
 import numpy as np
 
-from service.vision.chamfer import (
-    distance_tensor_from_edges,
-    integral_dt,
-    line_cost_idt,
-    line_pixels,
-    sample,
-    sample_nearest,
-    truncated_edt,
-)
+from service.vision.estimate.chamfer import distance_tensor_from_edges, sample, truncated_edt
+from service.vision.reference.integral_dt import integral_dt, line_cost_idt, line_pixels, sample_nearest
 from tests.tolerances import DT_EXACT_ATOL
 
 

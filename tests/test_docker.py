@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import httpx
+import pytest
 import yaml
 from prometheus_client.parser import text_string_to_metric_families
 
@@ -228,7 +229,7 @@ def test_dockerfile_keeps_the_deployment_promises():
 
 def test_dockerignore_keeps_tests_caches_and_git_out():
     patterns = dockerignore_patterns()
-    for kept in ("pyproject.toml", "service/main.py", "service/vision/chamfer.py"):
+    for kept in ("pyproject.toml", "service/main.py", "service/vision/estimate/chamfer.py"):
         assert not ignored(kept, patterns), kept
     for left_out in (".git/HEAD", "tests/test_docker.py", "templates_cache/cache.db", "bench/accuracy.py",
                      "service/__pycache__/main.cpython-311.pyc", ".venv/bin/python", ".pytest_cache/v/x",
@@ -396,6 +397,7 @@ def metric_value(text: str, family: str, sample: str, **labels: str) -> float | 
     return None
 
 
+@pytest.mark.slow
 def test_image_replayed_serves_health_upload_estimate_and_metrics(tmp_path, sprayer_bytes, frame):
     image = replay(tmp_path)
     port = free_port()

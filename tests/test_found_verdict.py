@@ -1,6 +1,6 @@
 """The found verdict guards the grasp: on the checkerboard clutter renders, where the search still
 lands on wrong poses, a pose the image does not confirm must come back as found=false, never as a
-confident wrong pose (``service.vision.verdict``)."""
+confident wrong pose (``service.vision.estimate.verdict``)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from service import pipeline
-from service.vision.camera import Intrinsics
+from service.vision.estimate import verdict
+from service.vision.geometry.camera import Intrinsics
 from tests.tolerances import FOUND_POSE_AXIS_DEG, FOUND_POSE_T_MM
 
 
@@ -38,6 +39,9 @@ def test_clutter_scene_is_either_right_or_not_found(sprayer_bank, data_dir, imag
     else:
         assert out.coarse is None and out.refined is None
     assert (out.refined is not None) == (refine and out.found)
+    assert out.verdict.found == out.found and out.verdict.reason
+    if out.verdict.reason != "no_candidate":  # a candidate was refined and its evidence measured
+        assert set(verdict.FEATURES) <= set(out.verdict.evidence)
 
 
 @pytest.fixture(scope="module")
@@ -68,8 +72,8 @@ def test_verdict_reads_the_full_resolution_score_not_the_candidates(sprayer_bank
     image's colours, or an inflated coarse score passes the bar (clutter 0001 with chroma edges: 0.86
     coarse, 0.70 verified). Here: a candidate 120 mm beside the paper render's sprayer, on the blank
     background, claiming a perfect score."""
-    from service.vision.evidence import colour_frame
-    from service.vision.frames import Pose
+    from service.vision.estimate.evidence import colour_frame
+    from service.vision.geometry.frames import Pose
 
     img = cv2.imread(str(data_dir / "paper" / paper_gt["image"]), cv2.IMREAD_GRAYSCALE)
     beside = Pose(np.array(paper_gt["R"]), np.array(paper_gt["t_mm"]) + np.array([120.0, 0.0, 0.0]))

@@ -1,4 +1,4 @@
-"""Conventions of service/vision/frames.py: eq. 3, euler/R/quaternion, poses, the symmetric canonical pose."""
+"""Conventions of geometry/frames.py: eq. 3, euler/R/quaternion, poses, a revolved part's canonical spin."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service.vision import frames
-from service.vision.frames import (
+from service.vision.geometry import frames
+from service.vision.geometry.frames import (
     Pose,
     R_between,
     R_from_euler_xyz_deg,
@@ -18,7 +18,7 @@ from service.vision.frames import (
     Ry,
     Rz,
     axis_alpha_gamma_deg,
-    canonical_symmetric_R,
+    canonical_spin,
     euler_xyz_deg_from_R,
     quat_xyzw_from_R,
     rotation_angle_deg,
@@ -216,12 +216,16 @@ def test_axis_alpha_gamma_known_answers_and_round_trip():
         np.testing.assert_allclose(Rx(alpha) @ Rz(gamma) @ [0, 1, 0], a, atol=ROUND_TRIP_ATOL)
 
 
+def _canonical_R(R, axis_obj) -> np.ndarray:
+    return canonical_spin(Pose(np.asarray(R, float), np.zeros(3)), axis_obj).R
+
+
 @pytest.mark.parametrize("axis_obj", [[0, 1, 0], [0, 0, 1], [1, 0, 0], [0, -1, 0], [1, 2, -2]])
-def test_canonical_symmetric_R_properties(axis_obj):
+def test_canonical_spin_properties(axis_obj):
     axis_obj = np.asarray(axis_obj, float) / np.linalg.norm(axis_obj)
     rng = np.random.default_rng(SEED + 8)
     for R in random_R(rng, 30):
-        C = canonical_symmetric_R(R, axis_obj)
+        C = _canonical_R(R, axis_obj)
         np.testing.assert_allclose(C.T @ C, np.eye(3), atol=ROUND_TRIP_ATOL)
         assert np.linalg.det(C) == pytest.approx(1.0)
         # maps the axis to the same camera direction as R
@@ -231,14 +235,31 @@ def test_canonical_symmetric_R_properties(axis_obj):
         np.testing.assert_allclose(S @ axis_obj, axis_obj, atol=ROUND_TRIP_ATOL)
         # invariant to spinning the input about the axis
         for phi in (17.0, 90.0, -123.0, 180.0):
-            np.testing.assert_allclose(canonical_symmetric_R(R @ spin(axis_obj, phi), axis_obj), C,
+            np.testing.assert_allclose(_canonical_R(R @ spin(axis_obj, phi), axis_obj), C,
                                        atol=ROUND_TRIP_ATOL)
 
 
-def test_canonical_symmetric_R_for_y_axis_has_zero_ry():
+def test_canonical_spin_keeps_the_axis_point_and_forgets_the_spin():
+    """The axis through point_obj stays where it was; spinning the part about it changes nothing."""
+    rng = np.random.default_rng(SEED + 10)
+    axis, point = np.array([1.0, 2.0, -2.0]) / 3.0, np.array([5.0, -7.0, 11.0])
+    for R in random_R(rng, 20):
+        pose = Pose(R, rng.uniform(-100, 100, 3) + [0, 0, 600])
+        C = canonical_spin(pose, axis, point)
+        np.testing.assert_allclose(C.apply(point[None]), pose.apply(point[None]), atol=1e-9)
+        np.testing.assert_allclose(C.R @ axis, pose.R @ axis, atol=ROUND_TRIP_ATOL)
+        S = spin(axis, 40.0)  # the part spun by 40 deg about the axis through point
+        spun = pose.compose(Pose(S, point - S @ point))
+        C2 = canonical_spin(spun, axis, point)
+        np.testing.assert_allclose(C2.R, C.R, atol=ROUND_TRIP_ATOL)
+        np.testing.assert_allclose(C2.t_mm, C.t_mm, atol=1e-9)
+    assert canonical_spin(pose, None) is pose
+
+
+def test_canonical_spin_for_y_axis_has_zero_ry():
     rng = np.random.default_rng(SEED + 9)
     for R in random_R(rng, 50):
-        C = canonical_symmetric_R(R, [0, 1, 0])
+        C = _canonical_R(R, [0, 1, 0])
         rx, ry, rz = euler_xyz_deg_from_R(C)
         assert ry == pytest.approx(0.0, abs=1e-7)
         alpha, gamma = axis_alpha_gamma_deg(R @ [0, 1, 0])
@@ -269,7 +290,7 @@ def test_dataset_alpha_gamma_and_euler_match_frames(data_dir):
         np.testing.assert_allclose(euler_xyz_deg_from_R(R), g["euler_xyz_deg"], atol=DATASET_ANGLE_ATOL_DEG,
                                    err_msg=g["image"])
         # the canonical pose of the gt: euler (alpha, 0, gamma), same axis direction
-        C = canonical_symmetric_R(R, [0.0, 1.0, 0.0])
+        C = _canonical_R(R, [0.0, 1.0, 0.0])
         np.testing.assert_allclose(euler_xyz_deg_from_R(C),
                                    [g["axis_alpha_gamma_deg"][0], 0.0, g["axis_alpha_gamma_deg"][1]],
                                    atol=DATASET_ANGLE_ATOL_DEG, err_msg=g["image"])

@@ -7,11 +7,11 @@ import pytest
 import trimesh
 
 from service import pipeline
-from service.vision.camera import Intrinsics
-from service.vision.edges import detect_segments
-from service.vision.frames import Pose, Rx, Rz
-from service.vision.interior import model_edges, unexplained_edge_ratio
-from service.vision.render import render, render_shaded
+from service.vision.estimate.edges import detect_segments
+from service.vision.estimate.interior import model_edges, unexplained_edge_ratio
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose, Rx, Rz
+from service.vision.geometry.render import render, render_shaded
 from tests.tolerances import INTERIOR_PART_MAX, INTERIOR_TEXTURE_MIN
 
 INTR = Intrinsics(1000.0, 1000.0, 319.5, 239.5)

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.vision.camera import Intrinsics
-from service.vision.frames import Pose, Ry
-from service.vision.render import render, render_shaded
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose, Ry
+from service.vision.geometry.render import render, render_shaded
 from tests.tolerances import RENDER_CENTRE_PX, RENDER_DEPTH_MM, RENDER_EXTENT_PX
 
 INTR = Intrinsics(fx=1000.0, fy=1000.0, cx=319.3, cy=241.7)

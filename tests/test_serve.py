@@ -21,6 +21,8 @@ from prometheus_client.parser import text_string_to_metric_families
 from service.store import Store
 from tests.test_server import GRID, SLOW_GRID, estimate, upload, wait_status
 
+pytestmark = pytest.mark.slow  # every test here starts `python -m service serve`
+
 ROOT = Path(__file__).resolve().parents[1]
 START_WAIT_S = 60  # hang guards, not speed asserts
 STOP_WAIT_S = 60

@@ -20,6 +20,8 @@ import pytest
 
 from service.store import Store
 
+pytestmark = pytest.mark.slow  # every test here starts uvicorn
+
 ROOT = Path(__file__).resolve().parents[1]
 GRID = {"tilt_step_deg": 15, "view_step_deg": 45}
 SLOW_GRID = {"view_step_deg": 8}  # with symmetry "none": several hundred views, a build of seconds
@@ -180,7 +182,6 @@ def test_health_answers_while_a_build_and_estimates_run(servers, sprayer_bytes, 
     server.stop()
 
 
-@pytest.mark.slow
 def test_build_killed_mid_way_resumes_after_restart(servers, tmp_path, sprayer_bytes):
     server = servers()
     mid = upload(server.client, sprayer_bytes, symmetry="none", templates=json.dumps(SLOW_GRID))["id"]

@@ -9,19 +9,17 @@ import pytest
 import trimesh
 
 from service.vision.bank import TemplateBank
-from service.vision.camera import Intrinsics, project
-from service.vision.frames import Pose, R_from_rotvec, Rx, Ry, rotation_angle_deg
-from service.vision.templates import (
+from service.vision.build.grid import (
     GRID_DEFAULTS,
-    border_at_pose,
-    build_bank,
-    canonical_intrinsics,
-    canonical_pose,
     fibonacci_directions,
     grid_rotations,
     look_from_R,
     merge_grid,
 )
+from service.vision.build.templates import build_bank, template_camera, template_pose
+from service.vision.geometry.camera import Intrinsics, project
+from service.vision.geometry.frames import Pose, R_from_rotvec, Rx, Ry, rotation_angle_deg
+from service.vision.geometry.silhouette import border_at_pose
 from tests.tolerances import (
     BACKPROJECT_PX,
     BORDER_RADIAL_PX,
@@ -103,7 +101,7 @@ def test_open_mesh_border_is_traced():
     sph = trimesh.creation.icosphere(subdivisions=5, radius=100.0)
     keep = sph.triangles_center[:, 2] < 90.0  # cut a cap off the far side
     open_mesh = trimesh.Trimesh(sph.vertices, sph.faces[keep], process=False)
-    from service.vision.templates import mesh_topology
+    from service.vision.geometry.silhouette import mesh_topology
 
     assert not mesh_topology(open_mesh.vertices, open_mesh.faces).closed
     assert mesh_topology(sph.vertices, sph.faces).closed
@@ -172,9 +170,9 @@ def test_sprayer_bank_layout(sprayer_bank):
 
 def test_template_points_back_project(sprayer_bank):
     bank, _ = sprayer_bank
-    intr, _ = canonical_intrinsics(bank)
+    intr, _ = template_camera(bank)
     for k in range(bank.n_templates):
-        pose = canonical_pose(bank, k)
+        pose = template_pose(bank, k)
         sl = bank.points(k)
         p_cam = pose.apply(bank.p_obj[sl].astype(np.float64))
         xy = p_cam[:, :2] / p_cam[:, 2:]
@@ -186,7 +184,7 @@ def test_template_border_scales_with_render_px(sprayer_bank):
     bank, _ = sprayer_bank
     k = int(np.argmin(np.abs(bank.view_params_deg[:, 0])))  # tilt 0: side view, axis along image v
     xy = bank.xy_n[bank.points(k)]
-    f, _ = canonical_intrinsics(bank)
+    f, _ = template_camera(bank)
     height_px = (xy[:, 1].max() - xy[:, 1].min()) * f.fx
     # 200 mm tall at ~600 mm: about render_px * 200 / diameter pixels (perspective makes it a bit more).
     expected = bank.grid["render_px"] * 200.0 / bank.diameter_mm
@@ -287,10 +285,10 @@ def test_merge_grid_keeps_defaults_and_types():
 
 
 def test_draw_template_shows_mesh_and_border(sprayer_bank):
-    from service.vision.templates import draw_template
+    from service.vision.build.templates import draw_template
 
     bank, _ = sprayer_bank
-    intr, (w, h) = canonical_intrinsics(bank)
+    intr, (w, h) = template_camera(bank)
     k = bank.n_templates // 2
     img = draw_template(bank, k)
     assert img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3
@@ -317,8 +315,8 @@ def _segment_distance(p, a, b):
     "case", ["x10", "x45", "x90", "z-30", "z30"],  # the paper's Tables I and III
 )
 def test_paper_scanline_border_matches_contour_border(sprayer_mesh, case):
-    from service.vision.frames import Rz
-    from service.vision.scanline import scanline_border
+    from service.vision.geometry.frames import Rz
+    from service.vision.reference.scanline import scanline_border
 
     K = np.array([[1100.0, 0.0, 643.0], [0.0, 1100.0, 477.0], [0.0, 0.0, 1.0]])
     angle = float(case[1:])

@@ -12,10 +12,10 @@ import pytest
 import trimesh
 
 from service import pipeline
-from service.vision import verdict
-from service.vision.camera import Intrinsics
-from service.vision.frames import Pose, Rx, Ry, Rz
-from service.vision.render import render_shaded
+from service.vision.estimate import verdict
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose, Rx, Ry, Rz
+from service.vision.geometry.render import render_shaded
 from tests.tolerances import FOUND_POSE_T_MM
 
 INTR = Intrinsics(600.0, 600.0, 319.5, 239.5)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pytest
 
 from service import pipeline
 from tests.test_serve import serve  # noqa: F401  (fixture)
@@ -24,6 +25,7 @@ def test_warm_up_estimates_its_synthetic_cylinder():
     assert axis_err <= WARM_UP_AXIS_DEG
 
 
+@pytest.mark.slow
 def test_served_process_warms_up_in_the_background_and_says_so(serve):  # noqa: F811
     server = serve()
     deadline = time.monotonic() + LOG_WAIT_S

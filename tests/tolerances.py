@@ -3,6 +3,10 @@
 # --- conventions (frames, camera) ---
 ROUND_TRIP_ATOL = 1e-9  # pure float round trips: euler <-> R <-> quat, project <-> unproject
 DISTORTION_ROUND_TRIP_PX = 1e-3  # undistort(distort(uv)) against uv
+# Undistorted LSD segments of a straight edge against the ideal line: their mean signed offset (an
+# anti-aliased step edge is located without bias, so what is left is the lens model's doing) ...
+UNDISTORTED_EDGE_BIAS_PX = 0.25
+UNDISTORTED_EDGE_NEAR_PX = 5.0  # ... over the sampled points this close to the line (not other edges)
 DATASET_ANGLE_ATOL_DEG = 1e-6  # our euler / alpha-gamma against the numbers stored in gt.jsonl
 RESIZE_CENTROID_PX = 0.02  # blob centroid after cv2.resize against Intrinsics.scaled's pixel-centre rule
 METRIC_ATOL = 1e-6  # pose-error metrics (mm, px, deg) that are exactly 0 by construction
@@ -38,8 +42,8 @@ COARSE_T_MM_NONSYM = 10.0
 # --- refinement ---
 REFINE_ANGLE_DEG = 0.1  # known answer: rotation (axis direction for a symmetric part) after 3 deg / 5 mm
 REFINE_TRANS_MM = 0.2  # known answer: translation after 3 deg / 5 mm, distance given
-REFINE_DEPTH_MM = 3.0  # |tz| when the distance is refined too (the target)
-REFINE_FREE_ANGLE_DEG = 0.3  # rotation when the distance is refined too (the target)
+REFINE_DEPTH_MM = 3.0  # |tz| when the distance is refined too (the accuracy target)
+REFINE_FREE_ANGLE_DEG = 0.3  # rotation when the distance is refined too (the accuracy target)
 REFINE_OCCLUDED_ANGLE_DEG = 0.3  # 30 % of the border hidden
 REFINE_OCCLUDED_TRANS_MM = 0.5
 REFINE_REAL_TRANS_MM = 0.2  # paper render 0001: |tx|, |ty| from gt perturbed by 1 deg / 2 mm
@@ -61,3 +65,9 @@ WARM_UP_T_MM = 1.0  # the start-up warm-up's synthetic cylinder (320 x 240, 300 
 WARM_UP_AXIS_DEG = 2.0
 INTERIOR_TEXTURE_MIN = 0.5  # checkerboard lines inside an empty box silhouette, per unit of perimeter
 INTERIOR_PART_MAX = 0.1  # the shaded box really there: only its own creases inside
+
+# --- the cell: robot frame and grasps (tests/test_api_cell.py, tests/test_cell.py) ---
+CELL_GRASP_T_MM = 1.0  # base-frame grasp position against the known answer, rendered scene (the bar)
+CELL_GRASP_ROT_DEG = 0.5  # ... and its orientation
+CELL_EXACT_ATOL = 1e-9  # pure frame algebra (compositions, inverses, spins) against the closed form
+CELL_SPIN_GRID_DEG = 0.05  # spacing of the brute-force spin grid the closed-form best spin is checked on

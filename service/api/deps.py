@@ -8,24 +8,16 @@
 
 from __future__ import annotations
 
-import json
-import math
 from dataclasses import dataclass
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any
 
 from fastapi import Depends, Request, Security, UploadFile
 from fastapi.security import APIKeyHeader
-from pydantic import BaseModel, ValidationError
 
 from service.builder import Builder
 from service.errors import (
-    BuildFailedError,
     NotFoundError,
-    NotReadyError,
     TooLargeError,
-    UnprocessableError,
-    clause,
-    validation_sentence,
 )
 from service.settings import Settings
 from service.store import Store
@@ -73,17 +65,7 @@ class Loaded:
 
 
 def get_ready_model(record: ModelRecord, store: StoreDep) -> Loaded:
-    mid, status = record["id"], record["status"]
-    if status == "failed":
-        reason = clause(record.get("error") or "unknown reason")
-        raise BuildFailedError(f"Model '{mid}' failed to build: {reason}; fix the mesh or the template "
-                               "options and upload it again")
-    bank = store.bank(mid) if status == "ready" else None
-    if bank is None:
-        done = 100 * float(record.get("progress") or 0.0)
-        raise NotReadyError(f"Model '{mid}' is not ready yet (template build {status}, {done:.0f}% done); "
-                            f"retry after Retry-After seconds or poll GET /models/{mid} until it is ready")
-    return Loaded(record, bank)
+    return Loaded(record, store.ready_bank(record))
 
 
 ReadyModel = Annotated[Loaded, Depends(get_ready_model)]
@@ -114,41 +96,3 @@ async def read_upload(upload: UploadFile, limit: int, what: str, setting: str) -
 
 def _too_large(what: str, limit: int, setting: str) -> str:
     return f"The {what} is larger than the limit of {limit:,} bytes ({setting}); send a smaller file"
-
-
-M = TypeVar("M", bound=BaseModel)
-
-
-def _finite(v: Any) -> bool:
-    if isinstance(v, float):
-        return math.isfinite(v)
-    if isinstance(v, dict):
-        return all(_finite(x) for x in v.values())
-    if isinstance(v, list):
-        return all(_finite(x) for x in v)
-    return True
-
-
-def parse_json_object(text: str | None, what: str) -> dict[str, Any]:
-    """A form part holding a JSON object -> dict; 422 (one sentence) on bad JSON, non-objects or NaN."""
-    if text is None or not text.strip():
-        return {}
-    try:
-        value = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise UnprocessableError(f"The {what} part is not valid JSON ({e.msg} at character {e.pos}); send a "
-                                 "JSON object such as {\"key\": value}") from e
-    if not isinstance(value, dict):
-        raise UnprocessableError(f"The {what} part must be a JSON object, not {type(value).__name__}; send "
-                                 "{\"key\": value, ...}")
-    if not _finite(value):
-        raise UnprocessableError(f"The {what} part contains NaN or Infinity; send finite numbers only")
-    return value
-
-
-def parse_json_part(text: str | None, model: type[M], what: str) -> M:
-    """A form part holding JSON -> the wire model; 422 with one sentence naming the first problem."""
-    try:
-        return model.model_validate(parse_json_object(text, what))
-    except ValidationError as e:
-        raise UnprocessableError(validation_sentence(e.errors(), what=what)) from e

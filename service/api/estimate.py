@@ -9,23 +9,20 @@ from starlette.concurrency import run_in_threadpool
 
 from service import monitoring
 from service.api import error_responses
-from service.api.deps import Loaded, ReadyModel, SettingsDep, parse_json_part, read_upload
-from service.decode import decode_image
-from service.pipeline import estimate as estimate_pose
-from service.schemas import Camera, EstimateResult, Options
+from service.api.deps import Loaded, ReadyModel, SettingsDep, StoreDep, read_upload
+from service.cell import Grasp
+from service.cell_io import check_robot_pose, estimate_result, grasps_of, resolve_camera
+from service.schemas import Camera, EstimateResult, Options, parse_json_part
 from service.settings import Settings
 
 router = APIRouter(tags=["estimate"])
 
 
-def run_estimate(model: Loaded, data: bytes, cam: Camera, opts: Options,
-                 settings: Settings) -> EstimateResult:
-    """Image bytes -> EstimateResult (blocking: call it from a worker thread; the CLI calls it too)."""
-    image = decode_image(data, max_pixels=settings.max_image_pixels)
-    out = estimate_pose(model.bank, image, cam.to_intrinsics(), distance_mm=opts.distance_mm,
-                        distance_range_mm=opts.distance_range_mm, refine=opts.refine, top_k=opts.top_k,
-                        overlay=opts.overlay, min_score=opts.min_score)
-    return EstimateResult.from_output(model.id, out)
+def run_estimate(model: Loaded, data: bytes, cam: Camera, opts: Options, settings: Settings, *,
+                 camera_name: str | None = None, grasps: list[Grasp] | None = None) -> EstimateResult:
+    """Image bytes -> EstimateResult (blocking: call it from a worker thread)."""
+    return estimate_result(model.record, model.bank, data, cam, opts, max_pixels=settings.max_image_pixels,
+                           camera_name=camera_name, grasps=grasps)
 
 
 @router.post("/models/{model_id}/estimate", response_model=EstimateResult,
@@ -33,16 +30,22 @@ def run_estimate(model: Loaded, data: bytes, cam: Camera, opts: Options,
 async def estimate(
     model: ReadyModel,
     settings: SettingsDep,
+    store: StoreDep,
     image: Annotated[UploadFile, File(description="PNG, JPEG, BMP or TIFF; 8- or 16-bit; grey or colour")],
     camera: Annotated[str, Form(
-        description='JSON intrinsics {"fx", "fy", "cx", "cy", optional "dist"}, pixels')],
+        description='JSON intrinsics {"fx", "fy", "cx", "cy", optional "dist", "width", "height", '
+                    '"T_base_cam" or "T_flange_cam"}, pixels and mm; or {"name": "<registered camera>"}')],
     options: Annotated[str | None, Form(
-        description="JSON: distance_mm or distance_range_mm [min, max], refine, top_k, overlay")] = None,
+        description="JSON: distance_mm or distance_range_mm [min, max], refine, top_k, overlay, robot_pose "
+                    "(T_base_flange, eye-in-hand)")] = None,
 ) -> EstimateResult:
     """Estimate the pose ``T_cam_obj`` of the model in the image."""
     data = await read_upload(image, settings.max_image_bytes, "image file", "POSE_MAX_IMAGE_BYTES")
-    cam = parse_json_part(camera, Camera, "camera")
+    cam, camera_name = resolve_camera(camera, store)
     opts = parse_json_part(options, Options, "options")
-    result = await run_in_threadpool(run_estimate, model, data, cam, opts, settings)
+    check_robot_pose(cam, opts, camera_name)
+    grasps = grasps_of(store.grasps(model.id))
+    result = await run_in_threadpool(run_estimate, model, data, cam, opts, settings, camera_name=camera_name,
+                                     grasps=grasps)
     monitoring.observe_estimate(result.timing_ms.model_dump(), result.found)
     return result

@@ -15,13 +15,12 @@ from service.api.deps import (
     ReadyModel,
     SettingsDep,
     StoreDep,
-    parse_json_object,
     read_upload,
 )
 from service.builder import register_upload
 from service.errors import NotFoundError
 from service.pipeline import template_picture
-from service.schemas import ModelInfo, SymmetryOption, Units
+from service.schemas import ModelInfo, SymmetryOption, Units, parse_json_object
 
 router = APIRouter(tags=["models"])
 

@@ -1,17 +1,25 @@
 """The template bank: everything an estimate needs about a model, as stacked arrays.
 
-Built once per model (``templates.build_bank``), stored as one record, loaded in milliseconds.
+Built once per model (``build/templates.build_bank``), stored as one record, loaded in milliseconds.
 Templates are camera-independent: template ``n`` is the model seen with rotation ``R_tpl_obj[n]``
 with its reference point ``centre_obj`` on the optical axis at ``reference_distance_mm``; its
 borderline points carry normalised image coordinates, an edge orientation and the 3D model point
 they came from, so an estimate can re-project them exactly for any intrinsics and distance.
+
+Beside the record: the bank's views as directions on the view sphere (neighbours, views within an
+angle) and its border points sampled evenly along each template, each made once per bank. The build
+room writes a bank and the estimate room reads it, so it sits between them, importing neither.
 """
 
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+
+from service.vision.memo import Memo
 
 BANK_FORMAT_VERSION = 1
 
@@ -77,3 +85,93 @@ class TemplateBank:
             symmetry_point_obj=None if point.size == 0 else point,
             grid=json.loads(bytes(np.asarray(a["grid_json"], np.uint8)).decode()),
         )
+
+
+# --- the bank's views on the view sphere (the coarse search moves between them) -------------------
+
+
+def view_dirs_obj(bank: TemplateBank) -> np.ndarray:
+    """(N, 3) each view's viewing direction (camera +z) in the object frame: R_tpl_obj.T @ e_z."""
+    return bank.R_tpl_obj[:, 2, :]
+
+
+_NEIGHBOURS = Memo(8)
+
+
+def view_neighbours(bank: TemplateBank, k: int = 6) -> np.ndarray:
+    """(N, k) the k nearest other views by viewing direction (object frame), once per bank."""
+
+    def make():
+        z = view_dirs_obj(bank)
+        sim = z @ z.T
+        np.fill_diagonal(sim, -np.inf)
+        return np.argsort(-sim, axis=1)[:, :min(k, len(z) - 1)]
+
+    return _NEIGHBOURS.get(bank, k, make)
+
+
+def view_step_deg(bank: TemplateBank) -> float:
+    """Angle between neighbouring views of the bank's grid."""
+    key = "tilt_step_deg" if bank.symmetry_axis_obj is not None else "view_step_deg"
+    return float(bank.grid[key])
+
+
+def views_within(bank: TemplateBank, view: int, angle_deg: float) -> np.ndarray:
+    """Bank views whose viewing direction (object frame) is within ``angle_deg`` of ``view``'s.
+
+    For a revolved part also those near its mirror view (the axis tilted the other way, towards or
+    away from the camera): the two silhouettes are equal in orthographic projection and differ only
+    by perspective, so level A cannot tell them apart.
+    """
+    z = view_dirs_obj(bank)
+    near = z @ z[view] >= math.cos(math.radians(angle_deg)) - 1e-9
+    if bank.symmetry_axis_obj is not None:
+        a = np.asarray(bank.symmetry_axis_obj, float)
+        mirror = z[view] - 2 * (z[view] @ a) * a  # the viewing direction reflected in the axis' normal plane
+        near |= z @ mirror >= math.cos(math.radians(angle_deg)) - 1e-9
+    return np.flatnonzero(near)
+
+
+# --- the bank's border points, sampled evenly along each template's border ---------------------------
+
+
+@functools.lru_cache(maxsize=16)
+def spread_order(count: int) -> np.ndarray:
+    """A permutation of range(count) (indices along a closed border) whose every prefix is spread
+    evenly round it (greedy farthest point): the scans' early termination then judges a template on
+    points from all round its border, not on one stretch of it."""
+    pos = np.arange(count)
+    gap = np.full(count, count, np.int64)  # cyclic distance to the nearest chosen point
+    order = np.empty(count, np.int64)
+    for k in range(count):
+        i = int(np.argmax(gap))
+        order[k] = i
+        d = np.abs(pos - i)
+        gap = np.minimum(gap, np.minimum(d, count - d))
+    order.flags.writeable = False
+    return order
+
+
+def subsample_border(bank: TemplateBank, n: int, count: int) -> np.ndarray:
+    """Indices of ``count`` points spread evenly along template n's border."""
+    s = bank.points(n)
+    m = s.stop - s.start
+    if m <= count:
+        return np.arange(s.start, s.stop)
+    return s.start + np.linspace(0, m, count, endpoint=False).astype(np.int64)
+
+
+_TRIPLETS = Memo(8)
+
+
+def border_triplets(bank: TemplateBank, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N, count) indices of ``count`` points spread along every view's border, and of each point's
+    predecessor and successor on that border (for the projected orientation). Made once per bank."""
+
+    def make():
+        idx = np.stack([np.resize(subsample_border(bank, n, count), count) for n in range(bank.n_templates)])
+        lo = bank.offsets[:-1, None]
+        hi = bank.offsets[1:, None]
+        return idx, np.where(idx - 1 >= lo, idx - 1, hi - 1), np.where(idx + 1 < hi, idx + 1, lo)
+
+    return _TRIPLETS.get(bank, count, make)

@@ -39,16 +39,25 @@ class Intrinsics:
         return Intrinsics(self.fx * s, self.fy * s, (self.cx + 0.5) * s - 0.5, (self.cy + 0.5) * s - 0.5,
                           self.dist)
 
+    def pinhole(self) -> Intrinsics:
+        """The same camera without lens distortion: the ideal pinhole the image side is undistorted to."""
+        return Intrinsics(self.fx, self.fy, self.cx, self.cy)
+
     def shifted(self, du: float, dv: float) -> Intrinsics:
         """Intrinsics of a crop whose top-left pixel is (du, dv) of this image."""
         return Intrinsics(self.fx, self.fy, self.cx - du, self.cy - dv, self.dist)
 
 
+def as_intrinsics(K_or_intr) -> Intrinsics:
+    """``Intrinsics`` or a (3, 3) ``K`` -> ``Intrinsics``."""
+    return K_or_intr if isinstance(K_or_intr, Intrinsics) else Intrinsics.from_K(np.asarray(K_or_intr, float))
+
+
 def project(p_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(N, 3) mm, camera frame -> (N, 2) uv pixels (no distortion)."""
+    """(..., 3) mm, camera frame -> (..., 2) uv pixels of the pinhole ``K`` (no distortion)."""
     p = np.asarray(p_cam, float)
-    z = p[:, 2]
-    return np.stack([K[0, 0] * p[:, 0] / z + K[0, 2], K[1, 1] * p[:, 1] / z + K[1, 2]], axis=1)
+    z = p[..., 2]
+    return np.stack([K[0, 0] * p[..., 0] / z + K[0, 2], K[1, 1] * p[..., 1] / z + K[1, 2]], axis=-1)
 
 
 def project_distorted(p_cam: np.ndarray, intr: Intrinsics) -> np.ndarray:
@@ -87,3 +96,24 @@ def ray_direction(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
     """(N, 2) uv -> (N, 3) unit viewing rays, camera frame."""
     d = unproject(np.atleast_2d(uv), np.ones(len(np.atleast_2d(uv))), K)
     return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def ray_rotations(uv: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 3) unit viewing rays through pixels uv (M, 2) and (M, 3, 3) rotations taking e_z onto them.
+
+    Rodrigues with k = e_z x d: R = I + [k]x + [k]x^2 / (1 + d_z); a ray never points backwards
+    (d_z > 0), so the formula never divides by zero.
+    """
+    d = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0], (uv[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(uv))], 1)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    kx = np.zeros((len(d), 3, 3))
+    kx[:, 0, 2], kx[:, 1, 2] = d[:, 0], d[:, 1]
+    kx[:, 2, 0], kx[:, 2, 1] = -d[:, 0], -d[:, 1]
+    R = np.eye(3) + kx + (kx @ kx) / (1.0 + d[:, 2])[:, None, None]
+    return d, R
+
+
+def ray_rotation(uv: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit viewing ray through pixel uv (2,) and the smallest rotation taking e_z onto it."""
+    d, R = ray_rotations(np.asarray(uv, float)[None], K)
+    return d[0], R[0]

@@ -19,11 +19,11 @@ import numba as nb
 import numpy as np
 
 from service.vision.bank import TemplateBank
-from service.vision.camera import Intrinsics
-from service.vision.edges import Segments, sample_segments
-from service.vision.frames import Pose
-from service.vision.render import rasterise_roi
-from service.vision.templates import mesh_topology
+from service.vision.estimate.edges import Segments, sample_segments
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose
+from service.vision.geometry.render import rasterise_roi
+from service.vision.geometry.silhouette import mesh_topology
 
 ERODE_PX = 5  # the border's own edges (and the pose's last pixel of error) are not "inside"
 CREASE_DEG = 25.0  # neighbouring pixels whose surface normals differ more than this: a model crease

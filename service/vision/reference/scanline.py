@@ -23,9 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.vision.camera import project
-from service.vision.frames import Pose
-from service.vision.render import as_intrinsics
+from service.vision.geometry.camera import as_intrinsics, project
+from service.vision.geometry.frames import Pose
 
 LINE_MERGE_PX = 0.25  # scan lines closer than this are one line
 

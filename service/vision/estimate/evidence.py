@@ -23,9 +23,9 @@ import cv2
 import numpy as np
 
 from service.vision.bank import TemplateBank
-from service.vision.camera import Intrinsics
-from service.vision.frames import Pose
-from service.vision.render import face_normals_cam, rasterise_roi
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose
+from service.vision.geometry.render import face_normals_cam, rasterise_roi
 
 BAND_FRACTION = 0.12  # region band width as a fraction of the silhouette's equivalent radius ...
 BAND_MIN_PX, BAND_MAX_PX = 3, 14  # ... within these bounds
@@ -85,7 +85,7 @@ class _Window:
 
 def colour_frame(image: np.ndarray) -> ColourFrame:
     """(H, W) grey or (H, W, 3|4) BGR(A) uint8/uint16 image -> the frame the evidence reads."""
-    from service.vision.edges import to_grey_u8
+    from service.vision.estimate.edges import to_grey_u8
 
     img = np.asarray(image)
     if img.ndim == 3:

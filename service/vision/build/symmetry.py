@@ -27,8 +27,8 @@ import cv2
 import numpy as np
 import trimesh
 
-from service.vision.frames import Pose, R_align_axis_to_y, R_from_rotvec, Rx
-from service.vision.render import rasterise_roi
+from service.vision.geometry.frames import Pose, R_align_axis_to_y, R_from_rotvec, Rx
+from service.vision.geometry.render import rasterise_roi
 
 SPIN_ANGLES_DEG = (37.0, 83.0, 131.0, 200.0)
 VIEW_TILTS_DEG = (0.0, 35.0, 70.0)  # tilt of the axis towards the camera for the test renders

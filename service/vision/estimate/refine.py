@@ -7,7 +7,7 @@ The paper refines with Levenberg-Marquardt on matched point pairs kept under a m
   each came from, ``templates.border_at_pose``) is projected with the pose being refined; each
   point's image orientation is the projection of its 3D border tangent, so it moves continuously
   with the pose;
-- **residual "dt"** (the issue's): per border point, the directional chamfer distance read from
+- **residual "dt"**: per border point, the directional chamfer distance read from
   DT3 of the image's LSD segments at the projected point, bilinear in the image and linear,
   cyclic across orientation channels (smooth and sub-pixel, analytic Jacobian);
 - **residual "line"** (final iterations): the signed distance from the projected point to the
@@ -34,19 +34,19 @@ The paper refines with Levenberg-Marquardt on matched point pairs kept under a m
 from __future__ import annotations
 
 import math
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
-import numba as nb
 import numpy as np
 from scipy.optimize import least_squares
 
+from service.vision import threads
 from service.vision.bank import TemplateBank
-from service.vision.camera import Intrinsics, project_distorted, undistort_points
-from service.vision.chamfer import DEFAULT_LAMBDA_PX_PER_RAD, DEFAULT_TAU_PX, DistanceTensor, sample_with_grad
-from service.vision.edges import Segments, channel_of, detect_segments
-from service.vision.frames import Pose, canonical_symmetric_R, rotation_angle_deg
-from service.vision.interior import unexplained_edge_ratio
+from service.vision.estimate.chamfer import DistanceTensor, sample_with_grad, segment_distance_tensor
+from service.vision.estimate.edges import Segments, detect_segments, undistort_segments
+from service.vision.estimate.interior import unexplained_edge_ratio
+from service.vision.geometry.camera import Intrinsics, project_distorted
+from service.vision.geometry.frames import Pose, canonical_spin, rotation_angle_deg
+from service.vision.geometry.silhouette import Border, border_with_tangents
 
 ROI_MARGIN_PX = 30  # edges are detected in the bbox of the projected model plus this margin
 BORDER_SPACING_PX = 3.0  # spacing of the border points used in the residuals
@@ -59,8 +59,6 @@ REEXTRACT_DEG = 1.0  # ... or the rotation has changed this much since the extra
 # The interior check, started in the background at the DT stage's pose, stands for a final pose whose
 # border lies within this of it (the check erodes the silhouette by interior.ERODE_PX = 5 px anyway).
 INTERIOR_REUSE_PX = 1.5
-# Refinement's second thread (per request; the API's threadpool runs requests side by side).
-_BACKGROUND = ThreadPoolExecutor(max_workers=4, thread_name_prefix="refine")
 DT_SCALE = 1.0  # DT3 grid per full-resolution pixel (exact distances to segments at pixel centres)
 DT_TAU_PX = 12.0  # DT3 truncation for refinement (full-res px): the basin, not the coarse search
 DT_F_SCALE_PX = 4.0  # robust-loss scale of the DT stage (smaller scales converge much slower)
@@ -69,7 +67,6 @@ LINE_TOL = 1e-6  # ... of the line stage
 LINE_MATCH_DEG = 20.0  # "line" residual: orientation gate between border point and LSD segment
 LINE_GATE_PX = 3.0  # ... and distance gate (full-resolution px)
 LINE_ROUNDS = 4  # line-stage rounds (match, solve, re-match ...)
-SPLIT_PX = 16.0  # segments are split into pieces this long before undistortion
 MEDIAN_CONST_PX = 2.0  # eq. 18: tr = max(median(residual), tr_const)
 # Never worse: the refined pose is kept when its DT3 distances, each capped at score_px, average no
 # more than the start pose's, and its score (fraction within score_px) is at most this much lower. The
@@ -95,46 +92,14 @@ class RefineResult:
 # --- border points at a pose --------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class Border:
-    """Outer silhouette border at ``pose``: 3D model points and their 3D border tangents."""
-
-    p_obj: np.ndarray  # (M, 3) float64 mm, object frame
-    tan_obj: np.ndarray  # (M, 3) float64 unit, object frame (direction of the border through p)
-    pose: Pose  # the pose it was extracted at
-
-
-def _tangents_from_order(p_obj: np.ndarray, uv: np.ndarray, spacing_px: float) -> np.ndarray:
-    """3D tangents of an ordered border from its neighbours (one-sided across gaps)."""
-    M = len(p_obj)
-    if M < 2:
-        return np.tile([1.0, 0.0, 0.0], (M, 1))
-    nxt = np.r_[np.arange(1, M), 0]
-    prv = np.r_[M - 1, np.arange(M - 1)]
-    gap = 3.0 * spacing_px
-    ok_n = np.linalg.norm(uv[nxt] - uv, axis=1) <= gap
-    ok_p = np.linalg.norm(uv[prv] - uv, axis=1) <= gap
-    a = np.where(ok_p[:, None], p_obj[prv], p_obj)
-    b = np.where(ok_n[:, None], p_obj[nxt], p_obj)
-    T = b - a
-    nrm = np.linalg.norm(T, axis=1, keepdims=True)
-    T = np.where(nrm > 1e-12, T / np.maximum(nrm, 1e-12), [1.0, 0.0, 0.0])
-    return T
-
-
 def border_points(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, *,
                   spacing_px: float | None = None, supersample: int | None = None) -> Border:
-    """The outer border at ``pose`` (ideal pinhole ``intr``; ``image_size = (w, h)``) from
-    ``templates.border_at_pose``, with 3D tangents from the neighbouring border points."""
-    from service.vision.templates import border_at_pose
-
+    """The bank's mesh's outer border at ``pose`` with 3D tangents (``silhouette.border_with_tangents``)
+    at the refinement's spacing and supersampling unless given."""
     spacing_px = BORDER_SPACING_PX if spacing_px is None else spacing_px
     supersample = BORDER_SUPERSAMPLE if supersample is None else supersample
-    ideal = Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy)
-    uv, _, p_obj = border_at_pose(bank.vertices_mm, bank.faces, pose, ideal, image_size,
-                                  spacing_px=spacing_px, supersample=supersample)
-    p_obj = np.asarray(p_obj, np.float64).reshape(-1, 3)
-    return Border(p_obj, _tangents_from_order(p_obj, np.asarray(uv, float).reshape(-1, 2), spacing_px), pose)
+    return border_with_tangents(bank.vertices_mm, bank.faces, pose, intr, image_size, spacing_px=spacing_px,
+                                supersample=supersample)
 
 
 # --- pose parametrisation -----------------------------------------------------------------------
@@ -270,7 +235,7 @@ def project_border(params: PoseParams, x: np.ndarray, border: Border, intr: Intr
 
 def dt_residuals(params: PoseParams, x: np.ndarray, border: Border, intr: Intrinsics, dtt: DistanceTensor,
                  with_jac: bool = True):
-    """The issue's residual: directional chamfer distance (full-res px) per border point, and
+    """The "dt" residual: directional chamfer distance (full-res px) per border point, and
     its Jacobian (M, n)."""
     uv, theta, duv, dth = project_border(params, x, border, intr, with_jac)
     g = dtt.to_grid(uv)
@@ -281,71 +246,6 @@ def dt_residuals(params: PoseParams, x: np.ndarray, border: Border, intr: Intrin
     # d grid / d uv = scale; r = val / scale.
     J = gu[:, None] * duv[:, 0] + gv[:, None] * duv[:, 1] + (gth / dtt.scale)[:, None] * dth
     return r, J
-
-
-# --- DT3 from segments, exact in a band -------------------------------------------------------
-
-
-@nb.njit(cache=True, nogil=True)
-def _segment_dt(dt, p0, p1, chan, lam, tau):  # pragma: no cover - compiled
-    """dt (C, h, w) float32 initialised to tau: min over segments of the exact point-to-segment
-    distance plus ``lam`` per cyclic channel step (eq. 11 without rasterising the edges)."""
-    C, h, w = dt.shape
-    for s in range(p0.shape[0]):
-        ax = p0[s, 0]
-        ay = p0[s, 1]
-        dx = p1[s, 0] - ax
-        dy = p1[s, 1] - ay
-        L2 = dx * dx + dy * dy
-        u_lo = max(int(math.floor(min(ax, ax + dx) - tau)), 0)
-        u_hi = min(int(math.ceil(max(ax, ax + dx) + tau)), w - 1)
-        v_lo = max(int(math.floor(min(ay, ay + dy) - tau)), 0)
-        v_hi = min(int(math.ceil(max(ay, ay + dy) + tau)), h - 1)
-        cs = chan[s]
-        for v in range(v_lo, v_hi + 1):
-            for u in range(u_lo, u_hi + 1):
-                t = 0.0
-                if L2 > 0.0:
-                    t = ((u - ax) * dx + (v - ay) * dy) / L2
-                    t = min(max(t, 0.0), 1.0)
-                ex = u - (ax + t * dx)
-                ey = v - (ay + t * dy)
-                d = math.sqrt(ex * ex + ey * ey)
-                if d >= tau:
-                    continue
-                if d < dt[cs, v, u]:
-                    dt[cs, v, u] = d
-                reach = min(int((tau - d) / lam) if lam > 0 else C, C // 2)
-                for j in range(1, reach + 1):
-                    val = d + lam * j
-                    k = (cs + j) % C
-                    if val < dt[k, v, u]:
-                        dt[k, v, u] = val
-                    k = (cs - j) % C
-                    if val < dt[k, v, u]:
-                        dt[k, v, u] = val
-
-
-def segment_distance_tensor(seg: Segments, roi: tuple[int, int, int, int], *, n_channels: int = 16,
-                            scale: float = 1.0, tau_px: float | None = None,
-                            lambda_px: float | None = None) -> DistanceTensor:
-    """DT3 (eq. 11, same layout and meaning as ``chamfer.distance_tensor``) of the window
-    ``roi = (u0, v0, w, h)`` computed from the segments' exact geometry: the distance at each grid
-    pixel is to the nearest segment itself, not to its rasterised pixels (no quantisation), and
-    only a band of ``tau`` around each segment is visited (fast for the few segments of a ROI).
-    ``tau_px`` and ``lambda_px`` are in grid pixels, as in ``DistanceTensor``."""
-    u0, v0, w, h = roi
-    C = int(n_channels)
-    shape = (max(int(round(h * scale)), 1), max(int(round(w * scale)), 1))
-    tau = float(DEFAULT_TAU_PX * scale if tau_px is None else tau_px)
-    lam = float(DEFAULT_LAMBDA_PX_PER_RAD * (np.pi / C) * scale if lambda_px is None else lambda_px)
-    dt = np.full((C,) + shape, tau, np.float32)
-    if len(seg):
-        org = np.array([u0, v0], np.float64)
-        g0 = (seg.uv0.astype(np.float64) - org + 0.5) * scale - 0.5
-        g1 = (seg.uv1.astype(np.float64) - org + 0.5) * scale - 0.5
-        _segment_dt(dt, g0, g1, channel_of(seg.theta_rad, C).astype(np.int64), lam, tau)
-    return DistanceTensor(dt, float(scale), (float(u0), float(v0)), tau, lam)
 
 
 # --- point-to-LSD-line residual -----------------------------------------------------------------
@@ -414,7 +314,7 @@ def _roi(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, margin: i
     if len(pc) == 0:
         return None
     uv = project_distorted(pc, intr) if distorted else project_distorted(
-        pc, Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy))
+        pc, intr.pinhole())
     u0 = max(int(np.floor(uv[:, 0].min())) - margin, 0)
     v0 = max(int(np.floor(uv[:, 1].min())) - margin, 0)
     u1 = min(int(np.ceil(uv[:, 0].max())) + margin, w - 1)
@@ -424,42 +324,11 @@ def _roi(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, margin: i
     return (u0, v0, u1 - u0 + 1, v1 - v0 + 1)
 
 
-def undistort_segments(seg: Segments, intr: Intrinsics, *, split_px: float = SPLIT_PX) -> Segments:
-    """Segments of the distorted image -> segments of the ideal pinhole camera ``intr.K``.
-
-    Each segment is split into pieces of at most ``split_px`` (a straight line of the distorted
-    image is a curve of the ideal one) and the endpoints are undistorted once.
-    """
-    if intr.dist is None or len(seg) == 0:
-        return seg
-    L = seg.lengths_px
-    k = np.maximum(np.ceil(L / split_px).astype(np.int64), 1)
-    sid = np.repeat(np.arange(len(seg)), k)
-    start = np.repeat(np.cumsum(k) - k, k)
-    i = np.arange(int(k.sum())) - start
-    kk = np.repeat(k, k)
-    a = seg.uv0[sid] + (seg.uv1[sid] - seg.uv0[sid]) * (i / kk)[:, None]
-    b = seg.uv0[sid] + (seg.uv1[sid] - seg.uv0[sid]) * ((i + 1) / kk)[:, None]
-    ua = undistort_points(a, intr).astype(np.float32)
-    ub = undistort_points(b, intr).astype(np.float32)
-    d = ub - ua
-    theta = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi).astype(np.float32)
-    return Segments(ua, ub, theta, seg.image_shape)
-
-
 # --- the refinement -----------------------------------------------------------------------------
 
 
 def _rho(loss: str):
     return "linear" if loss == "median" else loss
-
-
-def _symmetric_canonical(pose: Pose, bank: TemplateBank) -> Pose:
-    if bank.symmetry_axis_obj is None:
-        return pose
-    Rc = canonical_symmetric_R(pose.R, bank.symmetry_axis_obj)
-    q = np.zeros(3) if bank.symmetry_point_obj is None else np.asarray(bank.symmetry_point_obj, float)
-    return Pose(Rc, pose.t_mm + (pose.R - Rc) @ q)
 
 
 def _moved(border: Border, pose: Pose, intr: Intrinsics) -> tuple[float, float]:
@@ -579,17 +448,21 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
         raise ValueError("residual must be 'dt', 'line' or 'dt+line'.")
     H, W = grey.shape[:2]
     size = (W, H)
-    ideal = Intrinsics(intr.fx, intr.fy, intr.cx, intr.cy)
+
+    def reported(p: Pose) -> Pose:  # a revolved part's pose with spin 0 about its axis
+        return canonical_spin(p, bank.symmetry_axis_obj, bank.symmetry_point_obj)
+
+    ideal = intr.pinhole()
     # A background thread overlaps the border rasterisation with LSD + DT, and the interior check
     # (unexplained_edge_ratio) with the line stage.
-    fut = _BACKGROUND.submit(border_points, bank, pose0, ideal, size)
+    fut = threads.background().submit(border_points, bank, pose0, ideal, size)
     img = _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px)
     border = fut.result()
     if img is None or len(border.p_obj) < 6:
-        return RefineResult(_symmetric_canonical(pose0, bank), float("inf"), 0.0, 0, 0.0, False)
+        return RefineResult(reported(pose0), float("inf"), 0.0, 0, 0.0, False)
     roi, seg_roi, dtt = img
     if len(seg_roi) == 0:  # nothing to refine against
-        return RefineResult(_symmetric_canonical(pose0, bank), float("inf"), 0.0, 0, 0.0, False)
+        return RefineResult(reported(pose0), float("inf"), 0.0, 0, 0.0, False)
     pose, iterations, converged, thr, last = pose0, 0, False, None, None
     kind = "dt"
 
@@ -611,7 +484,7 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
             if not moved:
                 break
         interior_pose = pose
-        interior = _BACKGROUND.submit(unexplained_edge_ratio, bank, pose, ideal, seg_roi, size)
+        interior = threads.background().submit(unexplained_edge_ratio, bank, pose, ideal, seg_roi, size)
     else:
         interior_pose = interior = None
 
@@ -644,7 +517,7 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     # sampled at different densities score a few tenths of a percent apart.
     score0, cost0, capped0 = verify(border, pose0, ideal, dtt, score_px=score_px)
     if last is None or score1 <= 0.0 or score1 < score0 - SCORE_SLACK or capped1 > capped0 + 1e-9:
-        return RefineResult(_symmetric_canonical(pose0, bank), cost0, score0, iterations, score0, False,
+        return RefineResult(reported(pose0), cost0, score0, iterations, score0, False,
                             interior_at(pose0))
     r = np.abs(last.fun)
     inl_thr = thr if thr is not None else (score_px if kind == "dt" else 1.0)
@@ -653,5 +526,5 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     cost = float(r[inl].mean()) if inl.any() else cost1
     # The interior check reads the pose as refined: spinning a revolved part changes no pixel of it,
     # but moves the border points that interior_at compares.
-    return RefineResult(_symmetric_canonical(pose, bank), cost, score1, iterations, inlier_ratio,
+    return RefineResult(reported(pose), cost, score1, iterations, inlier_ratio,
                         bool(converged), interior_at(pose))

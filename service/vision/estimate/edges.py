@@ -13,8 +13,13 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from service.vision.geometry.camera import Intrinsics, undistort_points
+
 DEFAULT_LSD_SCALE = 0.5  # LSD on the half-size image: ~2x faster, segments still sub-pixel
 MIN_SEGMENT_PX = 4.0  # full-resolution length below which LSD segments are mostly noise
+# A straight segment of the distorted image is a curve of the ideal one: it is undistorted in pieces
+# at most this long, so every piece's chord stays on that curve to well under a pixel.
+SPLIT_PX = 16.0
 
 
 @dataclass(frozen=True)
@@ -133,15 +138,24 @@ def edge_channels(seg: Segments, n_channels: int, shape_hw: tuple[int, int], *, 
     return out
 
 
-def undistort_segments(seg: Segments, intr) -> Segments:
-    """Segments of a distorted image -> segments in the ideal pinhole image (endpoints undistorted;
-    LSD segments are short enough that their midpoints stay on the straightened line)."""
-    from service.vision.camera import undistort_points
+def undistort_segments(seg: Segments, intr: Intrinsics, *, split_px: float = SPLIT_PX) -> Segments:
+    """Segments of the distorted image -> segments of the ideal pinhole camera ``intr.K``.
 
+    Each segment is split into pieces of at most ``split_px`` (a straight line of the distorted
+    image is a curve of the ideal one) and the endpoints are undistorted once.
+    """
     if intr.dist is None or len(seg) == 0:
         return seg
-    p0 = undistort_points(seg.uv0, intr).astype(np.float32)
-    p1 = undistort_points(seg.uv1, intr).astype(np.float32)
-    d = p1 - p0
+    L = seg.lengths_px
+    k = np.maximum(np.ceil(L / split_px).astype(np.int64), 1)
+    sid = np.repeat(np.arange(len(seg)), k)
+    start = np.repeat(np.cumsum(k) - k, k)
+    i = np.arange(int(k.sum())) - start
+    kk = np.repeat(k, k)
+    a = seg.uv0[sid] + (seg.uv1[sid] - seg.uv0[sid]) * (i / kk)[:, None]
+    b = seg.uv0[sid] + (seg.uv1[sid] - seg.uv0[sid]) * ((i + 1) / kk)[:, None]
+    ua = undistort_points(a, intr).astype(np.float32)
+    ub = undistort_points(b, intr).astype(np.float32)
+    d = ub - ua
     theta = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi).astype(np.float32)
-    return Segments(p0, p1, theta, seg.image_shape)
+    return Segments(ua, ub, theta, seg.image_shape)

@@ -65,10 +65,6 @@ def R_from_rotvec(rotvec_rad) -> np.ndarray:
     return Rotation.from_rotvec(np.asarray(rotvec_rad, float)).as_matrix()
 
 
-def rotvec_from_R(R: np.ndarray) -> np.ndarray:
-    return Rotation.from_matrix(np.asarray(R, float)).as_rotvec()
-
-
 def R_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The smallest rotation taking unit direction ``a`` onto unit direction ``b``."""
     a = np.asarray(a, float) / np.linalg.norm(a)
@@ -152,9 +148,15 @@ def axis_alpha_gamma_deg(axis_cam: np.ndarray) -> tuple[float, float]:
     return float(alpha), float(gamma)
 
 
-def canonical_symmetric_R(R_cam_obj: np.ndarray, axis_obj: np.ndarray) -> np.ndarray:
-    """The representative of ``R_cam_obj`` modulo spin about ``axis_obj`` (spin = 0, see above)."""
-    A = R_align_axis_to_y(axis_obj)
-    alpha, gamma = axis_alpha_gamma_deg(np.asarray(R_cam_obj) @ (np.asarray(axis_obj, float)
-                                                                / np.linalg.norm(axis_obj)))
-    return Rx(alpha) @ Rz(gamma) @ A
+def canonical_spin(pose: Pose, axis_obj: np.ndarray | None, point_obj: np.ndarray | None = None) -> Pose:
+    """The representative of ``pose`` (T_cam_obj) modulo spin about the symmetry axis ``axis_obj``
+    (object frame) through ``point_obj`` (mm, object frame; the origin when None): spin = 0, see above.
+    Spinning about that axis keeps ``point_obj`` where it was in the camera. ``axis_obj`` None (no
+    continuous symmetry): ``pose`` itself."""
+    if axis_obj is None:
+        return pose
+    axis = np.asarray(axis_obj, float) / np.linalg.norm(axis_obj)
+    alpha, gamma = axis_alpha_gamma_deg(np.asarray(pose.R) @ axis)
+    R = Rx(alpha) @ Rz(gamma) @ R_align_axis_to_y(axis)
+    p0 = np.zeros(3) if point_obj is None else np.asarray(point_obj, float)
+    return Pose(R, pose.R @ p0 + pose.t_mm - R @ p0)

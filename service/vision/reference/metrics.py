@@ -26,8 +26,8 @@ from scipy.spatial import ConvexHull, QhullError, cKDTree
 from scipy.spatial.distance import pdist
 from scipy.spatial.transform import Rotation
 
-from service.vision.camera import project
-from service.vision.frames import axis_alpha_gamma_deg, euler_xyz_deg_from_R, rotation_angle_deg
+from service.vision.geometry.camera import project
+from service.vision.geometry.frames import axis_alpha_gamma_deg, euler_xyz_deg_from_R, rotation_angle_deg
 
 # A symmetry set: None (no symmetry), (M, 3, 3) rotations about the origin, or (Rs, ts) pairs.
 Symmetries = None | np.ndarray | tuple[np.ndarray, np.ndarray]

@@ -20,20 +20,53 @@ corners too.
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
 
-from service.vision.bank import TemplateBank
-from service.vision.camera import Intrinsics
-from service.vision.chamfer import DistanceTensor, sample
-from service.vision.frames import Rz
+from service.vision.bank import (
+    TemplateBank,
+    border_triplets,
+    spread_order,
+    subsample_border,
+    view_dirs_obj,
+    view_neighbours,
+    view_step_deg,
+    views_within,
+)
+from service.vision.estimate.chamfer import (
+    DT_QUANT,
+    DistanceTensor,
+    pooled_distance_tensor,
+    quantised,
+    sample,
+)
+from service.vision.geometry.camera import Intrinsics, project, ray_rotation, ray_rotations
+from service.vision.geometry.frames import Rz
 from service.vision.memo import Memo
 
-DT_QUANT = 8  # level-A DT3 stored as uint8 in 1/8 px: 4x less memory traffic than float32
+# Early termination (``_scan``): a template is dropped once its first points, taken in spread order
+# round its border, already average this many times the best mean so far ...
+SENTINEL_RATIO = 1.2
+LEVEL_A_SENTINEL_POINTS = 8  # ... judged on this many points at level A (32 per template)
+LEVEL_B_SENTINEL_POINTS = 16  # ... and in level B's scans (80 and 160 per template)
+# Level A keeps views at least this fraction of its view step apart (greedy on the view sphere).
+LEVEL_A_VIEW_SPACING = 0.75
+# Level A's edge count: a pixel is an edge pixel where some channel's DT3 is under this (level px) ...
+EDGE_PIXEL_DT_PX = 0.75
+EDGE_COUNT_EXTENT = 0.8  # ... counted within this fraction of the templates' extent round an anchor
+PEAK_RADIUS_EXTENT = 0.25  # level-A peaks closer than this fraction of the template extent are one peak
+MIN_PEAK_RADIUS_PX = 2.0  # ... and never closer than this (level px)
+# Level B's first block is re-centred (at most MAX_WALKS times) while its best lies on the block's
+# edge: a view turned more than this fraction of local_view_deg, the first or last angle, the border.
+WALK_VIEW_EDGE = 0.6
+MAX_WALKS = 3
+FINE_VIEW_STEPS = 1.5  # level B's fine block: bank views within this many grid steps of the best
+# The fine block contains the first block's best, so it finds at least as good a placement unless the
+# denser sampling raises that one's cost by more than this factor.
+FINE_BLOCK_SLACK = 1.25
 
 
 @dataclass(frozen=True)
@@ -78,58 +111,6 @@ class Hypothesis:
 # --- geometry of a hypothesis ----------------------------------------------------------------------
 
 
-def ray_rotation(uv: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit viewing ray through pixel uv and the smallest rotation taking e_z onto it."""
-    d, R = ray_rotations(np.asarray(uv, float)[None], K)
-    return d[0], R[0]
-
-
-def ray_rotations(uv: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(M, 3) unit viewing rays through pixels uv (M, 2) and (M, 3, 3) rotations taking e_z onto them.
-
-    Rodrigues with k = e_z x d: R = I + [k]x + [k]x^2 / (1 + d_z); a ray never points backwards
-    (d_z > 0), so the formula never divides by zero.
-    """
-    d = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0], (uv[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(uv))], 1)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    kx = np.zeros((len(d), 3, 3))
-    kx[:, 0, 2], kx[:, 1, 2] = d[:, 0], d[:, 1]
-    kx[:, 2, 0], kx[:, 2, 1] = -d[:, 0], -d[:, 1]
-    R = np.eye(3) + kx + (kx @ kx) / (1.0 + d[:, 2])[:, None, None]
-    return d, R
-
-
-def view_dirs_obj(bank: TemplateBank) -> np.ndarray:
-    """(N, 3) each view's viewing direction (camera +z) in the object frame: R_tpl_obj.T @ e_z."""
-    return bank.R_tpl_obj[:, 2, :]
-
-
-@functools.lru_cache(maxsize=16)
-def spread_order(count: int) -> np.ndarray:
-    """A permutation of range(count) (indices along a closed border) whose every prefix is spread
-    evenly round it (greedy farthest point): the scans' early termination then judges a template on
-    points from all round its border, not on one stretch of it."""
-    pos = np.arange(count)
-    gap = np.full(count, count, np.int64)  # cyclic distance to the nearest chosen point
-    order = np.empty(count, np.int64)
-    for k in range(count):
-        i = int(np.argmax(gap))
-        order[k] = i
-        d = np.abs(pos - i)
-        gap = np.minimum(gap, np.minimum(d, count - d))
-    order.flags.writeable = False
-    return order
-
-
-def subsample_border(bank: TemplateBank, n: int, count: int) -> np.ndarray:
-    """Indices of ``count`` points spread evenly along template n's border."""
-    s = bank.points(n)
-    m = s.stop - s.start
-    if m <= count:
-        return np.arange(s.start, s.stop)
-    return s.start + np.linspace(0, m, count, endpoint=False).astype(np.int64)
-
-
 # --- level A: exhaustive scan ----------------------------------------------------------------------
 
 
@@ -142,11 +123,12 @@ def _scan(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, anchor_tile, acce
     level pixels of template t at scale d in tile j; chan: (T, P) int32.
     Returns best mean cost (A,), template (A,), scale index (A,). A template is abandoned as soon as
     its partial sum reaches the anchor's best total (all terms are >= 0), or when its first
-    ``n_sentinel`` points already average 1.5x the best mean. With ``shared`` only the overall best
-    matters (a local search): every anchor prunes against the best total any anchor has reached, and
-    anchors that cannot beat it report inf. Threads read that bound unsynchronised; a stale (higher)
-    bound only prunes less, so with ``n_sentinel = 0`` the overall best is exact. The sentinel is a
-    heuristic: points come in ``spread_order``, so the first ones are a fair sample of the border.
+    ``n_sentinel`` points already average ``SENTINEL_RATIO`` times the best mean. With ``shared`` only
+    the overall best matters (a local search): every anchor prunes against the best total any anchor
+    has reached, and anchors that cannot beat it report inf. Threads read that bound unsynchronised; a
+    stale (higher) bound only prunes less, so with ``n_sentinel = 0`` the overall best is exact. The
+    sentinel is a heuristic: points come in ``spread_order``, so the first ones are a fair sample of the
+    border.
     """
     A = anchors_u.shape[0]
     H = dt.shape[0]
@@ -181,7 +163,7 @@ def _scan(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, anchor_tile, acce
                     if acc >= best:
                         ok = False
                         break
-                    if i + 1 == n_sentinel and acc * P > best * n_sentinel * 1.2:
+                    if i + 1 == n_sentinel and acc * P > best * n_sentinel * SENTINEL_RATIO:
                         ok = False
                         break
                 if ok:
@@ -215,7 +197,7 @@ def _level_a_views(bank: TemplateBank, view_step_deg: float) -> np.ndarray:
     revolved part only one of each mirror pair (see ``views_within``: level B tries both)."""
     z = view_dirs_obj(bank)
     chosen: list[int] = []
-    cos_min = math.cos(math.radians(view_step_deg) * 0.75)
+    cos_min = math.cos(math.radians(view_step_deg) * LEVEL_A_VIEW_SPACING)
     candidates = range(len(z))
     if bank.symmetry_axis_obj is not None:
         candidates = np.flatnonzero(z @ np.asarray(bank.symmetry_axis_obj, float) >= -1e-6)
@@ -227,7 +209,7 @@ def _level_a_views(bank: TemplateBank, view_step_deg: float) -> np.ndarray:
 
 def level_a_templates(bank: TemplateBank, intr: Intrinsics, image_shape: tuple[int, int], p: SearchParams,
                       *, distance_mm: float | None, z_ref_mm: float) -> LevelATemplates:
-    from service.vision.edges import channel_of
+    from service.vision.estimate.edges import channel_of
 
     K = intr.K
     h, w = image_shape
@@ -262,11 +244,9 @@ def level_a_templates(bank: TemplateBank, intr: Intrinsics, image_shape: tuple[i
         else:
             zc = np.full(T, z_ref_mm)
         centre = d[None, :] / d[2] * zc[:, None]  # (T, 3)
-        q = pc + centre[:, None, :]
-        u = K[0, 0] * q[..., 0] / q[..., 2] + K[0, 2]
-        v = K[1, 1] * q[..., 1] / q[..., 2] + K[1, 2]
-        off_u[j] = (u - uv[0]) * p.level_scale
-        off_v[j] = (v - uv[1]) * p.level_scale
+        uv_pts = project(pc + centre[:, None, :], K)
+        off_u[j] = (uv_pts[..., 0] - uv[0]) * p.level_scale
+        off_v[j] = (uv_pts[..., 1] - uv[1]) * p.level_scale
         z_ref[j] = zc
     extent = float(max(np.abs(off_u).max(), np.abs(off_v).max()))
     step = np.hypot(np.diff(off_u[0], axis=1), np.diff(off_v[0], axis=1))
@@ -284,9 +264,9 @@ def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, 
     au, av = au.ravel().astype(np.int32), av.ravel().astype(np.int32)
     # An anchor can only win if the image has about as many edge pixels around it as a template has
     # border pixels: counting them (integral image) discards empty background before the scan.
-    edges = (dtt.dt.min(axis=0) < 0.75).astype(np.int32)
+    edges = (dtt.dt.min(axis=0) < EDGE_PIXEL_DT_PX).astype(np.int32)
     ii = np.pad(edges.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
-    r = max(int(tpl.extent_px * float(scales.min()) * 0.8), 1)
+    r = max(int(tpl.extent_px * float(scales.min()) * EDGE_COUNT_EXTENT), 1)
     u0, u1 = np.clip(au - r, 0, wl), np.clip(au + r + 1, 0, wl)
     v0, v1 = np.clip(av - r, 0, hl), np.clip(av + r + 1, 0, hl)
     count = ii[v1, u1] - ii[v0, u1] - ii[v1, u0] + ii[v0, u0]
@@ -300,7 +280,7 @@ def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, 
             + np.minimum((uf / w * nj_u).astype(np.int32), nj_u - 1)).astype(np.int32)
     off_u, off_v = scaled_offsets(tpl, scales)
     cost, t, d = _scan(dt_q, tau_q, off_u, off_v, tpl.chan, au, av, tile,
-                       np.int64(p.accept_frac * tau_q), 8, False)
+                       np.int64(p.accept_frac * tau_q), LEVEL_A_SENTINEL_POINTS, False)
     return au, av, tile, cost / DT_QUANT, t, d
 
 
@@ -329,31 +309,6 @@ def _scale_offsets(off, scales):
     return out
 
 
-def distance_tensor_from_edges_scaled(dtt: DistanceTensor, scale: float) -> DistanceTensor:
-    """A coarser DT3 by min-pooling (an edge anywhere in a cell counts), distances rescaled."""
-    f = int(round(dtt.scale / scale))
-    if f <= 1:
-        return dtt
-    pooled = _min_pool(dtt.dt, f)
-    return DistanceTensor(pooled, scale, dtt.origin_uv, dtt.tau_px / f, dtt.lambda_px / f)
-
-
-@nb.njit(parallel=True, cache=True)
-def _min_pool(dt, f):  # numpy's strided min over (C, h, f, w, f) took 50 ms at 640 x 480 x 16
-    C, H, W = dt.shape
-    hh, ww = H // f, W // f
-    out = np.empty((C, hh, ww), np.float32)
-    for c in nb.prange(C):
-        for y in range(hh):
-            for x in range(ww):
-                m = dt[c, y * f, x * f]
-                for i in range(f):
-                    for j in range(f):
-                        m = min(m, dt[c, y * f + i, x * f + j])
-                out[c, y, x] = m / f
-    return out
-
-
 def pick_peaks(au, av, cost, n_peaks: int, radius_lvl: float) -> list[int]:
     """Indices of the lowest-cost anchors, greedily suppressing neighbours within ``radius_lvl``."""
     order = np.argsort(cost)
@@ -368,22 +323,6 @@ def pick_peaks(au, av, cost, n_peaks: int, radius_lvl: float) -> list[int]:
 
 
 # --- level B: local scans around the peaks, then a sub-pixel polish --------------------------------
-
-
-_TRIPLETS = Memo(8)
-
-
-def border_triplets(bank: TemplateBank, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(N, count) indices of ``count`` points spread along every view's border, and of each point's
-    predecessor and successor on that border (for the projected orientation). Made once per bank."""
-
-    def make():
-        idx = np.stack([np.resize(subsample_border(bank, n, count), count) for n in range(bank.n_templates)])
-        lo = bank.offsets[:-1, None]
-        hi = bank.offsets[1:, None]
-        return idx, np.where(idx - 1 >= lo, idx - 1, hi - 1), np.where(idx + 1 < hi, idx + 1, lo)
-
-    return _TRIPLETS.get(bank, count, make)
 
 
 def poses_of(bank: TemplateBank, hs: list[Hypothesis], K: np.ndarray, distance_mm: float | None
@@ -407,70 +346,14 @@ def evaluate(bank: TemplateBank, views: np.ndarray, Rs: np.ndarray, ts: np.ndarr
     views = np.asarray(views, np.int64)
 
     def proj(ii):
-        q = bank.p_obj[ii].astype(np.float64) @ Rs.transpose(0, 2, 1) + ts[:, None, :]  # matmul: 10x einsum
-        u = K[0, 0] * q[..., 0] / q[..., 2] + K[0, 2]
-        return np.stack([u, K[1, 1] * q[..., 1] / q[..., 2] + K[1, 2]], -1)
+        # matmul: 10x faster than einsum here
+        return project(bank.p_obj[ii].astype(np.float64) @ Rs.transpose(0, 2, 1) + ts[:, None, :], K)
 
     uv = proj(idx_all[views])
     d = proj(nxt_all[views]) - proj(prev_all[views])
     theta = np.mod(np.arctan2(d[..., 1], d[..., 0]), np.pi)
     val = sample(dtt, dtt.to_grid(uv), theta) / dtt.scale
     return np.minimum(val, tau_px).mean(axis=1), (val <= score_px).mean(axis=1)
-
-
-_NEIGHBOURS = Memo(8)
-
-
-def view_neighbours(bank: TemplateBank, k: int = 6) -> np.ndarray:
-    """(N, k) the k nearest other views by viewing direction (object frame), once per bank."""
-
-    def make():
-        z = view_dirs_obj(bank)
-        sim = z @ z.T
-        np.fill_diagonal(sim, -np.inf)
-        return np.argsort(-sim, axis=1)[:, :min(k, len(z) - 1)]
-
-    return _NEIGHBOURS.get(bank, k, make)
-
-
-def bank_view_step_deg(bank: TemplateBank) -> float:
-    """Angle between neighbouring views of the bank's grid."""
-    key = "tilt_step_deg" if bank.symmetry_axis_obj is not None else "view_step_deg"
-    return float(bank.grid.get(key, 10.0))
-
-
-def views_within(bank: TemplateBank, view: int, angle_deg: float) -> np.ndarray:
-    """Bank views whose viewing direction (object frame) is within ``angle_deg`` of ``view``'s.
-
-    For a revolved part also those near its mirror view (the axis tilted the other way, towards or
-    away from the camera): the two silhouettes are equal in orthographic projection and differ only
-    by perspective, so level A cannot tell them apart.
-    """
-    z = view_dirs_obj(bank)
-    near = z @ z[view] >= math.cos(math.radians(angle_deg)) - 1e-9
-    if bank.symmetry_axis_obj is not None:
-        a = np.asarray(bank.symmetry_axis_obj, float)
-        mirror = z[view] - 2 * (z[view] @ a) * a  # the viewing direction reflected in the axis' normal plane
-        near |= z @ mirror >= math.cos(math.radians(angle_deg)) - 1e-9
-    return np.flatnonzero(near)
-
-
-def quantised(dtt: DistanceTensor, tau_px: float) -> tuple[np.ndarray, int]:
-    """DT3 truncated at ``tau_px`` (grid px) as (H, W, C) uint8 in 1/DT_QUANT px (for ``_scan``), and
-    the truncation in those units."""
-    tau_q = min(int(round(min(tau_px, dtt.tau_px) * DT_QUANT)), 255)
-    return _quantise_hwc(dtt.dt, np.float32(DT_QUANT), np.float32(tau_q)), tau_q
-
-
-@nb.njit(parallel=True, cache=True)
-def _quantise_hwc(dt, factor, tau_q):  # numpy's transposed copy alone took 13 ms at 640 x 480 x 16
-    C, H, W = dt.shape
-    out = np.empty((H, W, C), np.uint8)
-    for y in nb.prange(H):
-        for x in range(W):
-            for c in range(C):
-                out[y, x, c] = np.uint8(min(dt[c, y, x] * factor, tau_q) + np.float32(0.5))
-    return out
 
 
 @dataclass(frozen=True)
@@ -540,7 +423,7 @@ def _scan_window(bank: TemplateBank, win: Window, z_mm: float, dt_q: np.ndarray,
     au = (c0[0] + gu.ravel()[near_first]).astype(np.int32)
     av = (c0[1] + gv.ravel()[near_first]).astype(np.int32)
     cost, t, dk = _scan(dt_q, tau_q, off_u, off_v, chan, au, av, np.zeros(len(au), np.int32),
-                        np.int64(accept_q), 16, True)
+                        np.int64(accept_q), LEVEL_B_SENTINEL_POINTS, True)
     a = int(np.argmin(cost))
     if not np.isfinite(cost[a]):
         return None, np.inf, (0, 0, 0, 0)
@@ -553,7 +436,7 @@ def _scan_window(bank: TemplateBank, win: Window, z_mm: float, dt_q: np.ndarray,
 
 def local_scan(bank: TemplateBank, h: Hypothesis, dt_q: np.ndarray, tau_q: int, dtt: DistanceTensor,
                K: np.ndarray, p: SearchParams, *, distance_mm: float | None, accept_q: int,
-               max_walks: int = 3) -> tuple[Hypothesis | None, float]:
+               max_walks: int = MAX_WALKS) -> tuple[Hypothesis | None, float]:
     """Exhaustive search around a level-A peak on the finer grid, in two blocks.
 
     Level A only says which basin to look in: its angle and placement can be off by half a step, which
@@ -563,7 +446,8 @@ def local_scan(bank: TemplateBank, h: Hypothesis, dt_q: np.ndarray, tau_q: int, 
     +-``inplane_step_deg`` and pixels within ``local_radius_px`` are tried at double steps; the block
     is re-centred while its best lies on its edge. Then the best's immediate neighbourhood is tried
     at single steps, abandoning any template that cannot beat the first block's best. Both blocks drop a
-    template whose first 16 (spread) points already average 1.2x the best. Returns the
+    template whose first ``LEVEL_B_SENTINEL_POINTS`` (spread) points already average ``SENTINEL_RATIO``
+    times the best. Returns the
     best and its mean cost (1/DT_QUANT fine-grid px), or (None, inf) when nothing beats ``accept_q``.
     """
     s = dtt.scale
@@ -584,21 +468,19 @@ def local_scan(bank: TemplateBank, h: Hypothesis, dt_q: np.ndarray, tau_q: int, 
         centre_view = best.view
         best, best_q = hyp, q
         turn = math.degrees(math.acos(min(float(z_dirs[hyp.view] @ z_dirs[centre_view]), 1.0)))
-        on_edge = (turn > 0.6 * p.local_view_deg or iphi in (0, len(win.phis_deg) - 1)
+        on_edge = (turn > WALK_VIEW_EDGE * p.local_view_deg or iphi in (0, len(win.phis_deg) - 1)
                    or max(abs(du), abs(dv)) >= r - 1)
         if not on_edge:
             break
     if not np.isfinite(best_q):
         return None, np.inf
     # Fine block: neighbouring bank views, single angle and pixel steps, depth half-steps.
-    near = views_within(bank, best.view, 1.5 * bank_view_step_deg(bank))
+    near = views_within(bank, best.view, FINE_VIEW_STEPS * view_step_deg(bank))
     win = Window(near, best.phi_deg + np.arange(-step2, step2 + 1e-9, p.local_phi_step_deg / 2),
                  np.array([1.0]) if distance_mm is not None else np.array([1.0, 1 + p.depth_step / 4,
                                                                           1 / (1 + p.depth_step / 4)]),
                  best.uv, 2, 1)
-    # The block contains the first block's best, so it finds at least as good a placement unless the
-    # denser sampling raises that one's cost by more than the slack.
-    hyp, q, _ = _scan_window(bank, win, best.z_mm, dt_q, tau_q, int(math.ceil(best_q * 1.25)) + 1,
+    hyp, q, _ = _scan_window(bank, win, best.z_mm, dt_q, tau_q, int(math.ceil(best_q * FINE_BLOCK_SLACK)) + 1,
                              dtt, K, p.fine_points, distance_mm=distance_mm)
     return (hyp, q) if hyp is not None else (best, best_q)
 
@@ -661,13 +543,13 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
     """Ranked, polished, mutually distinct hypotheses (best first). ``dtt_b`` is the DT3 at
     ``fine_scale``; level A's grid is min-pooled from it."""
     K = intr.K
-    dtt_a = distance_tensor_from_edges_scaled(dtt_b, p.level_scale)
+    dtt_a = pooled_distance_tensor(dtt_b, p.level_scale)
     z_ref, scales = (distance_mm, np.array([1.0])) if distance_mm is not None else \
         depth_scales(distance_range_mm, p.depth_step)
     tpl = _cached_level_a(bank, intr, image_shape, p, distance_mm, z_ref)
     au, av, tile, cost, t, d = scan_level_a(dtt_a, tpl, scales, image_shape, p)
-    radius = 0.25 * tpl.extent_px * float(np.median(scales))
-    peaks = pick_peaks(au, av, cost, p.n_peaks, max(radius, 2.0))
+    radius = PEAK_RADIUS_EXTENT * tpl.extent_px * float(np.median(scales))
+    peaks = pick_peaks(au, av, cost, p.n_peaks, max(radius, MIN_PEAK_RADIUS_PX))
     n_phi = len(tpl.phis_deg)
     starts: list[Hypothesis] = []
     for a in peaks:

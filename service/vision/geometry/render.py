@@ -19,16 +19,11 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from service.vision.camera import Intrinsics
-from service.vision.frames import Pose
+from service.vision.geometry.camera import as_intrinsics, project
+from service.vision.geometry.frames import Pose
 
 Z_NEAR_MM = 1e-3  # triangles with any vertex closer than this (camera z, mm) are culled
 _EDGE_EPS = 1e-9  # inclusive edge test, relative (barycentric); closes cracks between shared edges
-
-
-def as_intrinsics(K_or_intr) -> Intrinsics:
-    """``Intrinsics`` or a (3, 3) ``K`` -> ``Intrinsics``."""
-    return K_or_intr if isinstance(K_or_intr, Intrinsics) else Intrinsics.from_K(np.asarray(K_or_intr, float))
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -179,8 +174,8 @@ def rasterise_roi(vertices_mm, faces, pose: Pose, K_or_intr, image_size, *, marg
     p = V @ np.asarray(pose.R, float).T + np.asarray(pose.t_mm, float)
     z = np.ascontiguousarray(p[:, 2])
     front = z > Z_NEAR_MM
-    zs = np.where(front, z, 1.0)
-    uv = np.stack([intr.fx * p[:, 0] / zs + intr.cx, intr.fy * p[:, 1] / zs + intr.cy], axis=1)
+    # Vertices behind the camera get a harmless depth: their triangles are culled in _zbuffer.
+    uv = project(np.column_stack([p[:, :2], np.where(front, z, 1.0)]), intr.K)
     if not front.any():
         return np.zeros((0, 0), np.float32), np.zeros((0, 0), np.int32), (0, 0)
     uvf = uv[front]

@@ -1,0 +1,122 @@
+"""The estimate's side of the cell, for the API and the CLI alike: a ``camera`` part that names a
+registered camera, the image-size and robot-pose checks, and the robot-frame poses and placed grasps
+added to a result (``service.cell`` does the frame math); ``estimate_result`` runs one estimate."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from service.cell import Grasp, base_from_cam, place_grasps, rigid
+from service.decode import image_size
+from service.errors import UnprocessableError
+from service.pipeline import estimate_image
+from service.schemas import (
+    Camera,
+    CameraRef,
+    CellCamera,
+    EstimateResult,
+    FramePose,
+    GraspSpec,
+    ModelInfo,
+    Options,
+    PlacedGraspJSON,
+    parse_json_object,
+    parse_json_part,
+)
+from service.vision.bank import TemplateBank
+
+
+def resolve_camera(text: str | None, store) -> tuple[CellCamera, str | None]:
+    """An estimate's ``camera`` part -> (the camera, its registered name or None): inline intrinsics,
+    or ``{"name": "<registered>"}``; 422 for an unknown name."""
+    value = parse_json_object(text, "camera")
+    if "name" not in value:
+        return parse_json_part(text, CellCamera, "camera"), None
+    if len(value) > 1:
+        others = ", ".join(sorted(k for k in value if k != "name"))
+        raise UnprocessableError(f"The camera part names a registered camera and also has {others}; send "
+                                 "either {\"name\": \"<registered>\"} alone or the intrinsics inline "
+                                 "without a name")
+    ref = parse_json_part(text, CameraRef, "camera")
+    record = store.camera(ref.name)
+    if record is None:
+        raise UnprocessableError(f"No camera is registered as '{ref.name}'; register it with PUT /cameras/"
+                                 f"{ref.name}, list the registered ones with GET /cameras, or send the "
+                                 "intrinsics inline")
+    fields = {k: v for k, v in record.items() if k in CellCamera.model_fields}
+    return CellCamera.model_validate(fields), ref.name
+
+
+def check_robot_pose(cam: CellCamera, opts: Options, name: str | None) -> None:
+    """422 when an eye-in-hand camera comes without the shot's robot pose."""
+    if cam.T_flange_cam is not None and opts.robot_pose is None:
+        which = f"Camera '{name}'" if name else "The camera"
+        raise UnprocessableError(
+            f"{which} is mounted on the robot's flange (T_flange_cam, eye-in-hand), so every estimate needs "
+            "options.robot_pose: send T_base_flange, the flange pose when the image was taken, as "
+            "{\"R\": 3x3, \"t_mm\": [x, y, z]}")
+
+
+def check_image_size(cam: CellCamera, image_size: tuple[int, int], name: str | None) -> None:
+    """422 when the image is not the size the camera's intrinsics belong to (``image_size`` = (w, h))."""
+    if cam.width is None or cam.height is None:
+        return
+    w, h = image_size
+    if (w, h) != (cam.width, cam.height):
+        which = f"camera '{name}' is registered for" if name else "the camera part's width and height say"
+        raise UnprocessableError(
+            f"The image is {w}x{h} pixels but {which} {cam.width}x{cam.height}; send the camera's full, "
+            "unscaled frames, or register the camera again with the intrinsics of this image size")
+
+
+def grasps_of(records: list[dict[str, Any]]) -> list[Grasp]:
+    specs = [GraspSpec.model_validate(r) for r in records]
+    return [Grasp(s.name, s.T_obj_grasp.matrix(), np.asarray(s.approach_axis, float)) for s in specs]
+
+
+def add_cell_frames(result: EstimateResult, bank: TemplateBank, cam: CellCamera, opts: Options,
+                    grasps: list[Grasp], camera_name: str | None = None) -> EstimateResult:
+    """The result with ``T_base_obj`` on every pose (when the extrinsics are known) and the grasps of
+    the reported pose (the refined one, else the coarse one; none when not found)."""
+    T_base_cam = base_from_cam(
+        None if cam.T_base_cam is None else cam.T_base_cam.matrix(),
+        None if cam.T_flange_cam is None else cam.T_flange_cam.matrix(),
+        None if opts.robot_pose is None else opts.robot_pose.matrix())
+    result.camera_name = camera_name
+    if T_base_cam is not None:
+        for pose in [result.coarse, result.refined, *result.candidates]:
+            if pose is not None:
+                pose.T_base_obj = FramePose.from_matrix(T_base_cam @ rigid(pose.R, pose.t_mm))
+    reported = result.refined or result.coarse
+    if result.found and reported is not None and grasps:
+        placed = place_grasps(rigid(reported.R, reported.t_mm), grasps, T_base_cam,
+                              symmetry_axis_obj=bank.symmetry_axis_obj,
+                              symmetry_point_obj=bank.symmetry_point_obj)
+        result.grasps = [PlacedGraspJSON(
+            name=p.name, T_cam_grasp=FramePose.from_matrix(p.T_cam_grasp),
+            T_base_grasp=None if p.T_base_grasp is None else FramePose.from_matrix(p.T_base_grasp),
+            approach_angle_deg=p.approach_angle_deg, spin_deg=p.spin_deg) for p in placed]
+    return result
+
+
+def estimate_result(record: dict[str, Any], bank: TemplateBank, data: bytes, cam: Camera, opts: Options, *,
+                    max_pixels: int, camera_name: str | None = None,
+                    grasps: list[Grasp] | None = None) -> EstimateResult:
+    """Image bytes -> EstimateResult (blocking: the API calls it from a worker thread).
+
+    With a ``CellCamera`` (image size, extrinsics) the image size is checked and the result gains the
+    robot-frame poses and the placed ``grasps``."""
+    if isinstance(cam, CellCamera):
+        size = image_size(data)
+        if size is not None:  # from the header: refused before a pixel is decoded
+            check_image_size(cam, size, camera_name)
+    out = estimate_image(bank, data, cam.to_intrinsics(), max_pixels=max_pixels, **opts.estimate_kwargs())
+    if isinstance(cam, CellCamera):
+        check_image_size(cam, out.image_size, camera_name)
+    result = EstimateResult.from_output(record["id"], out)
+    result.warnings = ModelInfo.from_record(record).warnings
+    if isinstance(cam, CellCamera):
+        result = add_cell_frames(result, bank, cam, opts, grasps or [], camera_name)
+    return result

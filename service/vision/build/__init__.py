@@ -1,0 +1,1 @@
+"""Upload time: mesh -> symmetry axis -> rotation grid -> borderline templates -> the bank."""

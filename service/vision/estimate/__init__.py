@@ -1,0 +1,1 @@
+"""Per frame: edges -> distance tensor -> coarse search -> refinement -> verdict."""

@@ -1,0 +1,1 @@
+"""Geometry both rooms stand on: frames and poses, the camera, the rasteriser, silhouette borders."""

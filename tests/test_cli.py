@@ -1,0 +1,101 @@
+"""The command line (``python -m service build | estimate``) as a newcomer meets it: the shipped
+example camera, one-line errors for missing files, a progress line while building, and the overlay
+written as a PNG file instead of base64 into the terminal."""
+
+from __future__ import annotations
+
+import io
+import json
+import threading
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from service.__main__ import _progress, main
+from service.schemas import CellCamera
+from service.store import Store
+from tests.tolerances import COARSE_XY_MM
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLE_CAMERA = ROOT / "examples" / "cam.json"
+GRID = json.dumps({"tilt_step_deg": 15, "view_step_deg": 45})
+
+
+def test_example_camera_is_the_paper_renders_camera(paper_gt):
+    cam = CellCamera.model_validate_json(EXAMPLE_CAMERA.read_text())
+    K = np.array(paper_gt["K"])
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    assert (cam.width, cam.height) == (paper_gt["width"], paper_gt["height"])
+
+
+def test_missing_camera_file_says_file_not_found(tmp_path, capsys):
+    code = main(["--cache-dir", str(tmp_path), "estimate", "part.stl", "image.png", "--camera", "cam.json"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: camera file not found: cam.json (give a JSON file such as "
+                          "examples/cam.json")
+    assert "not valid JSON" not in err
+
+
+def test_missing_image_and_mesh_files_say_file_not_found(tmp_path, capsys):
+    code = main(["--cache-dir", str(tmp_path), "estimate", "part.stl", "nothere.png",
+                 "--camera", str(EXAMPLE_CAMERA)])
+    assert code == 2
+    assert capsys.readouterr().err.startswith("error: image file not found: nothere.png")
+    assert main(["--cache-dir", str(tmp_path), "build", "nothere.stl"]) == 2
+    assert capsys.readouterr().err.startswith("error: mesh file not found: nothere.stl")
+
+
+def test_camera_text_that_is_not_json_is_still_a_json_error(tmp_path, capsys):
+    assert main(["--cache-dir", str(tmp_path), "estimate", "p.stl", "i.png", "--camera", '{"fx": 1,']) == 2
+    assert "The camera part is not valid JSON" in capsys.readouterr().err
+
+
+def test_build_progress_line(tmp_path):
+    """The line a terminal shows while a build runs: overwritten in place, cleared at the end."""
+    with Store(tmp_path) as store:
+        store.create({"id": "m1", "status": "building", "progress": 0.5}, b"mesh")
+    out, done = io.StringIO(), threading.Event()
+    t = threading.Thread(target=_progress, args=(tmp_path, "m1", done, out))
+    t.start()
+    while "%" not in out.getvalue():
+        t.join(0.1)
+    done.set()
+    t.join()
+    text = out.getvalue()
+    assert text.startswith("\rbuilding templates of m1: building  50%")
+    assert text.endswith("\r\033[K")
+
+
+@pytest.mark.slow
+def test_estimate_writes_the_overlay_png(tmp_path, data_dir, capsys):
+    overlay = tmp_path / "overlay.png"
+    code = main(["--cache-dir", str(tmp_path / "cache"), "estimate", str(data_dir / "models" / "sprayer.stl"),
+                 str(data_dir / "paper" / "images" / "0001.png"), "--camera", str(EXAMPLE_CAMERA),
+                 "--templates", GRID, "--options", '{"distance_mm": 500}', "--overlay-out", str(overlay)])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    result = json.loads(captured.out)
+    assert result["found"] is True and result["overlay_png_base64"] is None
+    assert f"overlay written to {overlay}" in captured.err
+    img = cv2.imread(str(overlay))
+    assert img.shape == (960, 1280, 3)
+
+
+def test_build_then_estimate_prints_the_api_json(tmp_path, data_dir, paper_gt, capsys):
+    mesh = str(data_dir / "models" / "sprayer.stl")
+    grid = '{"tilt_step_deg": 6}'
+    assert main(["--cache-dir", str(tmp_path), "build", mesh, "--symmetry", "y", "--templates", grid]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["status"] == "ready" and info["symmetry"] == {"type": "continuous", "axis": [0.0, 1.0, 0.0]}
+    K = paper_gt["K"]
+    camera = json.dumps({"fx": K[0][0], "fy": K[1][1], "cx": K[0][2], "cy": K[1][2]})
+    image = str(data_dir / "paper" / paper_gt["image"])
+    assert main(["--cache-dir", str(tmp_path), "estimate", mesh, image, "--symmetry", "y", "--templates",
+                 grid, "--camera", camera, "--options", '{"distance_mm": 500, "refine": false}']) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["model_id"] == info["id"] and out["found"]
+    t_mm = np.array(out["coarse"]["t_mm"])
+    assert np.all(np.abs(t_mm[:2] - np.array(paper_gt["t_mm"])[:2]) <= COARSE_XY_MM)
