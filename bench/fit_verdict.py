@@ -2,11 +2,14 @@
 
 Input: the ``*-features.pkl`` files of ``bench/hypotheses.py features`` (one row per refined
 hypothesis, labelled right when its refined MSPD (640 px) is under 20 px). A logistic regression on
-the evidence (``service.vision.verdict.FEATURES``) is fitted on the sets given with ``--fit``; every
+the evidence (``service.vision.estimate.verdict.MODEL_FEATURES``, each weight's sign fixed so that
+better evidence never lowers the score) is fitted on the sets given with ``--fit``; every
 set is then judged per query as the pipeline judges it: the hypothesis with the highest verification
 score is reported, found when the score reaches the threshold.
 
-    python bench/fit_verdict.py --fit synth-a --report clutter,absent,paper,lmo_dev
+    python bench/synth_scenes.py /tmp/synth_a --n 120 --seed 11
+    python bench/hypotheses.py proposals --set /tmp/synth_a  # then features, truths; also clutter2, absent2
+    python bench/fit_verdict.py --fit synth_a,clutter2,absent2 --report clutter,absent,paper
 """
 
 from __future__ import annotations
@@ -22,7 +25,13 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from service.vision.estimate.verdict import FEATURES, feature_vector  # noqa: E402
+from service.vision.estimate.verdict import (  # noqa: E402
+    FEATURES,
+    LOWER_IS_BETTER,
+    MIN_SCORE,
+    MODEL_FEATURES,
+    feature_vector,
+)
 
 OUT = ROOT / "bench" / "out" / "hyps"
 RIGHT_PX = 20.0
@@ -60,6 +69,25 @@ def fit_logistic(X: np.ndarray, y: np.ndarray, l2: float = 1.0, iters: int = 50)
     return w
 
 
+def fit_monotone(X: np.ndarray, y: np.ndarray, signs: np.ndarray) -> np.ndarray:
+    """The logistic fit with every weight's sign fixed by ``signs`` (+1: more of the evidence never
+    lowers the score; -1: never raises it): features whose fitted weight takes the wrong sign are
+    dropped one at a time (the most wrong first) and the rest refitted. Returns (bias, weights...)."""
+    active = list(range(X.shape[1]))
+    while True:
+        Xs = X[:, active] * signs[active]
+        mu, sd = Xs.mean(0), Xs.std(0) + 1e-9
+        ws = fit_logistic((Xs - mu) / sd, y)
+        if min(ws[1:]) >= 0:
+            break
+        active.pop(int(np.argmin(ws[1:])))
+    w = np.zeros(X.shape[1] + 1)
+    w[0] = ws[0] - (ws[1:] * mu / sd).sum()
+    for a, v in zip(active, ws[1:] / sd, strict=True):
+        w[a + 1] = v * signs[a]
+    return w
+
+
 def judge(rows: list[dict], w: np.ndarray, thr: float) -> dict:
     """Per query: the best-scoring hypothesis is the answer; found if its score >= thr."""
     by_q: dict = {}
@@ -92,31 +120,32 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--fit", required=True, help="comma-separated feature sets to fit on")
     ap.add_argument("--report", default="", help="comma-separated feature sets to report on")
-    ap.add_argument("--precision", type=float, default=0.995, help="operating point on the fit sets")
+    ap.add_argument("--use", default=",".join(MODEL_FEATURES), help="evidence the score may use")
+    ap.add_argument("--min-score", type=float, default=None, help="operating point to report at")
     a = ap.parse_args(argv)
     fit_rows = [r for s in a.fit.split(",") for r in load(s)]
     X, y = design(fit_rows)
-    mu, sd = X.mean(0), X.std(0) + 1e-9
-    w_std = fit_logistic((X - mu) / sd, y)
-    w = np.concatenate([[w_std[0] - (w_std[1:] * mu / sd).sum()], w_std[1:] / sd])
+    use = [FEATURES.index(f) for f in a.use.split(",")]
+    signs = np.array([-1.0 if FEATURES[i] in LOWER_IS_BETTER else 1.0 for i in use])
+    w_use = fit_monotone(X[:, use], y, signs)
+    w = np.zeros(len(FEATURES) + 1)
+    w[0] = w_use[0]
+    w[[i + 1 for i in use]] = w_use[1:]
     print(f"fitted on {len(fit_rows)} hypotheses, {int(y.sum())} right")
-    names = ("bias",) + FEATURES
-    print("weights:", {f: round(float(v), 3) for f, v in zip(names, w, strict=True)})
-    print("\n| threshold | found | right | wrong | recall<5px | recall<20px | precision |")
+    print("weights:", {f: round(float(v), 3) for f, v in zip(("bias",) + FEATURES, w, strict=True) if v != 0})
+    print("\nOn the fit sets, per query (the best-scoring hypothesis is the answer):\n")
+    print("| threshold | found | right | wrong | recall<5px | recall<20px | precision |")
     print("|---|---|---|---|---|---|---|")
-    chosen = None
-    for thr in (0.3, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98, 0.99, 0.995, 0.999):
+    for thr in (0.5, 0.7, 0.8, 0.9, 0.95, 0.97, 0.98, 0.99, 0.995):
         j = judge(fit_rows, w, thr)
         print(f"| {thr} | {j['found']} | {j['right']} | {j['wrong']} | {j['recall5']:.0%} "
               f"| {j['recall20']:.0%} | {j['precision']:.1%} |")
-        if chosen is None and j["precision"] >= a.precision:
-            chosen = thr
-    chosen = chosen or 0.99
-    print(f"\noperating point: {chosen}")
-    print("\n| set | queries | found | right | wrong | recall<5px | recall<20px | precision |")
+    thr = a.min_score if a.min_score is not None else MIN_SCORE
+    print(f"\nAt the operating point {thr}:\n")
+    print("| set | queries | found | right | wrong | recall<5px | recall<20px | precision |")
     print("|---|---|---|---|---|---|---|---|")
     for s in [x for x in a.report.split(",") if x]:
-        j = judge(load(s), w, chosen)
+        j = judge(load(s), w, thr)
         print(f"| {s} | {j['queries']} | {j['found']} | {j['right']} | {j['wrong']} | {j['recall5']:.0%} | "
               f"{j['recall20']:.0%} | {j['precision']:.1%} |")
     return 0
