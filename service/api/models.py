@@ -66,8 +66,9 @@ def get_model(record: ModelRecord) -> ModelInfo:
 
 @router.delete("/models/{model_id}", status_code=204, response_class=Response,
                responses=error_responses(404, 422))
-def delete_model(record: ModelRecord, store: StoreDep) -> Response:
+def delete_model(record: ModelRecord, store: StoreDep, builder: BuilderDep) -> Response:
     store.delete(record["id"])
+    builder.cancel(record["id"])  # a build of it here ends now; one in another process within WATCH_S
     return Response(status_code=204)
 
 
