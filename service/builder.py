@@ -77,7 +77,7 @@ def register_upload(store: Store, settings: Settings, data: bytes, *, filename: 
         mesh = decode_mesh(data, filename, units)  # raises 415/422 now, not in the build
         sym = Symmetry.from_option(symmetry)
         record = {
-            "id": mid, "name": name or filename, "filename": filename, "units": units,
+            "id": mid, "name": name or filename[:200], "filename": filename, "units": units,
             "symmetry_option": symmetry, "templates": grid,
             "status": "queued", "progress": 0.0, "error": None, "n_templates": None,
             "extents_mm": [float(x) for x in mesh.extents],

@@ -9,6 +9,7 @@ from starlette.concurrency import run_in_threadpool
 
 from service import monitoring
 from service.api import error_responses
+from service.api.bounds import check_plausible
 from service.api.deps import Loaded, ReadyModel, SettingsDep, parse_json_part, read_upload
 from service.decode import decode_image
 from service.pipeline import estimate as estimate_pose
@@ -22,6 +23,7 @@ def run_estimate(model: Loaded, data: bytes, cam: Camera, opts: Options,
                  settings: Settings) -> EstimateResult:
     """Image bytes -> EstimateResult (blocking: call it from a worker thread; the CLI calls it too)."""
     image = decode_image(data, max_pixels=settings.max_image_pixels)
+    check_plausible(cam, opts, (image.shape[1], image.shape[0]))
     out = estimate_pose(model.bank, image, cam.to_intrinsics(), distance_mm=opts.distance_mm,
                         distance_range_mm=opts.distance_range_mm, refine=opts.refine, top_k=opts.top_k,
                         overlay=opts.overlay)

@@ -24,6 +24,7 @@ from service.pipeline import template_picture
 from service.schemas import ModelInfo, SymmetryOption, Units
 
 router = APIRouter(tags=["models"])
+NAME_MAX_CHARS = 200
 
 
 @router.post("/models", status_code=202, response_model=ModelInfo, responses=error_responses(413, 415, 422))
@@ -34,7 +35,8 @@ async def upload_model(
     builder: BuilderDep,
     file: Annotated[UploadFile, File(
         description="the CAD mesh: STL (binary or ASCII), OBJ, PLY, OFF or GLB")],
-    name: Annotated[str | None, Form(description="a label; defaults to the file name")] = None,
+    name: Annotated[str | None, Form(description="a label; defaults to the file name",
+                                     max_length=NAME_MAX_CHARS)] = None,
     units: Annotated[Units, Form(description="the mesh's unit, converted to mm once")] = "mm",
     symmetry: Annotated[SymmetryOption, Form(
         description="auto (detect), none, or the model-frame axis x, y, z of a continuous symmetry",
