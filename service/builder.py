@@ -178,6 +178,7 @@ def run_build(cache_dir: str, mid: str, lease_s: float, *, parent_pid: int | Non
             mesh = fit_face_budget(mesh)
             bank = build_templates(mesh, symmetry=rec["symmetry_option"], grid=dict(rec["templates"]),
                                    progress=progress)
+            check_bank(bank)
         except _DeletedError:
             return "deleted"
         except Exception as e:
@@ -211,6 +212,24 @@ def run_build(cache_dir: str, mid: str, lease_s: float, *, parent_pid: int | Non
         store.close()
         if in_main:
             signal.signal(signal.SIGTERM, old_handler)
+
+
+MIN_TEMPLATE_POINTS = 32  # the coarse search's level A samples this many border points per view
+
+
+def check_bank(bank: Any) -> None:
+    """422 (the build fails with this sentence) for a bank a search cannot use: a view whose border has
+    fewer points than the coarse search samples (a part that is a line or a speck from that side; its
+    estimates failed with a 500 and line-like views fit any straight edge)."""
+    import numpy as np
+
+    counts = np.diff(np.asarray(bank.offsets))
+    k = int(np.argmin(counts))
+    if counts[k] < MIN_TEMPLATE_POINTS:
+        raise UnprocessableError(f"Seen from template view {k} the part's outline has only {int(counts[k])} "
+                                 f"border points, fewer than the {MIN_TEMPLATE_POINTS} a search needs (the "
+                                 "mesh is a line or a speck from that side); upload the part as a solid with "
+                                 "its real thickness, or a larger render_px")
 
 
 def _out_of_memory(e: BaseException) -> bool:

@@ -35,6 +35,10 @@ MAX_MESH_FACES = 2_000_000  # a 100 MB binary STL holds ~2M triangles; more only
 MIN_MESH_FACES = 4  # fewer cannot enclose anything: a stray triangle or two is not a part
 MIN_MESH_AREA_MM2 = 1e-6  # total surface area, mm^2, after the unit conversion
 MIN_MESH_EXTENT_MM = 1.0  # the mesh's largest side, mm: smaller is a unit mistake or a speck
+# Thinnest extent (along the vertices' least principal axis) as a fraction of the largest: under
+# this a part seen edge-on is a line thinner than a template pixel (render_px 400 spans the part),
+# a template that fits any straight edge in any image with full confidence.
+MIN_THICKNESS_FRACTION = 1.0 / 400.0
 # Template builds rasterise the mesh ~1,000 times at render_px (400 px across the part, 2x
 # supersampled); their memory and time grow with the face count. A silhouette at that resolution
 # needs far fewer faces than a fine CAD export has: meshes over this budget are simplified to it
@@ -182,6 +186,14 @@ def check_geometry(mesh: trimesh.Trimesh, filename: str, units: str = "mm") -> N
         raise UnprocessableError(f"The mesh in '{filename}' has a surface area of {area:.3g} mm^2 (its "
                                  "triangles are degenerate); upload a mesh whose faces span a surface")
     largest = float(np.max(mesh.extents))
+    V = np.asarray(mesh.vertices, np.float64)
+    centred = V - V.mean(axis=0)
+    thinnest = np.linalg.eigh(centred.T @ centred)[1][:, 0]  # least principal axis
+    thickness = float(np.ptp(centred @ thinnest))
+    if thickness < MIN_THICKNESS_FRACTION * largest:
+        raise UnprocessableError(f"The mesh in '{filename}' is flat or thin ({thickness:.3g} mm thick across "
+                                 f"{largest:.3g} mm): seen edge-on it is a line that would match any "
+                                 "straight edge; upload the part as a solid with its real thickness")
     if largest < MIN_MESH_EXTENT_MM:
         bigger = [u for u, k in UNIT_TO_MM.items() if k > UNIT_TO_MM.get(units, 1.0)]
         hint = f"; if its coordinates are in {' or '.join(bigger)}, declare that with units" if bigger else ""

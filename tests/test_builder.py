@@ -194,3 +194,25 @@ def test_a_build_process_ends_with_its_killed_service_and_puts_its_model_back(tm
             service.stdout.close()
         assert store.get(mid)["status"] == "queued"
         assert store.lock_holder(mid) is None
+
+
+def test_a_flat_mesh_is_refused_at_upload_and_a_line_like_bank_fails_its_build(tmp_path):
+    """Item 8: a degenerate model must not produce confident poses (nor 500s). A zero-thickness plate was
+    accepted, built, and its edge-on views (lines, or fewer border points than the coarse search
+    samples) made every estimate fail with a 500."""
+    from service.builder import check_bank
+    from service.errors import UnprocessableError
+    from tests.test_store import _bank
+
+    plate = trimesh.creation.box((100.0, 60.0, 1.0)).subdivide()
+    flat = trimesh.Trimesh(plate.vertices * [1.0, 1.0, 0.0], plate.faces)
+    settings = Settings(cache_dir=tmp_path / "cache", template_grid=SMALL_GRID)
+    with TestClient(create_app(settings)) as c:
+        r = c.post("/models", files={"file": ("plate.stl", _stl(flat))}, data={"symmetry": "none"})
+        assert r.status_code == 422, r.text
+        assert "flat" in r.json()["detail"] and "thickness" in r.json()["detail"]
+        r = c.post("/models", files={"file": ("plate.stl", _stl(trimesh.creation.box((100.0, 60.0, 3.0))))},
+                   data={"symmetry": "none"})
+        assert r.status_code == 202  # a thin plate with a real thickness is a part
+    with pytest.raises(UnprocessableError, match="border points"):
+        check_bank(_bank())  # views of 4 to 6 border points
