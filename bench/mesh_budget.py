@@ -76,7 +76,8 @@ def main() -> None:
         small = fit_face_budget(mesh, TEMPLATE_FACE_BUDGET)
         dt = time.perf_counter() - t0
         mean, worst = border_error_px(mesh, small)
-        print(f"| {name} | {len(mesh.faces):,} | {len(small.faces):,} | {dt:.1f} | {mean:.3f} / {worst:.2f} |")
+        print(f"| {name} | {len(mesh.faces):,} | {len(small.faces):,} | {dt:.1f} | {mean:.3f} / "
+              f"{worst:.2f} |")
 
 
 if __name__ == "__main__":

@@ -266,8 +266,9 @@ def test_tiny_images_are_422_not_500(client, w, h):
 
 def test_the_smallest_accepted_image_gets_an_answer(client):
     """Item 4: at the minimum size the pipeline runs (nothing to find there: found is false)."""
-    from service.decode import MIN_IMAGE_SIDE_PX as n
+    from service.decode import MIN_IMAGE_SIDE_PX
 
+    n = MIN_IMAGE_SIDE_PX
     for shape in [(n, n), (n, 2000), (2000, n)]:
         r = estimate(client, client.ready_id, image=_png(np.zeros(shape, np.uint8)),
                      camera={"fx": 500.0, "fy": 500.0, "cx": (shape[1] - 1) / 2, "cy": (shape[0] - 1) / 2})
@@ -291,13 +292,14 @@ def test_image_bomb_is_413_from_its_header(client):
     ({**CAMERA, "cx": 1e300}, None, "cx is 1e+300 px, outside this 1280 x 960 image"),
     ({**CAMERA, "cy": -40.0}, None, "principal point must lie in the image"),
     ({**CAMERA, "dist": [1e200, 0, 0, 0]}, None, "dist"),
-    (CAMERA, {"distance_mm": 0.5}, "distance_mm is 0.5, under 10 mm: distances are in millimetres (did you send "
-                                   "metres?)"),
+    (CAMERA, {"distance_mm": 0.5},
+     "distance_mm is 0.5, under 10 mm: distances are in millimetres (did you send metres?)"),
     (CAMERA, {"distance_mm": 1e300}, "over 20 m"),
     (CAMERA, {"distance_range_mm": [0.3, 0.9]}, "did you send metres"),
     (CAMERA, {"distance_range_mm": [300, 50000]}, "over 20 m"),
 ])
-def test_implausible_camera_or_distance_is_422_with_the_likely_fix(client, image_bytes, camera, options, words):
+def test_implausible_camera_or_distance_is_422_with_the_likely_fix(client, image_bytes, camera, options,
+                                                                   words):
     """Item 5: values that pass the schema but no real camera has (fx = 1e15, 1e300, 1e-300; cx = 1e300
     made coarse.py fail with a 500)."""
     r = estimate(client, client.ready_id, image=image_bytes, camera=camera, options=options)
@@ -363,7 +365,8 @@ def test_name_length_is_limited_and_long_ids_are_not_echoed(client, sprayer_byte
 
 
 @pytest.mark.parametrize("body, content_type", [
-    (b"--xyz\r\nContent-Disposition: form-data; name=\"camera\"\r\n\r\n" + b"a" * (1100 * 1024) + b"\r\n--xyz--\r\n",
+    (b"--xyz\r\nContent-Disposition: form-data; name=\"camera\"\r\n\r\n" + b"a" * (1100 * 1024)
+     + b"\r\n--xyz--\r\n",
      "multipart/form-data; boundary=xyz"),
     (b"garbage without any boundary", "multipart/form-data; boundary=xyz"),
     (b"--xyz\r\nno headers here\r\n\r\n--xyz--", "multipart/form-data; boundary=xyz"),
@@ -371,7 +374,8 @@ def test_name_length_is_limited_and_long_ids_are_not_echoed(client, sprayer_byte
 def test_multipart_parser_errors_are_400_sentences(client, body, content_type):
     """Item 12: the multipart parser's 400s ("Invalid multipart data.", "Part exceeded maximum size of
     1024KB.") are sentences that say how to send the form, and are in API.md's table."""
-    r = client.post(f"/models/{client.ready_id}/estimate", content=body, headers={"content-type": content_type})
+    r = client.post(f"/models/{client.ready_id}/estimate", content=body,
+                    headers={"content-type": content_type})
     if r.status_code == 400:
         detail = assert_error(r, 400)
         assert "multipart/form-data" in detail and "send" in detail

@@ -181,8 +181,8 @@ def test_a_build_process_ends_with_its_killed_service_and_puts_its_model_back(tm
         rec, _ = register_upload(store, settings, sprayer_bytes, filename="sprayer.stl", symmetry="none",
                                  templates=SLOW_GRID)
         mid = rec["id"]
-        service = subprocess.Popen([sys.executable, "-c", _SERVICE.format(root=str(ROOT),
-                                    cache=str(settings.cache_dir), mid=mid)], stdout=subprocess.PIPE, text=True)
+        code = _SERVICE.format(root=str(ROOT), cache=str(settings.cache_dir), mid=mid)
+        service = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
         try:
             worker = int(service.stdout.readline())
             _until(lambda: store.get(mid)["status"] == "building", "the build to start")
