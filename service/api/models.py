@@ -27,7 +27,8 @@ router = APIRouter(tags=["models"])
 NAME_MAX_CHARS = 200
 
 
-@router.post("/models", status_code=202, response_model=ModelInfo, responses=error_responses(413, 415, 422))
+@router.post("/models", status_code=202, response_model=ModelInfo,
+             responses=error_responses(400, 413, 415, 422))
 async def upload_model(
     response: Response,
     store: StoreDep,
