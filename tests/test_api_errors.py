@@ -338,8 +338,10 @@ def test_templates_null_names_the_json_type(client, sprayer_bytes):
 
 def test_a_mesh_without_extension_is_read_by_content(client, sprayer_bytes):
     """Item 12: a file name without an extension got 415 although the bytes are a valid STL."""
-    r = client.post("/models", files={"file": ("sprayer", sprayer_bytes)}, data={"symmetry": "y"})
+    r = client.post("/models", files={"file": ("sprayer", sprayer_bytes)},  # a new id: decoded here
+                    data={"symmetry": "x", "templates": json.dumps(GRID)})
     assert r.status_code == 202, r.text
+    assert r.json()["extents_mm"] == pytest.approx([60.0, 200.0, 60.0], abs=0.01)
 
 
 def test_405_lists_every_allowed_method(client):

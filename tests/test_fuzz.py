@@ -33,11 +33,12 @@ GRID = {"tilt_step_deg": 30, "view_step_deg": 60}
 
 def _image(w: int = 96, h: int = 72) -> bytes:
     img = np.full((h, w), 60, np.uint8)
-    cv2.circle(img, (w // 2, h // 2), min(w, h) // 4, 200, -1)
+    cv2.circle(img, (w // 2, h // 2), max(1, min(w, h) // 4), 200, -1)
     return cv2.imencode(".png", img)[1].tobytes()
 
 
 IMAGE = _image()
+IMAGES = [IMAGE, _image(1, 1), _image(1, 300), _image(300, 2), _image(32, 32)]
 
 numbers = st.one_of(
     st.floats(allow_nan=False, allow_infinity=False),
@@ -86,14 +87,15 @@ def client(tmp_path_factory, sprayer_bytes):
 
 
 @FUZZ
-@given(cam=st.one_of(camera, json_values, st.text(max_size=40)), opts=st.one_of(options, json_values))
-def test_estimate_never_answers_5xx(client, cam, opts):
+@given(cam=st.one_of(camera, camera, camera, json_values, st.text(max_size=40)),
+       opts=st.one_of(options, options, json_values), image=st.sampled_from(IMAGES))
+def test_estimate_never_answers_5xx(client, cam, opts, image):
     base = {"fx": 100.0, "fy": 100.0, "cx": 47.5, "cy": 35.5}
     if isinstance(cam, dict) and not (set(cam) - {"fx", "fy", "cx", "cy", "dist"}):
         cam = {**base, **cam}  # mostly well-formed, so the values reach the pipeline
     if isinstance(opts, dict) and "distance_mm" not in opts and "distance_range_mm" not in opts:
         opts = {**opts, "distance_mm": 400.0}
-    r = client.post(f"/models/{client.ready_id}/estimate", files={"image": ("i.png", IMAGE)},
+    r = client.post(f"/models/{client.ready_id}/estimate", files={"image": ("i.png", image)},
                     data={"camera": _text(cam), "options": _text(opts)})
     _sound(r)
 
