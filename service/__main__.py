@@ -90,12 +90,39 @@ PROGRESS_EVERY_S = 0.5  # how often the build's progress line is redrawn on a te
 METRICS_DIR_ENV = "PROMETHEUS_MULTIPROC_DIR"  # read by prometheus_client when it is imported
 
 
+METRICS_DIR_PREFIX = "posecell-metrics-"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process: alive
+        return True
+    return True
+
+
+def remove_stale_metrics_dirs(tmp: Path | None = None) -> list[Path]:
+    """Delete the private metrics directories of servers that died without removing them (kill -9).
+
+    Each is named ``posecell-metrics-<pid>-<random>``; one whose pid no longer runs is stale."""
+    removed = []
+    for path in Path(tmp or tempfile.gettempdir()).glob(f"{METRICS_DIR_PREFIX}*"):
+        pid = path.name[len(METRICS_DIR_PREFIX):].split("-", 1)[0]
+        if path.is_dir() and pid.isdigit() and not _pid_alive(int(pid)):
+            shutil.rmtree(path, ignore_errors=True)
+            removed.append(path)
+    return removed
+
+
 def prepare_metrics_dir() -> tuple[Path, bool]:
     """An empty directory in ``$PROMETHEUS_MULTIPROC_DIR`` for the workers' metric files: (it, made here).
 
     Must run before any process of this server imports prometheus_client (the workers inherit the
     variable). Files of an earlier run would add its counts to this one's, so a directory the
-    operator named is emptied; otherwise a new private one is made (and removed at exit).
+    operator named is emptied; otherwise a new private one is made (and removed at exit), and the
+    private ones that killed servers left behind are removed first.
     """
     named = os.environ.get(METRICS_DIR_ENV)
     if named:
@@ -104,7 +131,8 @@ def prepare_metrics_dir() -> tuple[Path, bool]:
         for old in path.glob("*.db"):
             old.unlink()
         return path, False
-    path = Path(tempfile.mkdtemp(prefix="posecell-metrics-"))
+    remove_stale_metrics_dirs()
+    path = Path(tempfile.mkdtemp(prefix=f"{METRICS_DIR_PREFIX}{os.getpid()}-"))
     os.environ[METRICS_DIR_ENV] = str(path)
     return path, True
 

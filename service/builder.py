@@ -1,9 +1,11 @@
 """Template builds: registering an upload, and building its template bank off the event loop.
 
 An upload is decoded once (bad files fail at once with 415/422), registered under its content id
-with status ``queued``, and handed to the ``Builder``: a process pool (spawn) owned by the app's
-lifespan. ``run_build`` runs in a pool process, opens its own ``Store`` on the shared cache dir and
-takes the model's build lease, so across all service processes a model is built once::
+with status ``queued``, and handed to the ``Builder`` owned by the app's lifespan. The Builder runs
+each build in a process of its own (``python -c`` ``worker_main``, at most ``build_workers`` at a time),
+so that it can end exactly that build: a DELETE kills it at once, a stop sends it SIGTERM.
+``run_build`` opens its own ``Store`` on the shared cache dir and takes the model's build lease, so
+across all service processes a model is built once::
 
     queued -> building -> ready | failed
 
@@ -11,23 +13,29 @@ Progress (0..1) is written to the record every ``PROGRESS_STEP``. A build that w
 (process stopped or killed) stays ``queued``/``building``; at start-up every service process
 re-queues those, the first to get the lease builds and the others wait for it to finish. A lease
 whose process died expires after ``Settings.build_lease_s``, and the build is taken over.
+
+Bounded: a mesh over ``decode.TEMPLATE_FACE_BUDGET`` faces is simplified to it before the build, and
+the build process's address space is capped at ``Settings.build_memory_mb`` (a build that needs more
+fails with a sentence instead of taking the host). Every ``WATCH_S`` the build's watch thread checks
+that its model still exists (a DELETE from any process ends it) and that the service that started it
+is alive (a worker whose server was killed puts its model back to ``queued`` and exits: no orphans).
 """
 
 from __future__ import annotations
 
+import collections
 import logging
-import multiprocessing
 import os
 import signal
+import subprocess
+import sys
 import threading
 import time
-from concurrent.futures import Future, ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from service.decode import decode_mesh
+from service.decode import decode_mesh, fit_face_budget
 from service.errors import UnprocessableError, clause, sentence
 from service.logs import configure_like, json_level
 from service.settings import Settings
@@ -40,6 +48,9 @@ PROGRESS_STEP = 0.02  # write progress at most every 2 %
 LEASE_POLL_S = 0.5  # how often a process waiting for another's build looks again
 SHUTDOWN_GRACE_S = 5.0  # a stopping service waits this long for a build process to put its model back
 MAX_BUILD_DEATHS = 3  # a build whose process keeps dying (OOM) is marked failed after this many
+WATCH_S = 0.2  # how often a build checks that its model still exists and its service is alive
+EXIT_STOPPED = 128 + signal.SIGTERM  # a build process that put its model back to "queued" on request
+ACTIVE = ("queued", "building")  # what a stopping build may put back to "queued" (never "ready"/"failed")
 
 
 def register_upload(store: Store, settings: Settings, data: bytes, *, filename: str, name: str | None = None,
@@ -65,7 +76,7 @@ def register_upload(store: Store, settings: Settings, data: bytes, *, filename: 
     if existing is None:
         mesh = decode_mesh(data, filename, units)  # raises 415/422 now, not in the build
         record = {
-            "id": mid, "name": name or filename, "filename": filename, "units": units,
+            "id": mid, "name": name or filename[:200], "filename": filename, "units": units,
             "symmetry_option": symmetry, "templates": grid,
             "status": "queued", "progress": 0.0, "error": None, "n_templates": None,
             "extents_mm": [float(x) for x in mesh.extents],
@@ -104,21 +115,24 @@ class _DeletedError(Exception):
     """The model was deleted while it was being built."""
 
 
-def run_build(cache_dir: str, mid: str, lease_s: float) -> str:
-    """Build model ``mid``'s template bank (in a pool process, or in-process for the CLI).
+def run_build(cache_dir: str, mid: str, lease_s: float, *, parent_pid: int | None = None,
+              memory_mb: int | None = None) -> str:
+    """Build model ``mid``'s template bank (in a build process, or in-process for the CLI).
 
     Returns the final status: "ready", "failed" or "deleted". A SIGTERM while building puts the
     model back to "queued" (it resumes at the next start-up), releases the lease and ends the
-    process at once (status 143). That is done by the lease's heartbeat thread, not by unwinding the
+    process at once (status 143). That is done by the lease's watch thread, not by unwinding the
     main thread: the main thread may be waiting on a thread pool that would first render every
     remaining view, longer than the stopping service waits before it kills the process, which
-    would leave the model "building" until its lease ran out.
+    would leave the model "building" until its lease ran out. The same thread ends the process when
+    the model is deleted (within ``WATCH_S``) or when ``parent_pid`` is no longer this process's
+    parent (the service died). "Back to queued" never overwrites a build that finished meanwhile.
     """
     from service.pipeline import build_templates
 
     store = Store(cache_dir)
     token: str | None = None
-    wake = threading.Event()  # the heartbeat stops renewing: the build ended, or a SIGTERM came
+    wake = threading.Event()  # the watch stops: the build ended, or a SIGTERM came
     sigterm = threading.Event()
     heartbeat: threading.Thread | None = None
 
@@ -143,16 +157,28 @@ def run_build(cache_dir: str, mid: str, lease_s: float) -> str:
             if token is None:
                 time.sleep(LEASE_POLL_S)
 
-        def renew(token: str = token) -> None:
-            while not wake.wait(lease_s / 3):
-                store.renew(mid, token, lease_s)
-            if sigterm.is_set():
-                store.update(mid, status="queued")
-                store.unlock(mid, token)
-                log.info("template build of model %s stopped; it resumes at the next start-up", mid)
-                os._exit(128 + signal.SIGTERM)
+        def put_back_and_exit(why: str, token: str) -> None:
+            store.update_if(mid, ACTIVE, status="queued")
+            store.unlock(mid, token)
+            log.info("template build of model %s stopped (%s); it resumes at the next start-up", mid, why)
+            os._exit(EXIT_STOPPED)
 
-        heartbeat = threading.Thread(target=renew, name=f"lease-{mid}", daemon=True)
+        def watch(token: str = token) -> None:
+            renewed = time.monotonic()
+            while not wake.wait(WATCH_S):
+                if parent_pid is not None and os.getppid() != parent_pid:
+                    put_back_and_exit("its service process is gone", token)
+                if store.get(mid) is None:  # deleted, by this service or another: stop, free the memory
+                    store.unlock(mid, token)
+                    log.info("template build of model %s stopped: the model was deleted", mid)
+                    os._exit(0)
+                if time.monotonic() - renewed >= lease_s / 3:
+                    store.renew(mid, token, lease_s)
+                    renewed = time.monotonic()
+            if sigterm.is_set():
+                put_back_and_exit("SIGTERM", token)
+
+        heartbeat = threading.Thread(target=watch, name=f"lease-{mid}", daemon=True)
         heartbeat.start()
         store.count_build(mid)
         store.update(mid, status="building", progress=0.0, error=None)
@@ -167,13 +193,21 @@ def run_build(cache_dir: str, mid: str, lease_s: float) -> str:
 
         try:
             mesh = decode_mesh(store.mesh(mid) or b"", rec["filename"], rec["units"])
+            mesh = fit_face_budget(mesh)
             bank = build_templates(mesh, symmetry=rec["symmetry_option"], grid=dict(rec["templates"]),
                                    progress=progress)
+            check_bank(bank)
         except _DeletedError:
             return "deleted"
         except Exception as e:
-            log.exception("template build of model %s failed", mid)
-            reason = sentence(getattr(e, "detail", None) or clause(e) or type(e).__name__)
+            if not _out_of_memory(e):
+                log.exception("template build of model %s failed", mid)
+                reason = sentence(getattr(e, "detail", None) or clause(e) or type(e).__name__)
+                return "failed" if store.update(mid, status="failed", error=reason) is not None else "deleted"
+            log.exception("template build of model %s ran out of memory", mid)
+            cap = f"its limit of {memory_mb:,} MB (POSE_BUILD_MEMORY_MB)" if memory_mb else "the memory left"
+            reason = sentence(f"The template build needed more than {cap}; use a coarser template grid "
+                              "(larger tilt_step_deg / view_step_deg, smaller render_px) or raise the limit")
             return "failed" if store.update(mid, status="failed", error=reason) is not None else "deleted"
         store.put_bank(mid, bank)
         done = store.update(mid, status="ready", progress=1.0, error=None, n_templates=bank.n_templates,
@@ -185,7 +219,7 @@ def run_build(cache_dir: str, mid: str, lease_s: float) -> str:
         return "ready"
     except (SystemExit, KeyboardInterrupt):
         if token is not None:
-            store.update(mid, status="queued")
+            store.update_if(mid, ACTIVE, status="queued")
         raise
     finally:
         wake.set()
@@ -198,43 +232,93 @@ def run_build(cache_dir: str, mid: str, lease_s: float) -> str:
             signal.signal(signal.SIGTERM, old_handler)
 
 
-def _start_build_process(log_level: str | None, threads_budget: int | None) -> None:
-    """A build process logs like its parent and keeps to the service's thread budget."""
-    from service.vision import threads
+MIN_TEMPLATE_POINTS = 32  # the coarse search's level A samples this many border points per view
 
-    configure_like(log_level)
-    threads.configure(threads_budget)
+
+def check_bank(bank: TemplateBank) -> None:
+    """422 (the build fails with this sentence) for a bank a search cannot use: a view whose border has
+    fewer points than the coarse search samples (a part that is a line or a speck from that side; its
+    estimates failed with a 500 and line-like views fit any straight edge)."""
+    import numpy as np
+
+    counts = np.diff(np.asarray(bank.offsets))
+    k = int(np.argmin(counts))
+    if counts[k] < MIN_TEMPLATE_POINTS:
+        raise UnprocessableError(f"Seen from template view {k} the part's outline has only {int(counts[k])} "
+                                 f"border points, fewer than the {MIN_TEMPLATE_POINTS} a search needs (the "
+                                 "mesh is a line or a speck from that side); upload the part as a solid with "
+                                 "its real thickness, or a larger render_px")
+
+
+def _out_of_memory(e: BaseException) -> bool:
+    """A MemoryError, or OpenCV's way of saying the same (cv2.error "Insufficient memory")."""
+    return isinstance(e, MemoryError) or "Insufficient memory" in str(e)
+
+
+def limit_memory(memory_mb: int | None) -> None:
+    """Cap this process's address space at ``memory_mb`` MiB (allocations past it raise MemoryError)."""
+    if not memory_mb:
+        return
+    import resource
+
+    cap = int(memory_mb) << 20
+    _, hard = resource.getrlimit(resource.RLIMIT_AS)
+    resource.setrlimit(resource.RLIMIT_AS, (cap if hard == resource.RLIM_INFINITY else min(cap, hard), hard))
+
+
+def worker_main(argv: list[str]) -> int:
+    """A build process's entry point: ``cache_dir mid lease_s parent_pid memory_mb log_level threads``.
+
+    The process logs like its service and keeps to the service's thread budget (``POSE_THREADS``;
+    an empty ``threads``: all cores)."""
+    from service.vision import threads as thread_budget
+
+    cache_dir, mid, lease_s, parent_pid, memory_mb, level, threads = argv
+    configure_like(level or None)
+    thread_budget.configure(int(threads) if threads else None)
+    limit_memory(int(memory_mb))
+    status = run_build(cache_dir, mid, float(lease_s), parent_pid=int(parent_pid), memory_mb=int(memory_mb))
+    log.info("template build of model %s: %s", mid, status)
+    return 0
+
+
+_WORKER_CODE = "import sys; from service.builder import worker_main; sys.exit(worker_main(sys.argv[1:]))"
 
 
 class Builder:
-    """The build executor of one service process (created and shut down by the app's lifespan)."""
+    """The build processes of one service process (created and shut down by the app's lifespan).
+
+    At most ``build_workers`` build processes run at once; further builds wait in a queue. Each
+    process is watched by a thread that starts the next build when it ends, and re-queues a build
+    whose process died (up to ``MAX_BUILD_DEATHS`` times, then the model is marked failed).
+    """
 
     def __init__(self, settings: Settings) -> None:
+        import service
+
         self.cache_dir = str(Path(settings.cache_dir))
         self.lease_s = float(settings.build_lease_s)
         self.workers = int(settings.build_workers)
+        self.memory_mb = int(settings.build_memory_mb)
         self.threads = settings.threads
-        self._lock = threading.Lock()
-        self._futures: dict[str, Future[str]] = {}
-        self._deaths: dict[str, int] = {}  # pool processes that died building each model
+        self._cv = threading.Condition()
+        self._queue: collections.deque[str] = collections.deque()
+        self._running: dict[str, subprocess.Popen[bytes]] = {}
+        self._cancelled: set[str] = set()
+        self._deaths: dict[str, int] = {}  # build processes that died building each model
         self._closing = False
-        self._executor = self._new_executor()
-
-    def _new_executor(self) -> ProcessPoolExecutor:
-        return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_start_build_process, initargs=(json_level(), self.threads))
+        # the build process imports this very package, wherever it was imported from here
+        package_root = str(Path(service.__file__).resolve().parents[1])
+        paths = [package_root, *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
+        self._env = {**os.environ, "PYTHONPATH": os.pathsep.join(dict.fromkeys(paths))}
 
     def submit(self, mid: str) -> None:
         """Queue a build of ``mid`` unless this process already has one queued or running."""
-        with self._lock:
-            if self._closing:
+        with self._cv:
+            if self._closing or mid in self._running or mid in self._queue:
                 return
-            fut = self._futures.get(mid)
-            if fut is not None and not fut.done():
-                return
-            fut = self._executor.submit(run_build, self.cache_dir, mid, self.lease_s)
-            self._futures[mid] = fut
-        fut.add_done_callback(lambda f, mid=mid: self._finished(mid, f))
+            self._queue.append(mid)
+            self._start_waiting()
 
     def resume(self, store: Store) -> list[str]:
         """Re-queue every build that was queued or running when the service last stopped."""
@@ -244,25 +328,54 @@ class Builder:
             self.submit(mid)
         return ids
 
-    def _finished(self, mid: str, fut: Future[str]) -> None:
-        if fut.cancelled() or self._closing:
-            return
-        exc = fut.exception()
-        if exc is None:
-            log.info("template build of model %s: %s", mid, fut.result())
-            return
-        log.error("template build process for model %s died: %r", mid, exc)
-        if not isinstance(exc, BrokenProcessPool):
-            return
-        with self._lock:  # a dead worker breaks the pool for good; later builds need a new one
-            if self._closing:
-                return
-            if self._executor._broken:  # no public flag for this in 3.11
-                self._executor = self._new_executor()
+    def running(self) -> dict[str, int]:
+        """Model id -> pid of each build process running now."""
+        with self._cv:
+            return {mid: p.pid for mid, p in self._running.items()}
+
+    def cancel(self, mid: str) -> bool:
+        """Drop ``mid``'s build: out of the queue, or its process killed now (its memory freed with it).
+
+        For a deleted model; True if a build process was running."""
+        with self._cv:
+            if mid in self._queue:
+                self._queue.remove(mid)
+            proc = self._running.get(mid)
+            if proc is None:
+                return False
+            self._cancelled.add(mid)
+        proc.kill()
+        return True
+
+    def _start_waiting(self) -> None:  # with self._cv held
+        while self._queue and len(self._running) < self.workers and not self._closing:
+            mid = self._queue.popleft()
+            cmd = [sys.executable, "-c", _WORKER_CODE, self.cache_dir, mid, repr(self.lease_s),
+                   str(os.getpid()), str(self.memory_mb), json_level() or "",
+                   "" if self.threads is None else str(self.threads)]
+            proc = subprocess.Popen(cmd, env=self._env, stdin=subprocess.DEVNULL)
+            self._running[mid] = proc
+            threading.Thread(target=self._watch, args=(mid, proc), name=f"build-{mid}", daemon=True).start()
+
+    def _watch(self, mid: str, proc: subprocess.Popen[bytes]) -> None:
+        code = proc.wait()
+        with self._cv:
+            self._running.pop(mid, None)
+            cancelled = mid in self._cancelled
+            self._cancelled.discard(mid)
+            closing = self._closing
+            self._cv.notify_all()
+        if not (closing or cancelled or code == 0):
+            self._died(mid, code)
+        with self._cv:
+            self._start_waiting()
+
+    def _died(self, mid: str, code: int) -> None:
+        log.error("template build process for model %s died (exit status %s)", mid, code)
         self._deaths[mid] = self._deaths.get(mid, 0) + 1
         with Store(self.cache_dir) as store:
             rec = store.get(mid)
-            if rec is None or rec["status"] not in ("queued", "building"):
+            if rec is None or rec["status"] not in ACTIVE:
                 return
             if self._deaths[mid] < MAX_BUILD_DEATHS:
                 self.submit(mid)
@@ -273,20 +386,16 @@ class Builder:
 
     def shutdown(self) -> None:
         """Stop building now: running builds go back to "queued" and resume at the next start-up."""
-        with self._lock:
+        with self._cv:
             self._closing = True
-            executor = self._executor
-        # Python 3.11 has no ProcessPoolExecutor.terminate_workers(): cancel what waits, stop the
-        # processes, then let the pool wind down (joining its queues) once they are gone.
-        procs = list((getattr(executor, "_processes", None) or {}).values())
-        for fut in list(self._futures.values()):
-            fut.cancel()
-        for p in procs:
-            if p.is_alive():
-                p.terminate()
+            self._queue.clear()
+            procs = list(self._running.values())
         for p in procs:  # a building process puts its model back to "queued" and exits (run_build)
-            p.join(timeout=SHUTDOWN_GRACE_S)
-            if p.is_alive():  # its lease stays until it expires; the build resumes at the next start-up
+            if p.poll() is None:
+                p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=SHUTDOWN_GRACE_S)
+            except subprocess.TimeoutExpired:  # its lease stays until it expires; the build resumes later
                 p.kill()
-                p.join(timeout=5)
-        executor.shutdown(wait=True, cancel_futures=True)
+                p.wait(timeout=5)

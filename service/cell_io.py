@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from service.bounds import check_plausible
 from service.cell import Grasp, base_from_cam, place_grasps, rigid
 from service.decode import image_size
 from service.errors import UnprocessableError
@@ -104,19 +105,27 @@ def add_cell_frames(result: EstimateResult, bank: TemplateBank, cam: CellCamera,
 def estimate_result(record: dict[str, Any], bank: TemplateBank, data: bytes, cam: Camera, opts: Options, *,
                     max_pixels: int, camera_name: str | None = None,
                     grasps: list[Grasp] | None = None) -> EstimateResult:
-    """Image bytes -> EstimateResult (blocking: the API calls it from a worker thread).
+    """Image bytes -> EstimateResult (blocking: the API calls it from a worker thread; the CLI calls it
+    too).
 
-    With a ``CellCamera`` (image size, extrinsics) the image size is checked and the result gains the
-    robot-frame poses and the placed ``grasps``."""
-    if isinstance(cam, CellCamera):
+    The intrinsics and distances are held to the plausibility bounds (``service.bounds``) for the
+    decoded image's size before the search. With a ``CellCamera`` (image size, extrinsics) the image
+    size is checked too and the result gains the robot-frame poses and the placed ``grasps``."""
+    cell = isinstance(cam, CellCamera)
+    if cell:
         size = image_size(data)
         if size is not None:  # from the header: refused before a pixel is decoded
             check_image_size(cam, size, camera_name)
-    out = estimate_image(bank, data, cam.to_intrinsics(), max_pixels=max_pixels, **opts.estimate_kwargs())
-    if isinstance(cam, CellCamera):
-        check_image_size(cam, out.image_size, camera_name)
+
+    def check(size: tuple[int, int]) -> None:  # the decoded image's (w, h)
+        if cell:
+            check_image_size(cam, size, camera_name)
+        check_plausible(cam, opts, size)
+
+    out = estimate_image(bank, data, cam.to_intrinsics(), max_pixels=max_pixels, check=check,
+                         **opts.estimate_kwargs())
     result = EstimateResult.from_output(record["id"], out)
     result.warnings = ModelInfo.from_record(record).warnings
-    if isinstance(cam, CellCamera):
+    if cell:
         result = add_cell_frames(result, bank, cam, opts, grasps or [], camera_name)
     return result

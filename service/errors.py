@@ -3,6 +3,7 @@
 ::
 
     ServiceError                     500  base: ``status_code``, ``detail`` (one sentence), ``headers``
+    (Starlette's 400 from the multipart parser is answered as a sentence too, naming the parser's reason)
     ├── UnauthorizedError            401  POSE_API_KEY is set and X-API-Key is missing or wrong
     ├── NotFoundError                404  unknown model id, template index out of range
     ├── ConflictError                409  the model exists but cannot serve the request (yet)
@@ -131,7 +132,9 @@ def validation_sentence(errors: Sequence[Mapping[str, Any]], *, what: str | None
         subject = f"{what} field '{_loc_name(loc)}'" if loc else what
     more = f" (and {len(errors) - 1} more problem{'s' if len(errors) > 2 else ''})" if len(errors) > 1 else ""
     if err.get("type") == "missing":
-        text = f"The {subject} is missing{more}; add it and send the request again"
+        # an empty form field reaches FastAPI as no field at all: say both
+        gone = "missing or empty" if subject.startswith("form part") else "missing"
+        text = f"The {subject} is {gone}{more}; add it and send the request again"
     else:
         text = f"The {subject} is invalid: {_msg(err)}{more}; fix it and send the request again"
     return sentence(text)
@@ -153,17 +156,38 @@ async def _validation_error(request: Request, exc: RequestValidationError) -> JS
     return _json(422, validation_sentence(exc.errors(), body=body))
 
 
+_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
+
+
+def allowed_methods(request: Request) -> list[str]:
+    """Every method some route of the app answers on this path (Starlette's 405 names only the first
+    route's): each method is tried against the app's routes, as the router would."""
+    from starlette.routing import Match
+
+    routes = request.app.router.routes
+    return [m for m in _METHODS
+            if any(r.matches({**request.scope, "method": m})[0] == Match.FULL for r in routes)]
+
+
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
     route = f"{request.method} {request.url.path}"
+    headers = dict(getattr(exc, "headers", None) or {})
     if exc.status_code == 404 and exc.detail in (None, "Not Found"):
         detail = f"No endpoint matches {route}; see /docs for the API"
     elif exc.status_code == 405:
-        detail = f"Method {request.method} is not allowed on {request.url.path}; see /docs for the API"
+        allowed = allowed_methods(request)
+        headers["Allow"] = ", ".join(allowed)
+        detail = (f"Method {request.method} is not allowed on {request.url.path} (allowed: "
+                  f"{', '.join(allowed)}); see /docs for the API")
+    elif exc.status_code == 400:  # the multipart parser (python-multipart via Starlette) gave up
+        why = clause(exc.detail) if isinstance(exc.detail, str) and exc.detail else "unreadable body"
+        detail = (f"The request body could not be read as multipart/form-data ({why}); send the parts as "
+                  "multipart/form-data, the file in its file part and every other part under 1 MB")
     elif isinstance(exc.detail, str) and exc.detail:
         detail = exc.detail
     else:
         detail = f"The request {route} failed with HTTP status {exc.status_code}"
-    return _json(exc.status_code, detail, getattr(exc, "headers", None))
+    return _json(exc.status_code, detail, headers)
 
 
 def unexpected_response(method: str, path: str, exc: BaseException) -> JSONResponse:

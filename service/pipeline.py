@@ -177,12 +177,16 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
 
 
 def estimate_image(bank: TemplateBank, data: bytes, intr: Intrinsics, *, max_pixels: int,
-                   **options) -> EstimateOutput:
+                   check: Callable[[tuple[int, int]], None] | None = None, **options) -> EstimateOutput:
     """Image file bytes -> ``estimate`` (blocking: the API calls it from a worker thread; the CLI
-    calls it too). ``options``: ``estimate``'s keyword arguments."""
+    calls it too). ``check``, if given, is called with the decoded image's (w, h) before the search
+    (it raises to refuse the request). ``options``: ``estimate``'s keyword arguments."""
     from service.decode import decode_image
 
-    return estimate(bank, decode_image(data, max_pixels=max_pixels), intr, **options)
+    image = decode_image(data, max_pixels=max_pixels)
+    if check is not None:
+        check((image.shape[1], image.shape[0]))
+    return estimate(bank, image, intr, **options)
 
 
 def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.ndarray) -> list[PoseCandidate]:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import base64
 import json
 import math
+import re
 from datetime import datetime
 from typing import Annotated, Any, Literal, TypeVar
 
@@ -250,18 +251,42 @@ def _finite(v: Any) -> bool:
     return True
 
 
+MAX_JSON_DEPTH = 16  # the deepest any part's JSON needs is 2 (distance_range_mm, dist)
+_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
+_NOT_BRACKET = re.compile(r"[^\[\]{}]+")
+_JSON_TYPES = {dict: "an object", list: "an array", str: "a string", bool: "a boolean", int: "a number",
+               float: "a number", type(None): "null"}
+
+
+def json_depth(text: str) -> int:
+    """How deeply ``text``'s arrays and objects nest (brackets inside strings do not count); linear."""
+    depth = deepest = 0
+    for ch in _NOT_BRACKET.sub("", _JSON_STRING.sub("", text)):
+        depth += 1 if ch in "[{" else -1
+        deepest = max(deepest, depth)
+    return deepest
+
+
 def parse_json_object(text: str | None, what: str) -> dict[str, Any]:
-    """A form part holding a JSON object -> dict; 422 (one sentence) on bad JSON, non-objects or NaN."""
+    """A form part holding a JSON object -> dict; 422 (one sentence) on bad JSON, non-objects, NaN or
+    nesting deeper than ``MAX_JSON_DEPTH`` (checked before parsing: 100,000 brackets made json.loads
+    raise RecursionError, a 500)."""
     if text is None or not text.strip():
         return {}
+    if json_depth(text) > MAX_JSON_DEPTH:
+        raise UnprocessableError(f"The {what} part nests arrays or objects more than {MAX_JSON_DEPTH} levels "
+                                 "deep; send a flat JSON object such as {\"key\": value}")
     try:
         value = json.loads(text)
     except json.JSONDecodeError as e:
         raise UnprocessableError(f"The {what} part is not valid JSON ({e.msg} at character {e.pos}); send a "
                                  "JSON object such as {\"key\": value}") from e
+    except RecursionError as e:  # a guard behind the depth check
+        raise UnprocessableError(f"The {what} part nests too deeply; send a flat JSON object") from e
     if not isinstance(value, dict):
-        raise UnprocessableError(f"The {what} part must be a JSON object, not {type(value).__name__}; send "
-                                 "{\"key\": value, ...}")
+        got = _JSON_TYPES.get(type(value), type(value).__name__)
+        raise UnprocessableError(f"The {what} part must be a JSON object, not {got}; send {{\"key\": value, "
+                                 "...}} or leave the part out")
     if not _finite(value):
         raise UnprocessableError(f"The {what} part contains NaN or Infinity; send finite numbers only")
     return value

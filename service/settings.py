@@ -25,6 +25,9 @@ class Settings(BaseSettings):
     max_image_bytes: int = Field(50 * MB, gt=0, description="largest accepted image upload, bytes")
     max_image_pixels: int = Field(50_000_000, gt=0, description="largest accepted image, width * height")
     build_workers: int = Field(1, ge=1, description="template-build processes per service process")
+    build_memory_mb: int = Field(
+        4096, ge=256, description="address-space cap of one template-build process, MiB; a build that needs "
+        "more fails with a sentence instead of taking the host")
     build_lease_s: float = Field(
         30.0, gt=0, description="a build's lock expires this long after its process stops renewing it "
         "(a crashed build is taken over by another process after at most this long)")

@@ -119,6 +119,19 @@ class Store:
             self._cache.set(f"model:{mid}", rec)
         return rec
 
+    def update_if(self, mid: str, statuses: tuple[str, ...], **fields: Any) -> dict[str, Any] | None:
+        """``update`` only while the record's status is one of ``statuses``; None if it is not (or gone).
+
+        A build being stopped puts its model back to "queued" this way, so it can never undo a
+        "ready" or "failed" that was written a moment before."""
+        with self._cache.transact():
+            rec = self._cache.get(f"model:{mid}")
+            if rec is None or rec.get("status") not in statuses:
+                return None
+            rec.update(fields)
+            self._cache.set(f"model:{mid}", rec)
+        return rec
+
     def ids(self) -> Iterator[str]:
         for key in self._cache.iterkeys():
             if isinstance(key, str) and key.startswith("model:"):
@@ -134,7 +147,7 @@ class Store:
     def delete(self, mid: str) -> bool:
         """Remove every record of the model. False if it did not exist."""
         existed = self._cache.delete(f"model:{mid}")
-        for kind in ("mesh", "bank", "builds", "grasps"):
+        for kind in ("mesh", "bank", "builds", "grasps", "lock"):
             self._cache.delete(f"{kind}:{mid}")
         with self._banks_lock:
             self._banks.pop(mid, None)

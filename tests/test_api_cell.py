@@ -202,6 +202,19 @@ def test_image_size_differs_from_inline_width_and_height(client):
                                          "say 1280x960")
 
 
+def test_registered_camera_is_held_to_the_plausibility_bounds(client, scene):
+    """The bounds (service/bounds.py) apply to a registered camera too: one registered with its focal
+    length in millimetres is refused at the estimate with the likely fix."""
+    r = client.put("/cameras/mm-cam", json={**INTRINSICS, "fx": 8.0, "fy": 8.0, "width": W, "height": H})
+    assert r.status_code == 201, r.text
+    r = estimate(client, scene, {"name": "mm-cam"})
+    assert r.status_code == 422
+    assert "fx is 8 px, under 50 px" in r.json()["detail"] and "not millimetres" in r.json()["detail"]
+    r = estimate(client, scene, INTRINSICS, {"distance_mm": 0.45})  # metres
+    assert r.status_code == 422
+    assert "did you send metres" in r.json()["detail"]
+
+
 def test_unknown_camera_name(client, scene):
     r = estimate(client, scene, {"name": "nosuchcam"})
     assert r.status_code == 422

@@ -243,6 +243,143 @@ def test_bad_upload_fields_are_422(client, sprayer_bytes, data):
 def test_sixteen_bit_colour_image_is_accepted(client):
     """Not an error row: a 16-bit colour TIFF decodes (the estimate may or may not find the object)."""
     ok, tif = cv2.imencode(".tif", np.zeros((48, 64, 3), np.uint16))
-    r = estimate(client, client.ready_id, image=tif.tobytes(), options={"distance_mm": 500})
+    r = estimate(client, client.ready_id, image=tif.tobytes(), options={"distance_mm": 500},
+                 camera={"fx": 100.0, "fy": 100.0, "cx": 31.5, "cy": 23.5})
     assert r.status_code == 200, r.text
     assert r.json()["image_size"] == [64, 48]
+
+
+# --- issue "Reliability": no 500 on any input, each refusal one sentence -----------------------------------
+
+def _png(img: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".png", img)
+    assert ok
+    return buf.tobytes()
+
+
+@pytest.mark.parametrize("w, h", [(1, 1), (1, 5000), (5000, 1)])
+def test_tiny_images_are_422_not_500(client, w, h):
+    """Item 4: 1x1 and 1x5000 images reached cv2.resize with an empty size in edges.py (500)."""
+    detail = assert_error(estimate(client, client.ready_id, image=_png(np.zeros((h, w), np.uint8))), 422)
+    assert f"{w} x {h}" in detail and "at least" in detail
+
+
+def test_the_smallest_accepted_image_gets_an_answer(client):
+    """Item 4: at the minimum size the pipeline runs (nothing to find there: found is false)."""
+    from service.decode import MIN_IMAGE_SIDE_PX
+
+    n = MIN_IMAGE_SIDE_PX
+    for shape in [(n, n), (n, 2000), (2000, n)]:
+        r = estimate(client, client.ready_id, image=_png(np.zeros(shape, np.uint8)),
+                     camera={"fx": 500.0, "fy": 500.0, "cx": (shape[1] - 1) / 2, "cy": (shape[0] - 1) / 2})
+        assert r.status_code == 200, r.text
+        assert r.json()["found"] is False
+
+
+def test_image_bomb_is_413_from_its_header(client):
+    """Item 3: a 1 MB PNG of 20000 x 20000 is refused by its header (it was decoded first: 2.3 GB)."""
+    from tests.test_decode import _png_header_only
+
+    detail = assert_error(estimate(client, client.ready_id, image=_png_header_only(20000, 20000)), 413)
+    assert "20000 x 20000" in detail
+
+
+@pytest.mark.parametrize("camera, options, words", [
+    ({**CAMERA, "fx": 1e15}, None, "fx is 1e+15 px, over"),
+    ({**CAMERA, "fx": 1e300}, None, "fx is 1e+300 px"),
+    ({**CAMERA, "fx": 1e-300}, None, "under 50 px"),
+    ({**CAMERA, "fy": 12.0}, None, "not millimetres"),
+    ({**CAMERA, "cx": 1e300}, None, "cx is 1e+300 px, outside this 1280 x 960 image"),
+    ({**CAMERA, "cy": -40.0}, None, "principal point must lie in the image"),
+    ({**CAMERA, "dist": [1e200, 0, 0, 0]}, None, "dist"),
+    (CAMERA, {"distance_mm": 0.5},
+     "distance_mm is 0.5, under 10 mm: distances are in millimetres (did you send metres?)"),
+    (CAMERA, {"distance_mm": 1e300}, "over 20 m"),
+    (CAMERA, {"distance_range_mm": [0.3, 0.9]}, "did you send metres"),
+    (CAMERA, {"distance_range_mm": [300, 50000]}, "over 20 m"),
+])
+def test_implausible_camera_or_distance_is_422_with_the_likely_fix(client, image_bytes, camera, options,
+                                                                   words):
+    """Item 5: values that pass the schema but no real camera has (fx = 1e15, 1e300, 1e-300; cx = 1e300
+    made coarse.py fail with a 500)."""
+    r = estimate(client, client.ready_id, image=image_bytes, camera=camera, options=options)
+    assert words in assert_error(r, 422)
+
+
+def test_deeply_nested_json_is_422(client, image_bytes):
+    """Item 6: 100,000 brackets (200 KB) made json.loads raise RecursionError (500)."""
+    deep = "[" * 100_000 + "]" * 100_000
+    assert "levels" in assert_error(estimate(client, client.ready_id, image=image_bytes, options=deep), 422)
+    assert "levels" in assert_error(estimate(client, client.ready_id, image=image_bytes,
+                                             camera='{"dist": ' + deep + "}"), 422)
+    r = client.post("/models", files={"file": ("sprayer.stl", b"x")}, data={"templates": "{" * 50_000})
+    assert_error(r, 422)
+    # brackets inside strings are text, not nesting
+    r = estimate(client, client.ready_id, image=image_bytes, options=json.dumps({"[" * 40: 1}))
+    assert "distance" not in assert_error(r, 422)
+
+
+def test_empty_camera_says_missing_or_empty(client, image_bytes):
+    """Item 12: an empty camera part was reported as missing only."""
+    r = client.post(f"/models/{client.ready_id}/estimate", files={"image": ("i.png", image_bytes)},
+                    data={"camera": ""})
+    assert "'camera' is missing or empty" in assert_error(r, 422)
+
+
+def test_templates_null_names_the_json_type(client, sprayer_bytes):
+    """Item 12: 'not NoneType' was Python's name for JSON's null."""
+    detail = assert_error(client.post("/models", files={"file": ("sprayer.stl", sprayer_bytes)},
+                                      data={"templates": "null"}), 422)
+    assert "not null" in detail and "NoneType" not in detail
+    detail = assert_error(client.post("/models", files={"file": ("sprayer.stl", sprayer_bytes)},
+                                      data={"templates": "[1, 2]"}), 422)
+    assert "not an array" in detail
+
+
+def test_a_mesh_without_extension_is_read_by_content(client, sprayer_bytes):
+    """Item 12: a file name without an extension got 415 although the bytes are a valid STL."""
+    r = client.post("/models", files={"file": ("sprayer", sprayer_bytes)},  # a new id: decoded here
+                    data={"symmetry": "x", "templates": json.dumps(GRID)})
+    assert r.status_code == 202, r.text
+    assert r.json()["extents_mm"] == pytest.approx([60.0, 200.0, 60.0], abs=0.01)
+
+
+def test_405_lists_every_allowed_method(client):
+    """Item 12: /models/{id} answers GET and DELETE; the Allow header named one of them."""
+    r = client.put(f"/models/{client.ready_id}")
+    detail = assert_error(r, 405)
+    assert set(r.headers["allow"].replace(" ", "").split(",")) == {"GET", "DELETE"}
+    assert "GET" in detail and "DELETE" in detail
+    r = client.get("/models/x/estimate")
+    assert assert_error(r, 405) and r.headers["allow"] == "POST"
+
+
+def test_name_length_is_limited_and_long_ids_are_not_echoed(client, sprayer_bytes):
+    """Item 12: a 100,000-character name was stored, a 60,000-character id echoed in the 404."""
+    r = client.post("/models", files={"file": ("sprayer.stl", sprayer_bytes)}, data={"name": "n" * 100_000})
+    assert "name" in assert_error(r, 422)
+    long_id = "a" * 60_000
+    detail = assert_error(client.get(f"/models/{long_id}"), 404)
+    assert long_id not in detail and len(detail) < 300
+    r = client.post("/models", files={"file": ("p" * 1000 + ".stl", sprayer_bytes)},
+                    data={"symmetry": "z"})
+    assert r.status_code == 202 and len(r.json()["name"]) <= 200
+
+
+@pytest.mark.parametrize("body, content_type", [
+    (b"--xyz\r\nContent-Disposition: form-data; name=\"camera\"\r\n\r\n" + b"a" * (1100 * 1024)
+     + b"\r\n--xyz--\r\n",
+     "multipart/form-data; boundary=xyz"),
+    (b"garbage without any boundary", "multipart/form-data; boundary=xyz"),
+    (b"--xyz\r\nno headers here\r\n\r\n--xyz--", "multipart/form-data; boundary=xyz"),
+])
+def test_multipart_parser_errors_are_400_sentences(client, body, content_type):
+    """Item 12: the multipart parser's 400s ("Invalid multipart data.", "Part exceeded maximum size of
+    1024KB.") are sentences that say how to send the form, and are in API.md's table."""
+    r = client.post(f"/models/{client.ready_id}/estimate", content=body,
+                    headers={"content-type": content_type})
+    if r.status_code == 400:
+        detail = assert_error(r, 400)
+        assert "multipart/form-data" in detail and "send" in detail
+    else:
+        assert_error(r, 422)

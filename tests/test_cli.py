@@ -53,6 +53,27 @@ def test_camera_text_that_is_not_json_is_still_a_json_error(tmp_path, capsys):
     assert "The camera part is not valid JSON" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("camera, options, words", [
+    ({"fx": 8.0, "fy": 8.0, "cx": 39.5, "cy": 29.5}, {}, "not millimetres"),
+    ({"fx": 900.0, "fy": 900.0, "cx": 319.5, "cy": 29.5}, {}, "cx is 319.5 px, outside this 80 x 60 image"),
+    ({"fx": 900.0, "fy": 900.0, "cx": 39.5, "cy": 29.5}, {"distance_mm": 0.5}, "did you send metres"),
+])
+def test_the_clis_estimate_is_held_to_the_plausibility_bounds(camera, options, words):
+    """``python -m service estimate`` runs ``cell_io.estimate_result`` as the API does, so the bounds
+    (service/bounds.py) refuse an implausible camera or distance there too, once the image is decoded
+    and before the search (which is why no bank is needed here)."""
+    from service.cell_io import estimate_result
+    from service.errors import UnprocessableError
+    from service.schemas import Options
+
+    ok, png = cv2.imencode(".png", np.zeros((60, 80), np.uint8))
+    assert ok
+    with pytest.raises(UnprocessableError) as e:
+        estimate_result({"id": "m1"}, None, png.tobytes(), CellCamera.model_validate(camera),
+                        Options.model_validate(options), max_pixels=10**6)
+    assert words in e.value.detail
+
+
 def test_build_progress_line(tmp_path):
     """The line a terminal shows while a build runs: overwritten in place, cleared at the end."""
     with Store(tmp_path) as store:

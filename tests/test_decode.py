@@ -71,10 +71,69 @@ def test_open_mesh_is_accepted():
 
 
 @pytest.mark.parametrize("filename", ["part.step", "part", "part.stl.txt"])
-def test_unknown_extension_is_415(filename):
+def test_unknown_extension_with_no_mesh_inside_is_415(filename):
     with pytest.raises(UnsupportedMediaError) as e:
-        decode_mesh(_export(_box(), "stl"), filename)
+        decode_mesh(b"ISO-10303-21;\nHEADER;\n" * 10, filename)
     _assert_sentence(e.value)
+    assert "STL, OBJ, PLY, OFF or GLB" in e.value.detail
+
+
+@pytest.mark.parametrize("file_type", ["stl", "stl_ascii", "obj", "ply", "off", "glb"])
+@pytest.mark.parametrize("filename", ["part", "part.bin", "upload.stl.txt"])
+def test_a_name_without_a_mesh_extension_is_read_by_content(file_type, filename):
+    """Issue item 12: the content tells the format when the file name does not."""
+    mesh = decode_mesh(_export(_box(), file_type), filename)
+    np.testing.assert_allclose(mesh.extents, [10.0, 20.0, 30.0], atol=1e-6)
+
+
+@pytest.mark.parametrize("data", [b"\x00" * 100, b"\x00" * 80 + (1000).to_bytes(4, "little") + b"\x01" * 500,
+                                  b"\x07" * 40])
+def test_unreadable_binary_stl_says_what_is_wrong_with_the_file(monkeypatch, data):
+    """Issue item 9: the detail is about the file (its size against its triangle count), never about the
+    service's modules (trimesh's ASCII fallback imports charset_normalizer, absent from slim images)."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "charset_normalizer", None)  # as in an image without it
+    with pytest.raises(UnsupportedMediaError) as e:
+        decode_mesh(data, "part.stl")
+    _assert_sentence(e.value)
+    assert "module" not in e.value.detail and "charset" not in e.value.detail
+    assert "STL" in e.value.detail and "bytes" in e.value.detail
+
+
+@pytest.mark.parametrize("mesh, words", [
+    (trimesh.Trimesh([[0, 0, 0], [1e-6, 0, 0], [0, 1e-6, 0]], [[0, 1, 2]], process=False), "fewer than 4"),
+    (trimesh.Trimesh([[0, 0, 0], [10, 0, 0], [0, 10, 0], [10, 10, 0]], [[0, 1, 2], [1, 3, 2]], process=False),
+     "fewer than 4"),
+    (trimesh.creation.box((0.5, 0.4, 0.3)), "under the minimum of 1 mm"),
+    (trimesh.creation.icosphere(radius=0.2), "under the minimum of 1 mm"),
+])
+def test_degenerate_meshes_are_refused_with_a_sentence(mesh, words):
+    """Issue item 7: a mesh that cannot be a part (a 1e-6 mm triangle, two triangles, a speck) fails at
+    upload instead of building a bank that fails every estimate."""
+    with pytest.raises(UnprocessableError, match=words) as e:
+        decode_mesh(_export(mesh, "stl"), "tiny.stl")
+    _assert_sentence(e.value)
+
+
+def test_a_part_in_metres_declared_as_mm_gets_the_units_hint():
+    with pytest.raises(UnprocessableError, match="units") as e:
+        decode_mesh(_export(trimesh.creation.box((0.06, 0.2, 0.06)), "stl"), "sprayer_in_m.stl")
+    assert "cm or m or in" in e.value.detail
+    in_m = decode_mesh(_export(trimesh.creation.box((0.06, 0.2, 0.06)), "stl"), "s.stl", "m")
+    assert in_m.extents[1] == pytest.approx(200)
+
+
+def test_face_budget_simplifies_large_meshes_and_keeps_small_ones():
+    """Issue item 1: builds get at most TEMPLATE_FACE_BUDGET faces; the shape stays where it was."""
+    small = trimesh.creation.icosphere(subdivisions=3, radius=50.0)  # 1,280 faces
+    assert decode.fit_face_budget(small, 2000) is small
+    big = trimesh.creation.uv_sphere(50.0, count=[120, 120])  # ~28,000 faces
+    fitted = decode.fit_face_budget(big, 2000)
+    assert 500 < len(fitted.faces) <= 2000
+    radii = np.linalg.norm(fitted.vertices, axis=1)
+    assert np.abs(radii - 50.0).max() < 0.5  # vertices stay on the sphere (within 1 %)
+    np.testing.assert_allclose(fitted.extents, big.extents, rtol=0.01)
 
 
 @pytest.mark.parametrize("ext", ["stl", "obj", "ply", "off", "glb"])
@@ -178,7 +237,7 @@ def test_empty_image_is_422():
 
 def test_float_image_is_422():
     with pytest.raises(UnprocessableError, match="float32"):
-        decode_image(_png(np.zeros((8, 8), np.float32), ".tif"))
+        decode_image(_png(np.zeros((40, 40), np.float32), ".tif"))
 
 
 def test_pixel_limit_is_413():
@@ -186,3 +245,62 @@ def test_pixel_limit_is_413():
         decode_image(_png(GREY8), max_pixels=40 * 60 - 1)
     _assert_sentence(e.value)
     assert decode_image(_png(GREY8), max_pixels=40 * 60).shape == (40, 60)
+
+
+@pytest.mark.parametrize("ext", [".png", ".jpg", ".bmp", ".tif"])
+@pytest.mark.parametrize("w, h", [(60, 40), (1, 1), (5000, 1), (33, 700)])
+def test_header_size_is_read_for_every_accepted_format(ext, w, h):
+    img = np.full((h, w, 3), 128, np.uint8)
+    assert decode.image_header(_png(img, ext))[1:] == (w, h)
+
+
+def _png_header_only(w: int, h: int) -> bytes:
+    """A PNG whose IHDR says w x h over a tiny, valid-looking rest (an image bomb's header)."""
+    import struct
+    import zlib
+
+    ihdr = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)
+    chunk = lambda kind, body: (struct.pack(">I", len(body)) + kind + body  # noqa: E731
+                                + struct.pack(">I", zlib.crc32(kind + body)))
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + \
+        chunk(b"IEND", b"")
+
+
+def test_image_bomb_is_refused_from_its_header_before_decoding(monkeypatch):
+    """Issue item 3: a 20000 x 20000 PNG is refused by its header; OpenCV is never asked to decode it."""
+    def no_decoding(*a, **k):
+        raise AssertionError("decoded before the size check")
+
+    monkeypatch.setattr(decode.cv2, "imdecode", no_decoding)
+    with pytest.raises(TooLargeError, match="20000 x 20000") as e:
+        decode_image(_png_header_only(20000, 20000), max_pixels=50_000_000)
+    _assert_sentence(e.value)
+    big = np.zeros((60, 40), np.uint8)
+    for ext in (".jpg", ".bmp", ".tif"):
+        with pytest.raises(TooLargeError):
+            decode_image(_png(big, ext), max_pixels=40 * 60 - 1)
+
+
+def test_over_opencvs_own_pixel_limit_is_not_a_500():
+    """Issue item 4: OpenCV's imdecode raises over its own limit (2^30 pixels): with a service limit
+    above that, the answer is a 422 sentence, not an exception; with the default limit, a 413."""
+    bomb = _png_header_only(40000, 30000)
+    with pytest.raises(UnprocessableError) as e:
+        decode_image(bomb, max_pixels=2_000_000_000)
+    _assert_sentence(e.value)
+    with pytest.raises(TooLargeError):
+        decode_image(bomb, max_pixels=50_000_000)
+
+
+@pytest.mark.parametrize("w, h", [(1, 1), (1, 5000), (5000, 1), (31, 480)])
+def test_tiny_images_are_422_with_the_minimum(w, h):
+    """Issue item 4: 1x1 and 1x5000 images made edges.py's cv2.resize fail (500)."""
+    with pytest.raises(UnprocessableError, match=f"at least {decode.MIN_IMAGE_SIDE_PX} pixels") as e:
+        decode_image(_png(np.zeros((h, w), np.uint8)))
+    _assert_sentence(e.value)
+
+
+def test_other_formats_are_refused_unread():
+    ok, pgm = cv2.imencode(".pgm", np.zeros((40, 60), np.uint8))
+    with pytest.raises(UnsupportedMediaError, match="PNG, JPEG, BMP or TIFF"):
+        decode_image(pgm.tobytes())

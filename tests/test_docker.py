@@ -201,9 +201,11 @@ def test_dockerfile_keeps_the_deployment_promises():
     assert re.fullmatch(r"python:3\.11(\.\d+)?-slim(-\w+)?", by_kind["FROM"][0].args), "slim Python 3.11 base"
     # dependencies are installed in a layer before the source is copied
     copies = by_kind["COPY"]
-    assert copies[0].args.split() == ["pyproject.toml", "./"], "the first COPY is pyproject.toml alone"
+    assert copies[0].args.split() == ["pyproject.toml", "requirements.lock", "./"], \
+        "the first COPY is pyproject.toml and the lock alone"
     source_copy = next(i for i in copies if i.args.split()[0] == "service")
     deps_install = next(i for i in by_kind["RUN"] if "pip install" in i.args and "-r " in i.args)
+    assert "--require-hashes -r requirements.lock" in deps_install.args, "installs exactly the lock"
     assert copies[0].line < deps_install.line < source_copy.line
     # a non-root user from USER on, and no RUN after it needs root
     user = by_kind["USER"][-1]
@@ -229,7 +231,8 @@ def test_dockerfile_keeps_the_deployment_promises():
 
 def test_dockerignore_keeps_tests_caches_and_git_out():
     patterns = dockerignore_patterns()
-    for kept in ("pyproject.toml", "service/main.py", "service/vision/estimate/chamfer.py"):
+    for kept in ("pyproject.toml", "requirements.lock", "service/main.py",
+                 "service/vision/estimate/chamfer.py"):
         assert not ignored(kept, patterns), kept
     for left_out in (".git/HEAD", "tests/test_docker.py", "templates_cache/cache.db", "bench/accuracy.py",
                      "service/__pycache__/main.cpython-311.pyc", ".venv/bin/python", ".pytest_cache/v/x",

@@ -207,3 +207,57 @@ def test_two_workers_report_summed_metrics_from_a_fresh_directory(serve, tmp_pat
     assert len(pids) == 2, sorted(metrics_dir.iterdir())  # both workers write to the shared directory
     assert server.terminate() == 0
     assert not list(metrics_dir.glob("gauge_livesum_*.db")), "stopped workers leave no in-progress gauge"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    stat = Path(f"/proc/{pid}/stat")
+    return not (stat.exists() and stat.read_text().split(")")[-1].split()[0] == "Z")
+
+
+def _children(pid: int) -> set[int]:
+    out = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError):
+            fields = stat.read_text().split(")")[-1].split()
+            if int(fields[1]) == pid:
+                out.add(int(stat.parent.name))
+    return out
+
+
+@pytest.mark.slow
+def test_kill_9_leaves_no_build_process_and_the_next_start_removes_its_metrics_dir(serve, tmp_path,
+                                                                                 sprayer_bytes):
+    """Issue item 11: after kill -9 of the server (only its own pid, as the OOM killer does) its build
+    process and anything else it started exit by themselves, the build is resumable, and the next
+    start removes the metrics directory the killed server could not remove."""
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    server = serve(env={"TMPDIR": str(tmp)})
+    mid = upload(server.client, sprayer_bytes, symmetry="none", templates=json.dumps(SLOW_GRID))["id"]
+    deadline = time.monotonic() + BUILD_WAIT_S
+    while server.client.get(f"/models/{mid}").json()["status"] != "building":
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    children = _children(server.proc.pid)
+    assert children, "the build runs in a child process"
+    server.client.close()
+    server.proc.kill()
+    server.proc.wait(timeout=30)
+    deadline = time.monotonic() + 15
+    while any(_alive(p) for p in children):
+        assert time.monotonic() < deadline, f"left alive: {[p for p in children if _alive(p)]}"
+        time.sleep(0.05)
+    stale = list(tmp.glob("posecell-metrics-*"))
+    assert len(stale) == 1
+    with Store(tmp_path / "cache") as store:
+        assert store.get(mid)["status"] == "queued" and store.lock_holder(mid) is None
+
+    server = serve(env={"TMPDIR": str(tmp)})
+    assert not stale[0].exists()
+    assert len(list(tmp.glob("posecell-metrics-*"))) == 1  # its own
+    assert server.terminate() == 0
+    assert not list(tmp.glob("posecell-metrics-*"))

@@ -43,7 +43,13 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 BuilderDep = Annotated[Builder, Depends(get_builder)]
 
 
+MAX_ID_ECHO_CHARS = 64  # model ids are 20 hex characters; a longer one is not echoed back whole
+
+
 def get_record(model_id: str, store: StoreDep) -> dict[str, Any]:
+    if len(model_id) > MAX_ID_ECHO_CHARS:
+        raise NotFoundError(f"No model has an id of {len(model_id):,} characters (ids are 20 hexadecimal "
+                            "characters); list the models with GET /models or upload one with POST /models")
     record = store.get(model_id)
     if record is None:
         raise NotFoundError(f"No model has id '{model_id}'; list the models with GET /models or upload one "

@@ -26,7 +26,7 @@ def run_estimate(model: Loaded, data: bytes, cam: Camera, opts: Options, setting
 
 
 @router.post("/models/{model_id}/estimate", response_model=EstimateResult,
-             responses=error_responses(404, 409, 413, 415, 422))
+             responses=error_responses(400, 404, 409, 413, 415, 422))
 async def estimate(
     model: ReadyModel,
     settings: SettingsDep,

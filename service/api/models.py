@@ -23,9 +23,11 @@ from service.pipeline import template_picture
 from service.schemas import ModelInfo, SymmetryOption, Units, parse_json_object
 
 router = APIRouter(tags=["models"])
+NAME_MAX_CHARS = 200
 
 
-@router.post("/models", status_code=202, response_model=ModelInfo, responses=error_responses(413, 415, 422))
+@router.post("/models", status_code=202, response_model=ModelInfo,
+             responses=error_responses(400, 413, 415, 422))
 async def upload_model(
     response: Response,
     store: StoreDep,
@@ -33,7 +35,8 @@ async def upload_model(
     builder: BuilderDep,
     file: Annotated[UploadFile, File(
         description="the CAD mesh: STL (binary or ASCII), OBJ, PLY, OFF or GLB")],
-    name: Annotated[str | None, Form(description="a label; defaults to the file name")] = None,
+    name: Annotated[str | None, Form(description="a label; defaults to the file name",
+                                     max_length=NAME_MAX_CHARS)] = None,
     units: Annotated[Units, Form(description="the mesh's unit, converted to mm once")] = "mm",
     symmetry: Annotated[SymmetryOption, Form(
         description="auto (detect), none, or the model-frame axis x, y, z of a continuous symmetry",
@@ -65,8 +68,9 @@ def get_model(record: ModelRecord) -> ModelInfo:
 
 @router.delete("/models/{model_id}", status_code=204, response_class=Response,
                responses=error_responses(404, 422))
-def delete_model(record: ModelRecord, store: StoreDep) -> Response:
+def delete_model(record: ModelRecord, store: StoreDep, builder: BuilderDep) -> Response:
     store.delete(record["id"])
+    builder.cancel(record["id"])  # a build of it here ends now; one in another process within WATCH_S
     return Response(status_code=204)
 
 

@@ -8,9 +8,9 @@ all cores); choose ``POSE_WORKERS x POSE_THREADS`` about the machine's cores (on
 2 x 1 for more requests in parallel at a longer latency each).
 
 ``vision/`` cannot read the service's settings (pydantic): the service calls ``configure`` once per
-process (the app's lifespan, a build process's initialiser, the CLI); without it the budget is all
-cores. numba's thread count is per calling thread, so each entry point (``pipeline.estimate``,
-``pipeline.build_templates``) calls ``use_budget`` in the thread that runs it.
+process (the app's lifespan, a build process's ``builder.worker_main``, the CLI); without it the
+budget is all cores. numba's thread count is per calling thread, so each entry point
+(``pipeline.estimate``, ``pipeline.build_templates``) calls ``use_budget`` in the thread that runs it.
 """
 
 from __future__ import annotations
