@@ -20,7 +20,7 @@ from service.vision.estimate.coarse import SearchParams, coarse_search, poses_of
 from service.vision.estimate.edges import detect_segments, to_grey_u8, undistort_segments
 from service.vision.estimate.evidence import ColourFrame, colour_frame, evidence
 from service.vision.estimate.verdict import Verdict, decide
-from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.camera import Intrinsics, undistort_image
 from service.vision.geometry.frames import Pose, Rx, canonical_spin
 
 DEFAULT_DISTANCE_RANGE_MM = (300.0, 1200.0)  # searched when the request gives no distance
@@ -129,7 +129,9 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
                                params=p)
     t0 = time.perf_counter()
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
-    checked = verify_candidates(bank, cands, grey, colour_frame(image), intr, distance_mm=distance_mm,
+    # The evidence reads pixels where the ideal camera projects the model: undistort the frame once.
+    frame = colour_frame(undistort_image(image, intr))
+    checked = verify_candidates(bank, cands, grey, frame, intr, distance_mm=distance_mm,
                                 distance_range_mm=rng, min_score=min_score, n_channels=p.n_channels)
     best = checked[0] if checked else None
     verdict = best.verdict if best is not None else decide(None)

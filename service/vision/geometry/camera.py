@@ -92,6 +92,14 @@ def undistort_points(uv: np.ndarray, intr: Intrinsics) -> np.ndarray:
     return out.reshape(-1, 2)
 
 
+def undistort_image(image: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """The image as the ideal pinhole camera ``intr.K`` would have taken it (the image itself when
+    ``intr.dist`` is None): one remap per frame, for the checks that read pixels at projected poses."""
+    if intr.dist is None:
+        return image
+    return cv2.undistort(np.asarray(image), intr.K, intr.dist_coeffs)
+
+
 def ray_direction(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
     """(N, 2) uv -> (N, 3) unit viewing rays, camera frame."""
     d = unproject(np.atleast_2d(uv), np.ones(len(np.atleast_2d(uv))), K)
