@@ -10,8 +10,14 @@ from service.schemas import Health
 
 try:
     VERSION = version("posecell")
-except PackageNotFoundError:  # running from a source tree that was never installed
+except PackageNotFoundError:  # a source tree that was never installed: its pyproject says which version
+    import tomllib
+    from pathlib import Path
+
+    _pyproject = Path(__file__).resolve().parents[2] / "pyproject.toml"
     VERSION = "0+unknown"
+    if _pyproject.exists():
+        VERSION = tomllib.loads(_pyproject.read_text())["project"]["version"]
 
 router = APIRouter(tags=["health"])
 
