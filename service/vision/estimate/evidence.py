@@ -78,8 +78,7 @@ class ColourFrame:
 class _Window:
     """Arrays of one hypothesis's region of interest (gradients only where they are read)."""
     bgr: np.ndarray  # (h, w, 3) uint8
-    grad_u: np.ndarray  # (h, w) float32: d/du of the channel with the largest gradient, levels/px
-    grad_v: np.ndarray  # (h, w) float32
+    blur: np.ndarray  # (h, w, 3) float32: bgr smoothed by a 1 px Gaussian (gradients are read off it)
     quantised: np.ndarray  # (h, w) int64: colour bin index in [0, REGION_BINS ** 3)
 
 
@@ -100,13 +99,21 @@ def colour_frame(image: np.ndarray) -> ColourFrame:
 def _window(frame: ColourFrame, u0: int, v0: int, w: int, h: int) -> _Window:
     bgr = frame.bgr[v0:v0 + h, u0:u0 + w]
     blur = cv2.GaussianBlur(bgr, (0, 0), 1.0).astype(np.float32)
-    gu = cv2.Sobel(blur, cv2.CV_32F, 1, 0, ksize=3) / 8.0
-    gv = cv2.Sobel(blur, cv2.CV_32F, 0, 1, ksize=3) / 8.0
-    best = np.argmax(gu * gu + gv * gv, axis=2)[..., None]
     q = (bgr.astype(np.int64) * REGION_BINS) // 256
     quantised = (q[..., 0] * REGION_BINS + q[..., 1]) * REGION_BINS + q[..., 2]
-    return _Window(bgr, np.take_along_axis(gu, best, 2)[..., 0], np.take_along_axis(gv, best, 2)[..., 0],
-                   quantised)
+    return _Window(bgr, blur, quantised)
+
+
+def _gradient_at(win: _Window, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Central-difference gradient (levels/px) of the channel with the largest one, at the pixels
+    nearest ``uv`` (..., 2): only where the outline is read, not over the whole window."""
+    h, w = win.blur.shape[:2]
+    u = np.clip(np.rint(uv[..., 0]).astype(int), 1, w - 2)
+    v = np.clip(np.rint(uv[..., 1]).astype(int), 1, h - 2)
+    gu = 0.5 * (win.blur[v, u + 1] - win.blur[v, u - 1])  # (..., 3)
+    gv = 0.5 * (win.blur[v + 1, u] - win.blur[v - 1, u])
+    best = np.argmax(gu * gu + gv * gv, axis=-1)[..., None]
+    return np.take_along_axis(gu, best, -1)[..., 0], np.take_along_axis(gv, best, -1)[..., 0]
 
 
 def face_ids_roi(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, margin_px: int
@@ -164,7 +171,7 @@ def _edge_and_polarity(win: _Window, p: np.ndarray, n: np.ndarray, in_image: np.
         return 0.0, 0.0, 0.0
     offs = np.arange(-NORMAL_SEARCH_PX, NORMAL_SEARCH_PX + 1, dtype=np.float64)
     q = p[:, None, :] + offs[None, :, None] * n[:, None, :]  # (N, S, 2)
-    gu, gv = _sample(win.grad_u, q), _sample(win.grad_v, q)
+    gu, gv = _gradient_at(win, q)
     along = np.abs(gu * n[:, None, 0] + gv * n[:, None, 1])
     mag = np.sqrt(gu * gu + gv * gv)
     ok = (mag >= EDGE_MIN_GRADIENT) & (along >= np.cos(np.radians(EDGE_ANGLE_DEG)) * mag)
@@ -200,36 +207,41 @@ def _region(win: _Window, mask: np.ndarray, band_px: int) -> tuple[float, float,
     d_out = cv2.distanceTransform(1 - m8, cv2.DIST_L2, 3)
     inner = mask & (d_in <= band_px)
     outer = ~mask & (d_out <= band_px)
-    h, w = mask.shape
     vs, us = np.nonzero(mask)
-    yy, xx = np.mgrid[0:h, 0:w]
-    angle = np.arctan2(yy - vs.mean(), xx - us.mean()) + np.pi
-    sector = (angle * (REGION_SECTORS / (2 * np.pi))).astype(int)
-    sector = np.minimum(sector, REGION_SECTORS - 1)
+    bv, bu = np.nonzero(inner | outer)  # sectors only where the bands are: not over the whole window
+    angle = np.arctan2(bv - vs.mean(), bu - us.mean()) + np.pi
+    sector_of_band = np.minimum((angle * (REGION_SECTORS / (2 * np.pi))).astype(int), REGION_SECTORS - 1)
+    q_band = win.quantised[bv, bu]
+    in_band = inner[bv, bu]
     nb = REGION_BINS ** 3
     seps = []
     for s in range(REGION_SECTORS):
-        qi = win.quantised[inner & (sector == s)]
-        qo = win.quantised[outer & (sector == s)]
+        here = sector_of_band == s
+        qi = q_band[here & in_band]
+        qo = q_band[here & ~in_band]
         if len(qi) < MIN_REGION_PIXELS or len(qo) < MIN_REGION_PIXELS:
             continue
         seps.append(_tv(qi, qo, nb))
     if not seps:
         return 0.0, 0.0, 0.0
     seps = np.sort(np.asarray(seps))
-    overall = _tv(win.quantised[inner], win.quantised[outer], nb)
+    overall = _tv(q_band[in_band], q_band[~in_band], nb)
     return float(seps.mean()), float(seps[min(1, len(seps) - 1)]), overall
 
 
-def _shading(win: _Window, fid: np.ndarray, normals_cam: np.ndarray) -> tuple[float, float]:
+def _shading(win: _Window, fid: np.ndarray, bank: TemplateBank, pose: Pose) -> tuple[float, float]:
     inner = cv2.erode((fid >= 0).astype(np.uint8), np.ones((2 * SHADING_ERODE_PX + 1,) * 2, np.uint8)) > 0
+    inner[1::2, :] = False  # every other row and column: the fit needs thousands of pixels, not all
+    inner[:, 1::2] = False
     if inner.sum() < MIN_SHADING_PIXELS:
         return 0.0, 0.0
     grey = cv2.cvtColor(win.bgr, cv2.COLOR_BGR2GRAY)[inner].astype(np.float64)
-    n = normals_cam[fid[inner]].astype(np.float64)
+    visible, index = np.unique(fid[inner], return_inverse=True)
+    n = face_normals_cam(bank.vertices_mm, bank.faces[visible], pose.R, pose.t_mm)[index].astype(np.float64)
     A = np.hstack([np.ones((len(n), 1)), n, n * n, n[:, [0]] * n[:, [1]], n[:, [1]] * n[:, [2]],
                    n[:, [0]] * n[:, [2]]])
-    coef, *_ = np.linalg.lstsq(A, grey, rcond=None)
+    # Normal equations: the 10 x 10 system costs a fraction of an SVD of the (pixels x 10) one.
+    coef = np.linalg.lstsq(A.T @ A, A.T @ grey, rcond=None)[0]
     res = grey - A @ coef
     var = float(grey.var())
     return (float(1.0 - res.var() / var) if var > 0 else 0.0), float(np.sqrt(var))
@@ -253,7 +265,6 @@ def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFram
     in_image = (u >= 1) & (u < W - 1) & (v >= 1) & (v < H - 1)
     colour_edge, polarity, coherence = _edge_and_polarity(win, p, n, in_image)
     region, region_low, region_global = _region(win, mask, band)
-    normals = face_normals_cam(bank.vertices_mm, bank.faces, pose.R, pose.t_mm)
-    shading_r2, shading_std = _shading(win, fid, normals)
+    shading_r2, shading_std = _shading(win, fid, bank, pose)
     return Evidence(colour_edge, polarity, region, region_low, region_global, coherence, shading_r2,
                     shading_std, n_px, float(in_image.mean()))
