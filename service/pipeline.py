@@ -108,6 +108,7 @@ POLISH_PER_INSTANCE, MAX_POLISH = 4, 40
 # among its neighbours' edges and costs more than the cleanest copy (2 of 4 rendered copies were
 # dropped at the single-instance ratio, 1.5).
 INSTANCES_PEAK_ACCEPT_RATIO = 3.0
+ROI_MIN_PEAKS = 4  # level-A peaks scale with the ROI's share of the image, down to this many
 INSTANCE_IOU = 0.3  # two found instances whose silhouettes overlap more than this are one instance
 
 
@@ -149,6 +150,8 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
         reach = int(math.ceil(p.anchor_stride / p.level_scale / 2))
         anchor_mask = cv2.dilate(roi_mask(roi_uv, (h, w)).astype(np.uint8),
                                  np.ones((2 * reach + 1, 2 * reach + 1), np.uint8)).astype(bool)
+        # Level B's scans cost per peak: keep the peaks as dense as over the whole image.
+        p = replace(p, n_peaks=max(ROI_MIN_PEAKS, math.ceil(p.n_peaks * float(anchor_mask.mean()))))
     # Level A's coarse grid is pooled from level B's (coarse_search): one set of distance transforms.
     dtt_b = distance_tensor(seg, n_channels=p.n_channels, scale=p.fine_scale)
     t_edges = _ms(t0)

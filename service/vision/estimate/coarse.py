@@ -602,6 +602,10 @@ _LEVEL_A = Memo(8)
 def _cached_level_a(bank, intr, image_shape, p, distance_mm, z_ref) -> LevelATemplates:
     """Level-A templates depend only on the bank, the camera, the image size and the distance: a
     cell's camera and distance rarely change between frames, so they are made once per camera."""
-    return _LEVEL_A.get(bank, (intr, tuple(image_shape), p, distance_mm, z_ref),
+    # Keyed on the fields level_a_templates reads: a region of interest or more instances change only
+    # the peak and polish counts, and must not make the templates again.
+    fields = (p.n_channels, p.level_scale, p.inplane_step_deg, p.view_step_deg, p.view_step_any_deg, p.tiles,
+              p.points_per_template)
+    return _LEVEL_A.get(bank, (intr, tuple(image_shape), fields, distance_mm, z_ref),
                         lambda: level_a_templates(bank, intr, image_shape, p, distance_mm=distance_mm,
                                                   z_ref_mm=z_ref))
