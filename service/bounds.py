@@ -10,6 +10,7 @@ distance_mm, range     10 mm .. 20 m               metres (or micrometres) inste
 fx, fy                 50 .. 1,000,000 px          millimetres instead of pixels
 cx, cy                 inside the image            intrinsics of another resolution
 dist coefficients      |k| <= 1,000                not OpenCV's coefficients
+roi                    covers a pixel of the image  another resolution's coordinates
 =====================  ==========================  ===========================================
 """
 
@@ -61,3 +62,11 @@ def check_plausible(cam: Camera, opts: Options, image_size: tuple[int, int]) -> 
     if opts.distance_range_mm is not None:
         for v in opts.distance_range_mm:
             _distance("distance_range_mm", v)
+    poly = opts.roi_uv()
+    if poly is not None:
+        from service.vision.estimate.roi import roi_mask
+
+        if not roi_mask(poly, (h, w)).any():
+            raise UnprocessableError(f"The options field roi covers no pixel of this {w} x {h} image: give a "
+                                     f"region inside u 0 to {w - 1} and v 0 to {h - 1} (pixels, origin at "
+                                     "the top left)")

@@ -87,7 +87,8 @@ def add_cell_frames(result: EstimateResult, bank: TemplateBank, cam: CellCamera,
         None if opts.robot_pose is None else opts.robot_pose.matrix())
     result.camera_name = camera_name
     if T_base_cam is not None:
-        for pose in [result.coarse, result.refined, *result.candidates]:
+        for pose in [result.coarse, result.refined, *result.candidates,
+                     *(p for i in result.instances for p in (i.coarse, i.refined))]:
             if pose is not None:
                 pose.T_base_obj = FramePose.from_matrix(T_base_cam @ rigid(pose.R, pose.t_mm))
     reported = result.refined or result.coarse

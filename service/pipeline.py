@@ -6,10 +6,12 @@ know nothing about HTTP, pydantic or the cache.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 import trimesh
 
@@ -19,9 +21,12 @@ from service.vision.estimate.chamfer import distance_tensor
 from service.vision.estimate.coarse import SearchParams, coarse_search, poses_of
 from service.vision.estimate.edges import detect_segments, to_grey_u8, undistort_segments
 from service.vision.estimate.evidence import ColourFrame, colour_frame, evidence
+from service.vision.estimate.roi import crop_segments, roi_mask
+from service.vision.estimate.roi import inside as roi_inside
 from service.vision.estimate.verdict import Verdict, decide
-from service.vision.geometry.camera import Intrinsics, undistort_image
+from service.vision.geometry.camera import Intrinsics, project, undistort_image
 from service.vision.geometry.frames import Pose, Rx, canonical_spin
+from service.vision.geometry.render import rasterise_roi
 
 DEFAULT_DISTANCE_RANGE_MM = (300.0, 1200.0)  # searched when the request gives no distance
 
@@ -50,6 +55,16 @@ class EstimateOutput:
     overlay_png: bytes | None = None
     # the found/absent decision, its reason and the evidence it read (estimate/verdict.py)
     verdict: Verdict = field(default_factory=lambda: decide(None))
+    # every found instance, each refined and verified on its own, sorted (``estimate``'s ``sort``); the
+    # fields above describe instances[0]; empty when nothing is found
+    instances: list[Instance] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Instance:
+    coarse: PoseCandidate
+    refined: RefinedPose | None  # None when refinement was not asked for
+    verdict: Verdict
 
 
 def build_templates(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | None = None,
@@ -85,11 +100,38 @@ N_VERIFY = 5  # candidates refined and verified per frame at most (best chamfer 
 # (of 83 targets), in the first 10 on 17
 
 
+# More instances need more proposals: level-A peaks and polished hypotheses grow with max_instances
+# (capped: each peak costs a level-B scan, each polished hypothesis a refinement and its evidence).
+PEAKS_PER_INSTANCE, MAX_PEAKS = 6, 80
+POLISH_PER_INSTANCE, MAX_POLISH = 4, 40
+# ... and level B accepts a later peak's placement further from the best so far: another copy lies
+# among its neighbours' edges and costs more than the cleanest copy (2 of 4 rendered copies were
+# dropped at the single-instance ratio, 1.5).
+INSTANCES_PEAK_ACCEPT_RATIO = 3.0
+ROI_MIN_PEAKS = 4  # level-A peaks scale with the ROI's share of the image, down to this many
+INSTANCE_IOU = 0.3  # two found instances whose silhouettes overlap more than this are one instance
+
+
+def search_params(max_instances: int) -> SearchParams:
+    """The search's parameters for ``max_instances`` instances (1: ``SEARCH_PARAMS`` itself)."""
+    if max_instances <= 1:
+        return SEARCH_PARAMS
+    extra = max_instances - 1
+    return replace(SEARCH_PARAMS, n_peaks=min(SEARCH_PARAMS.n_peaks + PEAKS_PER_INSTANCE * extra, MAX_PEAKS),
+                   n_polish=min(SEARCH_PARAMS.n_polish + POLISH_PER_INSTANCE * extra, MAX_POLISH),
+                   peak_accept_ratio=INSTANCES_PEAK_ACCEPT_RATIO)
+
+
 def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance_mm: float | None = None,
-            distance_range_mm: tuple[float, float] | None = None, params: SearchParams | None = None):
+            distance_range_mm: tuple[float, float] | None = None, params: SearchParams | None = None,
+            roi_uv: np.ndarray | None = None):
     """The proposal engine (the paper's method): LSD edges, their distance tensor and the coarse
     search -> (distinct candidates, lowest chamfer cost first; full-image segments; timing_ms with
-    "edges" and "coarse")."""
+    "edges" and "coarse").
+
+    ``roi_uv``: (N, 2) polygon, pixels: only placements whose object centre projects inside it are
+    searched (level A's anchors are restricted to it), and only the edges within the part's largest
+    projected radius of its bounding box are used."""
     p = params or SEARCH_PARAMS
     threads.use_budget()
     t0 = time.perf_counter()
@@ -99,41 +141,69 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     if intr.dist is not None:
         # Straighten the edges once; everything after works in the ideal pinhole camera intr.K.
         seg = undistort_segments(seg, intr)
+    rng = distance_range_mm or DEFAULT_DISTANCE_RANGE_MM
+    anchor_mask = None
+    if roi_uv is not None:
+        z_near = max((distance_mm if distance_mm is not None else rng[0]) - 0.5 * bank.diameter_mm, 1.0)
+        seg = crop_segments(seg, roi_uv, 0.5 * bank.diameter_mm * max(intr.fx, intr.fy) / z_near)
+        # Anchors are 16 px apart: one whose cell touches the ROI is scanned (level B searches round it).
+        reach = int(math.ceil(p.anchor_stride / p.level_scale / 2))
+        anchor_mask = cv2.dilate(roi_mask(roi_uv, (h, w)).astype(np.uint8),
+                                 np.ones((2 * reach + 1, 2 * reach + 1), np.uint8)).astype(bool)
+        # Level B's scans cost per peak: keep the peaks as dense as over the whole image.
+        p = replace(p, n_peaks=max(ROI_MIN_PEAKS, math.ceil(p.n_peaks * float(anchor_mask.mean()))))
     # Level A's coarse grid is pooled from level B's (coarse_search): one set of distance transforms.
     dtt_b = distance_tensor(seg, n_channels=p.n_channels, scale=p.fine_scale)
     t_edges = _ms(t0)
     t1 = time.perf_counter()
-    rng = distance_range_mm or DEFAULT_DISTANCE_RANGE_MM
-    hyps = coarse_search(bank, dtt_b, intr, (h, w), p, distance_mm=distance_mm, distance_range_mm=rng)
+    hyps = coarse_search(bank, dtt_b, intr, (h, w), p, distance_mm=distance_mm, distance_range_mm=rng,
+                         anchor_mask=anchor_mask)
     Rs, ts = poses_of(bank, hyps, intr.K, distance_mm) if hyps else (np.zeros((0, 3, 3)), np.zeros((0, 3)))
     cands = [_candidate(bank, Pose(R, t), hy.cost, hy.score) for R, t, hy in zip(Rs, ts, hyps, strict=True)]
+    if roi_uv is not None and cands:  # level B's local scans may have walked the centre out of the ROI
+        cands = [c for c, ok in zip(cands, roi_inside(roi_uv, _centres_uv(cands, bank, intr.K)), strict=True)
+                 if ok]
     return distinct_candidates(cands, bank, intr.K), seg, {"edges": t_edges, "coarse": _ms(t1)}
 
 
 def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance_mm: float | None = None,
              distance_range_mm: tuple[float, float] | None = None, refine: bool = True, top_k: int = 5,
              overlay: bool = False, params: SearchParams | None = None,
-             min_score: float | None = None) -> EstimateOutput:
+             min_score: float | None = None, roi_uv: np.ndarray | None = None, max_instances: int = 1,
+             sort: str = "score") -> EstimateOutput:
     """Grey (H, W) or BGR (H, W, 3) image + intrinsics -> ranked poses and the verdict on the best.
 
     The coarse search proposes; up to ``N_VERIFY`` candidates are refined (also with ``refine``
     false: refinement is the check then, and ``refined`` stays null) and verified on the colour image
     (``verdict``); the one with the highest verification score is reported, found when that score
     reaches ``min_score`` (default ``verdict.MIN_SCORE``) and its distance lies in the searched range.
+
+    ``roi_uv``: see ``propose``. ``max_instances`` > 1: more proposals are kept (``search_params``) and
+    verified until that many distinct instances are found (``verify_instances``); they are reported
+    in ``instances`` sorted by ``sort`` ("score": verification score, highest first; "distance": the
+    part's centre nearest the camera first), and the top-level fields describe the first.
     """
-    p = params or SEARCH_PARAMS
+    p = params or search_params(max_instances)
     t_start = time.perf_counter()
     grey = to_grey_u8(image)
     h, w = grey.shape
     cands, _, timing = propose(bank, grey, intr, distance_mm=distance_mm, distance_range_mm=distance_range_mm,
-                               params=p)
+                               params=p, roi_uv=roi_uv)
     t0 = time.perf_counter()
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
     # The evidence reads pixels where the ideal camera projects the model: undistort the frame once.
     frame = colour_frame(undistort_image(image, intr))
-    checked = verify_candidates(bank, cands, grey, frame, intr, distance_mm=distance_mm,
-                                distance_range_mm=rng, min_score=min_score, n_channels=p.n_channels)
-    best = checked[0] if checked else None
+    kw = dict(distance_mm=distance_mm, distance_range_mm=rng, min_score=min_score, n_channels=p.n_channels)
+    if max_instances <= 1:
+        checked = verify_candidates(bank, cands, grey, frame, intr, **kw)
+        best = checked[0] if checked else None
+        found_list = [best] if best is not None and best.verdict.found else []
+    else:
+        found_list, rejected = verify_instances(bank, cands, grey, frame, intr, max_instances=max_instances,
+                                                **kw)
+        found_list = sort_instances(found_list, bank, sort)
+        best = found_list[0] if found_list else (rejected[0] if rejected else None)
+    instances = [Instance(c.candidate, c.refined if refine else None, c.verdict) for c in found_list]
     verdict = best.verdict if best is not None else decide(None)
     found = verdict.found
     coarse = best.candidate if found else None
@@ -147,7 +217,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
                                       refined.pose if refined else None, found=found, score=verdict.score,
                                       rejected=None if found or best is None else best.refined.pose))
     timing["total"] = _ms(t_start)
-    return EstimateOutput((w, h), found, coarse, refined, cands[:top_k], timing, png, verdict)
+    return EstimateOutput((w, h), found, coarse, refined, cands[:top_k], timing, png, verdict, instances)
 
 
 @dataclass(frozen=True)
@@ -176,6 +246,75 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
             break
     out.sort(key=lambda c: (c.verdict.found, c.verdict.score), reverse=True)
     return out
+
+
+def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.ndarray, frame: ColourFrame,
+                     intr: Intrinsics, *, max_instances: int, distance_mm: float | None,
+                     distance_range_mm: tuple[float, float] | None, min_score: float | None,
+                     n_channels: int) -> tuple[list[Checked], list[Checked]]:
+    """Refine and verify candidates (best chamfer cost first) until ``max_instances`` distinct ones are
+    found or the candidates run out -> (found, in the order found; rejected, best verification first).
+    A candidate whose silhouette overlaps a found instance's by more than ``INSTANCE_IOU`` (IoU) is the
+    same instance: it is skipped before refinement, and a refined one is dropped."""
+    found: list[Checked] = []
+    rejected: list[Checked] = []
+    size = (grey.shape[1], grey.shape[0])
+    for cand in cands:
+        if len(found) >= max_instances:
+            break
+        if any(silhouette_iou(bank, cand.pose, f.refined.pose, intr, size) > INSTANCE_IOU for f in found):
+            continue
+        kept, verified, unexplained = _refine(bank, cand, grey, intr, distance_mm=distance_mm,
+                                              n_channels=n_channels)
+        ev = evidence(bank, kept.pose, intr, frame).as_dict()
+        ev |= {"edge_support": verified, "unexplained": unexplained}
+        v = decide(ev, z_mm=float(kept.pose.t_mm[2]), distance_range_mm=distance_range_mm,
+                   min_score=min_score)
+        c = Checked(cand, kept, v)
+        if not v.found:
+            rejected.append(c)
+        elif all(silhouette_iou(bank, kept.pose, f.refined.pose, intr, size) <= INSTANCE_IOU for f in found):
+            found.append(c)
+    rejected.sort(key=lambda c: c.verdict.score, reverse=True)
+    return found, rejected
+
+
+SORTS = ("score", "distance")
+
+
+def sort_instances(found: list[Checked], bank: TemplateBank, sort: str) -> list[Checked]:
+    """``found`` by verification score (highest first) or by the distance of the part's centre from the
+    camera (nearest first)."""
+    if sort == "score":
+        return sorted(found, key=lambda c: -c.verdict.score)
+    if sort == "distance":
+        return sorted(found, key=lambda c: float(np.linalg.norm(c.refined.pose.apply(bank.centre_obj[None]))))
+    raise ValueError(f"unknown sort {sort!r}: one of {SORTS}")
+
+
+def silhouette_iou(bank: TemplateBank, a: Pose, b: Pose, intr: Intrinsics,
+                   image_size: tuple[int, int]) -> float:
+    """Intersection over union of the silhouettes of the model at poses ``a`` and ``b`` in the image
+    (``image_size`` = (w, h); the project's rasteriser, pixel centres)."""
+    da, fa, (ua, va) = rasterise_roi(bank.vertices_mm, bank.faces, a, intr.K, image_size)
+    db, fb, (ub, vb) = rasterise_roi(bank.vertices_mm, bank.faces, b, intr.K, image_size)
+    na, nb = int((fa >= 0).sum()), int((fb >= 0).sum())
+    if na == 0 or nb == 0:
+        return 0.0
+    u0, v0 = max(ua, ub), max(va, vb)
+    u1, v1 = min(ua + fa.shape[1], ub + fb.shape[1]), min(va + fa.shape[0], vb + fb.shape[0])
+    if u1 <= u0 or v1 <= v0:
+        return 0.0
+    ma = fa[v0 - va:v1 - va, u0 - ua:u1 - ua] >= 0
+    mb = fb[v0 - vb:v1 - vb, u0 - ub:u1 - ub] >= 0
+    inter = int((ma & mb).sum())
+    return inter / float(na + nb - inter)
+
+
+def _centres_uv(cands: list[PoseCandidate], bank: TemplateBank, K: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels where the candidates' object centres project."""
+    x = np.array([c.pose.apply(bank.centre_obj[None])[0] for c in cands])
+    return project(x, K)
 
 
 def estimate_image(bank: TemplateBank, data: bytes, intr: Intrinsics, *, max_pixels: int,

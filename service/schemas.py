@@ -58,6 +58,25 @@ class Camera(_Request):
         return Intrinsics(self.fx, self.fy, self.cx, self.cy, dist)
 
 
+class RectROI(_Request):
+    """A rectangle of the image, pixels: top-left (x, y) = (u, v), w columns wide, h rows high."""
+
+    x: float = Field(description="u (column) of the left edge, pixels")
+    y: float = Field(description="v (row) of the top edge, pixels")
+    w: float = Field(description="width, pixels, > 0")
+    h: float = Field(description="height, pixels, > 0")
+
+    @model_validator(mode="after")
+    def _area(self) -> RectROI:
+        if not (self.w > 0 and self.h > 0):
+            raise ValueError(f"roi has zero area (w {self.w:g}, h {self.h:g}): give w and h greater than 0")
+        return self
+
+
+Polygon = Annotated[list[Annotated[list[float], Field(min_length=2, max_length=2)]], Field(max_length=1000)]
+MAX_INSTANCES = 50
+
+
 class Options(_Request):
     distance_mm: float | None = Field(
         None, gt=0, description="known distance from the camera to the object origin along z, mm")
@@ -73,12 +92,55 @@ class Options(_Request):
     robot_pose: Transform | None = Field(
         None, description="T_base_flange, the robot's flange pose when the image was taken: required for an "
         "eye-in-hand camera (T_flange_cam), ignored otherwise")
+    roi: RectROI | Polygon | None = Field(
+        None, description="region of interest, pixels: {x, y, w, h} or a polygon [[u, v], ...] of at least 3 "
+        "points; only placements whose projected centre lies inside are searched")
+    max_instances: int = Field(1, ge=1, le=MAX_INSTANCES, description="report up to this many distinct "
+                               "found instances in instances (each verified on its own)")
+    sort: Literal["score", "distance"] = Field(
+        "score", description="order of instances: score (verification score, highest first) or distance "
+        "(the part's centre nearest the camera first)")
+
+    @field_validator("sort", mode="before")
+    @classmethod
+    def _sort_height(cls, v: Any) -> Any:
+        if v == "height":
+            raise ValueError("sort 'height' needs the supporting plane, which the estimate does not use yet; "
+                             "sort by score or distance")
+        return v
+
+    @field_validator("roi")
+    @classmethod
+    def _polygon(cls, v: RectROI | list[list[float]] | None) -> RectROI | list[list[float]] | None:
+        from service.vision.estimate.roi import polygon_area, segments_cross
+
+        if isinstance(v, list):
+            if len(v) < 3:
+                n = len(v)
+                raise ValueError(f"roi polygon has {n} point{'s' if n != 1 else ''}: give at least 3 [u, v] "
+                                 "points")
+            if segments_cross(np.array(v)):
+                raise ValueError("roi polygon crosses itself: list its points in order round its outline")
+            if polygon_area(np.array(v)) <= 0:
+                raise ValueError("roi polygon has zero area: give at least 3 points not on one line")
+        return v
+
+    def roi_uv(self) -> np.ndarray | None:
+        """The region of interest as an (N, 2) float64 polygon, pixels (None: the whole image)."""
+        from service.vision.estimate.roi import rect_polygon
+
+        if self.roi is None:
+            return None
+        if isinstance(self.roi, RectROI):
+            return rect_polygon(self.roi.x, self.roi.y, self.roi.w, self.roi.h)
+        return np.asarray(self.roi, float)
 
     def estimate_kwargs(self) -> dict[str, Any]:
         """The options as ``pipeline.estimate``'s keyword arguments."""
         return {"distance_mm": self.distance_mm, "distance_range_mm": self.distance_range_mm,
                 "refine": self.refine, "top_k": self.top_k, "overlay": self.overlay,
-                "min_score": self.min_score}
+                "min_score": self.min_score, "roi_uv": self.roi_uv(), "max_instances": self.max_instances,
+                "sort": self.sort}
 
     @model_validator(mode="after")
     def _distances(self) -> Options:
@@ -165,6 +227,19 @@ class VerdictJSON(BaseModel):
                                        "(fractions; see docs/API.md)")
 
 
+class InstanceJSON(BaseModel):
+    """One found instance, refined and verified on its own."""
+
+    coarse: Coarse
+    refined: Refined | None = Field(description="null when refine is false")
+    verdict: VerdictJSON
+
+
+def _verdict_json(v) -> VerdictJSON:
+    return VerdictJSON(found=v.found, score=float(v.score), reason=v.reason,
+                       evidence={k: float(x) for k, x in v.evidence.items()})
+
+
 class EstimateResult(BaseModel):
     model_id: str
     image_size: Annotated[list[int], Field(min_length=2, max_length=2)] = Field(description="[w, h], pixels")
@@ -180,6 +255,10 @@ class EstimateResult(BaseModel):
         "or none registered), most reachable first: by approach_angle_deg")
     warnings: list[str] = Field(default_factory=list, description="the model's upload warnings (ModelInfo)")
     verdict: VerdictJSON | None = Field(None, description="why found is true or false, with its evidence")
+    instances: list[InstanceJSON] = Field(
+        default_factory=list, description="the found instances (at most options.max_instances), distinct, "
+        "sorted by options.sort; the top-level coarse, refined and verdict describe instances[0]; empty when "
+        "nothing is found")
 
     @classmethod
     def from_output(cls, model_id: str, out: EstimateOutput) -> EstimateResult:
@@ -191,9 +270,10 @@ class EstimateResult(BaseModel):
             candidates=[Candidate.from_candidate(c) for c in out.candidates],
             timing_ms=Timing(**{k: float(out.timing_ms.get(k, 0.0)) for k in Timing.model_fields}),
             overlay_png_base64=overlay,
-            verdict=VerdictJSON(found=out.verdict.found, score=float(out.verdict.score),
-                                reason=out.verdict.reason,
-                                evidence={k: float(v) for k, v in out.verdict.evidence.items()}),
+            verdict=_verdict_json(out.verdict),
+            instances=[InstanceJSON(coarse=Coarse.from_candidate(i.coarse),
+                                    refined=None if i.refined is None else Refined.from_refined(i.refined),
+                                    verdict=_verdict_json(i.verdict)) for i in out.instances],
         )
 
 

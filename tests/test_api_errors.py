@@ -383,3 +383,18 @@ def test_multipart_parser_errors_are_400_sentences(client, body, content_type):
         assert "multipart/form-data" in detail and "send" in detail
     else:
         assert_error(r, 422)
+
+
+# --- options.roi, max_instances, sort: 422 with the fix -------------------------------------------
+
+@pytest.mark.parametrize("options, words", [
+    ({"roi": {"x": 10, "y": 10, "w": 0, "h": 50}}, "zero area"),
+    ({"roi": [[0, 0], [100, 0]]}, "at least 3"),
+    ({"roi": [[0, 0], [100, 100], [100, 0], [0, 100]]}, "crosses itself"),
+    ({"roi": [[0, 0], [50, 50], [100, 100]]}, "zero area"),
+    ({"roi": {"x": 5000, "y": 5000, "w": 100, "h": 100}}, "covers no pixel"),
+    ({"max_instances": 51}, "max_instances"),
+    ({"sort": "height"}, "supporting plane"),
+])
+def test_bad_roi_or_instances_is_422_with_the_fix(client, image_bytes, options, words):
+    assert words in assert_error(estimate(client, client.ready_id, image=image_bytes, options=options), 422)

@@ -126,3 +126,15 @@ def test_empty_scene_is_not_found(client, camera):
     res = estimate(client, png.tobytes(), camera, {"distance_mm": 500})
     assert res["found"] is False and res["refined"] is None
     assert res["image_size"] == [1280, 960]
+
+
+def test_max_instances_one_answers_as_without_it(client, image_bytes, camera, paper_gt):
+    plain = estimate(client, image_bytes, camera, {"distance_mm": 500})
+    one = estimate(client, image_bytes, camera, {"distance_mm": 500, "max_instances": 1, "sort": "score"})
+    for key in ("found", "coarse", "refined", "candidates", "verdict", "grasps"):
+        assert one[key] == plain[key], key
+    assert one["found"] and len(one["instances"]) == 1
+    inst = one["instances"][0]
+    for key in ("refined", "coarse", "verdict"):
+        assert inst[key] == one[key], key
+    assert abs(inst["refined"]["t_mm"][0] - paper_gt["t_mm"][0]) <= API_UNITS_CHECK_MM

@@ -257,11 +257,20 @@ def level_a_templates(bank: TemplateBank, intr: Intrinsics, image_shape: tuple[i
                            z_ref, tile_uv, extent, perimeter)
 
 
-def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, image_shape, p: SearchParams):
+def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, image_shape, p: SearchParams,
+                 anchor_mask: np.ndarray | None = None):
+    """Level A's scan. ``anchor_mask``: (h, w) bool full-resolution, where the reference point may be
+    placed (a region of interest): anchors elsewhere are not scanned at all."""
     C, hl, wl = dtt.dt.shape
     dt_q, tau_q = quantised(dtt, dtt.tau_px)
     au, av = np.meshgrid(np.arange(0, wl, p.anchor_stride), np.arange(0, hl, p.anchor_stride))
     au, av = au.ravel().astype(np.int32), av.ravel().astype(np.int32)
+    if anchor_mask is not None:
+        mh, mw = anchor_mask.shape
+        ui = np.clip(np.rint((au + 0.5) / p.level_scale - 0.5).astype(np.int64), 0, mw - 1)
+        vi = np.clip(np.rint((av + 0.5) / p.level_scale - 0.5).astype(np.int64), 0, mh - 1)
+        inside = anchor_mask[vi, ui]
+        au, av = au[inside], av[inside]
     # An anchor can only win if the image has about as many edge pixels around it as a template has
     # border pixels: counting them (integral image) discards empty background before the scan.
     edges = (dtt.dt.min(axis=0) < EDGE_PIXEL_DT_PX).astype(np.int32)
@@ -539,15 +548,17 @@ def depth_scales(distance_range_mm: tuple[float, float], depth_step: float) -> t
 
 def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
                   image_shape: tuple[int, int], p: SearchParams, *, distance_mm: float | None,
-                  distance_range_mm: tuple[float, float]) -> list[Hypothesis]:
+                  distance_range_mm: tuple[float, float], anchor_mask: np.ndarray | None = None
+                  ) -> list[Hypothesis]:
     """Ranked, polished, mutually distinct hypotheses (best first). ``dtt_b`` is the DT3 at
-    ``fine_scale``; level A's grid is min-pooled from it."""
+    ``fine_scale``; level A's grid is min-pooled from it. ``anchor_mask`` (full-resolution (h, w)
+    bool): level A places the reference point only there (``scan_level_a``)."""
     K = intr.K
     dtt_a = pooled_distance_tensor(dtt_b, p.level_scale)
     z_ref, scales = (distance_mm, np.array([1.0])) if distance_mm is not None else \
         depth_scales(distance_range_mm, p.depth_step)
     tpl = _cached_level_a(bank, intr, image_shape, p, distance_mm, z_ref)
-    au, av, tile, cost, t, d = scan_level_a(dtt_a, tpl, scales, image_shape, p)
+    au, av, tile, cost, t, d = scan_level_a(dtt_a, tpl, scales, image_shape, p, anchor_mask)
     radius = PEAK_RADIUS_EXTENT * tpl.extent_px * float(np.median(scales))
     peaks = pick_peaks(au, av, cost, p.n_peaks, max(radius, MIN_PEAK_RADIUS_PX))
     n_phi = len(tpl.phis_deg)
@@ -591,6 +602,10 @@ _LEVEL_A = Memo(8)
 def _cached_level_a(bank, intr, image_shape, p, distance_mm, z_ref) -> LevelATemplates:
     """Level-A templates depend only on the bank, the camera, the image size and the distance: a
     cell's camera and distance rarely change between frames, so they are made once per camera."""
-    return _LEVEL_A.get(bank, (intr, tuple(image_shape), p, distance_mm, z_ref),
+    # Keyed on the fields level_a_templates reads: a region of interest or more instances change only
+    # the peak and polish counts, and must not make the templates again.
+    fields = (p.n_channels, p.level_scale, p.inplane_step_deg, p.view_step_deg, p.view_step_any_deg, p.tiles,
+              p.points_per_template)
+    return _LEVEL_A.get(bank, (intr, tuple(image_shape), fields, distance_mm, z_ref),
                         lambda: level_a_templates(bank, intr, image_shape, p, distance_mm=distance_mm,
                                                   z_ref_mm=z_ref))
