@@ -170,3 +170,36 @@ def test_the_scale_compose_file_wires_redis_replicas_workers_and_the_balancer():
     assert re.search(r"set \$api http://api:8000;", conf) and "proxy_pass $api;" in conf
     size_mb = int(re.search(r"client_max_body_size (\d+)m;", conf).group(1))
     assert size_mb * 1024 * 1024 >= Settings().max_mesh_bytes  # the balancer lets a largest mesh through
+
+
+@needs_redis
+def test_the_sweep_requeues_only_a_build_nobody_holds_or_waits_for(redis_url):
+    """The retry of a killed worker's build: an unfinished model with no lease and no queued job is
+    queued again once it has been so for the grace period, once; a held lease or a waiting job stops it."""
+    from rq import Queue
+
+    from service import jobs
+    from service.store import Store
+
+    settings = Settings(store=redis_url, build_lease_s=30)
+    with Store(redis_url) as store, jobs._connection(settings) as conn:
+        queue = Queue(jobs.QUEUE_NAME, connection=conn)
+        store.create({"id": "orphan", "status": "building", "created_at": "1"}, b"mesh")
+        store.create({"id": "held", "status": "building", "created_at": "2"}, b"mesh")
+        store.create({"id": "done", "status": "ready", "created_at": "3"}, b"mesh")
+        assert store.try_lock("held", lease_s=30)
+
+        orphans: dict[str, float] = {}
+        assert jobs.sweep(store, queue, settings, orphans, grace_s=3600) == []  # not orphaned long enough
+        assert list(orphans) == ["orphan"]
+        assert jobs.sweep(store, queue, settings, orphans, grace_s=0) == ["orphan"]
+        assert jobs.queued_ids(queue) == {"orphan"}
+        assert jobs.sweep(store, queue, settings, orphans, grace_s=0) == []  # its job is waiting
+
+        builder = jobs.QueueBuilder(settings)
+        builder.cancel("orphan")  # a deleted model's waiting job goes too
+        assert jobs.queued_ids(queue) == set()
+        builder.submit("held")
+        builder.submit("held")  # one waiting job per model
+        assert queue.count == 1
+        builder.shutdown()
