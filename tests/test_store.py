@@ -193,3 +193,14 @@ def test_an_unreachable_redis_is_a_503_sentence_not_a_crash():
         with pytest.raises(StoreUnavailableError) as e:
             s.get("m")
         assert e.value.status_code == 503 and e.value.detail.endswith(".")
+
+
+def test_a_bank_written_before_banks_had_versions_still_loads(tmp_path):
+    import diskcache
+
+    with diskcache.Cache(str(tmp_path / "old")) as old:  # a cache volume as the last release left it
+        old.set("bank:m", bank_to_bytes(_bank()))
+    with Store(tmp_path / "old") as s:
+        assert s.bank("m").n_templates == 3
+        s.put_bank("m", _bank(2))  # rebuilt: versioned from now on
+        assert s.bank("m").n_templates == 2

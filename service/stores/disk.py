@@ -98,9 +98,8 @@ class DiskStore(Store):
 
     def bank(self, mid: str) -> TemplateBank | None:
         """The model's template bank, from this process's ``BankCache`` or the cache; None if not built."""
-        version = self._cache.get(f"bankver:{mid}")
-        if version is None:
-            return None
+        # a bank written before banks had versions (an existing cache volume) is version "0"
+        version = self._cache.get(f"bankver:{mid}", "0")
         bank = self._banks.get(mid, version)
         if bank is not None:
             return bank

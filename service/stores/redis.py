@@ -36,6 +36,7 @@ from service.vision.bank import TemplateBank
 PREFIX = "posecell:v1:"
 CHUNK_BYTES = 4 << 20  # a bank is stored as a list of 4 MiB strings (Redis strings cap at 512 MB)
 SOCKET_TIMEOUT_S = 5.0
+CONNECT_TIMEOUT_S = 2.0  # a Redis that does not answer: /health says so before a 4 s health check gives up
 BANK_VERSION_TTL_S = 60  # an old bank version lingers this long for readers that fetched its version
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -85,7 +86,7 @@ class RedisStore(Store):
     def __init__(self, url: str, *, bank_cache_mb: float = DEFAULT_BANK_CACHE_MB) -> None:
         self.location = str(url)
         self.r = redis.Redis.from_url(self.location, socket_timeout=SOCKET_TIMEOUT_S,
-                                      socket_connect_timeout=SOCKET_TIMEOUT_S, health_check_interval=10)
+                                      socket_connect_timeout=CONNECT_TIMEOUT_S, health_check_interval=10)
         self._banks = BankCache(bank_cache_mb)
         self._renew = self.r.register_script(_RENEW)
         self._unlock = self.r.register_script(_UNLOCK)
