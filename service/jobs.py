@@ -131,8 +131,9 @@ class QueueBuilder:
 
 
 def worker_main(settings: Settings, *, burst: bool = False) -> int:
-    """``python -m service worker``: take build jobs until stopped (SIGTERM: RQ finishes the job's
-    horse warm shutdown; a second one ends it, and run_build puts the model back to "queued")."""
+    """``python -m service worker``: take build jobs until stopped. SIGTERM: RQ's warm shutdown lets
+    the running build finish, then exits; a second SIGTERM kills the build's horse, and the build is
+    taken over by another worker once its lease has run out (``POSE_BUILD_LEASE_S``)."""
     if not settings.shared_store:
         raise SystemExit("python -m service worker needs POSE_STORE=redis://host:6379/0 (the shared store); "
                          "with the default diskcache, `python -m service serve` builds in its own processes")
