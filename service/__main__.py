@@ -39,12 +39,12 @@ def _existing(path: str, what: str, hint: str) -> Path:
     return p
 
 
-def _progress(cache_dir: Path, mid: str, done: threading.Event, stream=None) -> None:
+def _progress(location: str, mid: str, done: threading.Event, stream=None) -> None:
     """Until ``done``: one self-overwriting line on ``stream`` (stderr) with the build's progress."""
     from service.store import Store
 
     stream = stream or sys.stderr
-    with Store(cache_dir) as store:
+    with Store(location) as store:
         while not done.wait(PROGRESS_EVERY_S):
             rec = store.get(mid) or {}
             stream.write(f"\rbuilding templates of {mid}: {rec.get('status', '?')} "
@@ -68,11 +68,12 @@ def _ensure_built(args: argparse.Namespace, settings, store) -> dict:
         print(f"warning: {warning}", file=sys.stderr)
     if record["status"] != "ready":
         done = threading.Event()
-        shown = threading.Thread(target=_progress, args=(settings.cache_dir, record["id"], done), daemon=True)
+        shown = threading.Thread(target=_progress, args=(settings.store_location, record["id"], done),
+                                 daemon=True)
         if sys.stderr.isatty():
             shown.start()
         try:
-            run_build(str(settings.cache_dir), record["id"], settings.build_lease_s)
+            run_build(settings.store_location, record["id"], settings.build_lease_s)
         finally:
             done.set()
             if shown.is_alive():
@@ -172,7 +173,7 @@ def cmd_build(args: argparse.Namespace) -> int:
     from service.store import Store
 
     settings = _settings(args)
-    with Store(settings.cache_dir) as store:
+    with Store(settings.store_location) as store:
         record = _ensure_built(args, settings, store)
     print(ModelInfo.from_record(record).model_dump_json(indent=2))
     return 0 if record["status"] == "ready" else 1
@@ -198,7 +199,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     image = _existing(args.image, "image", "give a PNG, JPEG, BMP or TIFF file")
     if args.overlay_out:
         opts.overlay = True
-    with Store(settings.cache_dir) as store:
+    with Store(settings.store_location) as store:
         cam, camera_name = resolve_camera(camera_text, store)  # inline, or a camera registered in the cache
         check_robot_pose(cam, opts, camera_name)
         record = _ensure_built(args, settings, store)
@@ -212,6 +213,17 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         print(f"overlay written to {args.overlay_out}", file=sys.stderr)
     print(result.model_dump_json(indent=2))
     return 0
+
+
+def cmd_worker(args: argparse.Namespace) -> int:
+    from service.jobs import worker_main
+    from service.logs import configure
+    from service.settings import Settings
+
+    # no threads.configure here: each job's forked horse sets its thread budget (numba, then fork: unsafe)
+    settings = Settings(**({"cache_dir": args.cache_dir} if args.cache_dir else {}))
+    configure(settings.log_level)
+    return worker_main(settings, burst=args.burst)
 
 
 def _mesh_args(p: argparse.ArgumentParser) -> None:
@@ -247,6 +259,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--overlay-out", default=None, metavar="PNG",
                    help="write the overlay (contours, axes, verdict) to this PNG file, not base64 in JSON")
     p.set_defaults(func=cmd_estimate)
+
+    p = sub.add_parser("worker", help="take template-build jobs from the shared store's queue "
+                       "(POSE_STORE=redis://...); run one or more per machine")
+    p.add_argument("--burst", action="store_true", help="stop when the queue is empty")
+    p.set_defaults(func=cmd_worker)
 
     args = parser.parse_args(argv)
     try:

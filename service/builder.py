@@ -115,7 +115,7 @@ class _DeletedError(Exception):
     """The model was deleted while it was being built."""
 
 
-def run_build(cache_dir: str, mid: str, lease_s: float, *, parent_pid: int | None = None,
+def run_build(location: str, mid: str, lease_s: float, *, parent_pid: int | None = None,
               memory_mb: int | None = None) -> str:
     """Build model ``mid``'s template bank (in a build process, or in-process for the CLI).
 
@@ -130,7 +130,7 @@ def run_build(cache_dir: str, mid: str, lease_s: float, *, parent_pid: int | Non
     """
     from service.pipeline import build_templates
 
-    store = Store(cache_dir)
+    store = Store(location)
     token: str | None = None
     wake = threading.Event()  # the watch stops: the build ended, or a SIGTERM came
     sigterm = threading.Event()
@@ -267,17 +267,17 @@ def limit_memory(memory_mb: int | None) -> None:
 
 
 def worker_main(argv: list[str]) -> int:
-    """A build process's entry point: ``cache_dir mid lease_s parent_pid memory_mb log_level threads``.
+    """A build process's entry point: ``location mid lease_s parent_pid memory_mb log_level threads``.
 
     The process logs like its service and keeps to the service's thread budget (``POSE_THREADS``;
     an empty ``threads``: all cores)."""
     from service.vision import threads as thread_budget
 
-    cache_dir, mid, lease_s, parent_pid, memory_mb, level, threads = argv
+    location, mid, lease_s, parent_pid, memory_mb, level, threads = argv
     configure_like(level or None)
     thread_budget.configure(int(threads) if threads else None)
     limit_memory(int(memory_mb))
-    status = run_build(cache_dir, mid, float(lease_s), parent_pid=int(parent_pid), memory_mb=int(memory_mb))
+    status = run_build(location, mid, float(lease_s), parent_pid=int(parent_pid), memory_mb=int(memory_mb))
     log.info("template build of model %s: %s", mid, status)
     return 0
 
@@ -296,7 +296,7 @@ class Builder:
     def __init__(self, settings: Settings) -> None:
         import service
 
-        self.cache_dir = str(Path(settings.cache_dir))
+        self.location = settings.store_location
         self.lease_s = float(settings.build_lease_s)
         self.workers = int(settings.build_workers)
         self.memory_mb = int(settings.build_memory_mb)
@@ -350,7 +350,7 @@ class Builder:
     def _start_waiting(self) -> None:  # with self._cv held
         while self._queue and len(self._running) < self.workers and not self._closing:
             mid = self._queue.popleft()
-            cmd = [sys.executable, "-c", _WORKER_CODE, self.cache_dir, mid, repr(self.lease_s),
+            cmd = [sys.executable, "-c", _WORKER_CODE, self.location, mid, repr(self.lease_s),
                    str(os.getpid()), str(self.memory_mb), json_level() or "",
                    "" if self.threads is None else str(self.threads)]
             proc = subprocess.Popen(cmd, env=self._env, stdin=subprocess.DEVNULL)
@@ -373,7 +373,7 @@ class Builder:
     def _died(self, mid: str, code: int) -> None:
         log.error("template build process for model %s died (exit status %s)", mid, code)
         self._deaths[mid] = self._deaths.get(mid, 0) + 1
-        with Store(self.cache_dir) as store:
+        with Store(self.location) as store:
             rec = store.get(mid)
             if rec is None or rec["status"] not in ACTIVE:
                 return
@@ -399,3 +399,14 @@ class Builder:
             except subprocess.TimeoutExpired:  # its lease stays until it expires; the build resumes later
                 p.kill()
                 p.wait(timeout=5)
+
+
+def make_builder(settings: Settings) -> Any:
+    """The builds of this service process: its own build processes (``Builder``) with the diskcache,
+    or jobs on the shared queue that ``python -m service worker`` processes take (``service.jobs``)
+    with Redis."""
+    if settings.shared_store:
+        from service.jobs import QueueBuilder
+
+        return QueueBuilder(settings)
+    return Builder(settings)

@@ -11,8 +11,9 @@
     │   └── BuildFailedError         409  template build failed; the detail says why
     ├── TooLargeError                413  upload over a size limit (bytes or pixels)
     ├── UnsupportedMediaError        415  bytes that are not a mesh / image format we read
-    └── UnprocessableError           422  well-formed request with unusable content (bad JSON,
-                                          fx <= 0, NaN, a mesh without faces, an empty file, ...)
+    ├── UnprocessableError           422  well-formed request with unusable content (bad JSON,
+    │                                     fx <= 0, NaN, a mesh without faces, an empty file, ...)
+    └── StoreUnavailableError        503  the shared store (Redis) cannot be reached; sends ``Retry-After``
 
 ``install_handlers(app)`` makes EVERY error response ``{"detail": "<one sentence>."}``: these
 errors, FastAPI/pydantic request validation errors, Starlette's HTTP errors (unknown route 404,
@@ -91,6 +92,13 @@ class UnsupportedMediaError(ServiceError):
 
 class UnprocessableError(ServiceError):
     status_code = 422
+
+
+class StoreUnavailableError(ServiceError):
+    status_code = 503
+
+    def __init__(self, detail: str, *, retry_after_s: int = RETRY_AFTER_S) -> None:
+        super().__init__(detail, headers={"Retry-After": str(int(retry_after_s))})
 
 
 # --- validation errors -> one sentence ------------------------------------------------------------

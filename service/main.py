@@ -25,7 +25,7 @@ from service import monitoring, pipeline, ui
 from service.api import cameras, error_responses, estimate, grasps, health, metrics, models
 from service.api.deps import ApiKeyDocumented
 from service.api.health import VERSION
-from service.builder import Builder
+from service.builder import make_builder
 from service.errors import install_handlers, sentence
 from service.middleware import ApiKeyGuard, RequestContext
 from service.settings import Settings
@@ -103,9 +103,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         threads.configure(settings.threads)
-        settings.cache_dir.mkdir(parents=True, exist_ok=True)
-        store = Store(settings.cache_dir)
-        builder = Builder(settings)
+        if not settings.shared_store:
+            settings.cache_dir.mkdir(parents=True, exist_ok=True)
+        store = Store(settings.store_location, bank_cache_mb=settings.bank_cache_mb)
+        builder = make_builder(settings)
         app.state.store, app.state.builder = store, builder
         builder.resume(store)
         warm = threading.Thread(target=_warm_up, name="warm-up") if settings.warm_up else None

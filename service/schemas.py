@@ -310,6 +310,9 @@ class ModelInfo(BaseModel):
 class Health(BaseModel):
     status: Literal["ok"]
     version: str
+    store: Literal["disk", "redis"] = Field(
+        description="the store this replica uses, and it answers (else 503): disk = the diskcache in "
+        "POSE_CACHE_DIR, redis = POSE_STORE")
 
 
 class Error(BaseModel):

@@ -21,6 +21,11 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="POSE_", extra="ignore", env_ignore_empty=True)
 
     cache_dir: Path = Field(Path("templates_cache"), description="template cache directory (diskcache)")
+    store: str | None = Field(
+        None, description="where models, banks and build status live: unset = diskcache in cache_dir; "
+        "redis://host:6379/0 = a Redis shared by API replicas and `python -m service worker` processes")
+    bank_cache_mb: float = Field(
+        256, gt=0, description="template banks each process keeps loaded (least recently used dropped), MB")
     max_mesh_bytes: int = Field(100 * MB, gt=0, description="largest accepted mesh upload, bytes")
     max_image_bytes: int = Field(50 * MB, gt=0, description="largest accepted image upload, bytes")
     max_image_pixels: int = Field(50_000_000, gt=0, description="largest accepted image, width * height")
@@ -49,6 +54,25 @@ class Settings(BaseSettings):
         default_factory=dict,
         description="template-grid defaults (keys of service.vision.build.grid.GRID_DEFAULTS); an upload's "
         "`templates` JSON overrides them key by key")
+
+    @field_validator("store", mode="before")
+    @classmethod
+    def _store_url(cls, v: Any) -> Any:
+        if v is None or (isinstance(v, str) and not v.strip()):
+            return None
+        if not str(v).startswith(("redis://", "rediss://", "unix://")):
+            raise ValueError(f"store must be a redis://, rediss:// or unix:// URL (or unset for the "
+                             f"diskcache in cache_dir), not {v!r}")
+        return str(v).strip()
+
+    @property
+    def store_location(self) -> str:
+        """What ``Store(...)`` opens: the Redis URL, else the cache directory."""
+        return self.store or str(self.cache_dir)
+
+    @property
+    def shared_store(self) -> bool:
+        return self.store is not None
 
     @field_validator("api_key", mode="before")
     @classmethod

@@ -1,19 +1,26 @@
-"""The template cache: model records, uploaded meshes, template banks, build status and build locks.
+"""The store: model records, uploaded meshes, template banks, build status and leases, grasps, cameras.
 
-The ONLY module that imports diskcache. One ``Store`` per process opens the cache directory;
-several processes (uvicorn workers, build processes) share it safely (SQLite underneath).
+``Store`` is the interface every layer above uses; two backends implement it, chosen by one setting
+(``POSE_STORE``) and unknown to everything above this module:
 
-Keys, for a model id ``<id>``::
+    service/stores/disk.py   ``DiskStore``: diskcache in ``POSE_CACHE_DIR`` (the default; one machine,
+                             several processes share it through SQLite)
+    service/stores/redis.py  ``RedisStore``: ``POSE_STORE=redis://host:6379/0`` (many API replicas and
+                             build workers on one Redis; key names documented there)
+
+``Store(location)`` opens the backend the location names (a ``redis://``/``rediss://``/``unix://`` URL,
+else a cache directory), as ``pathlib.Path`` picks its flavour. Logical records, for a model id ``<id>``::
 
     model:<id>    record (dict): name, units, options, status, progress, error, extents, ...
     mesh:<id>     the uploaded mesh bytes, exactly as sent
-    bank:<id>     the template bank, ``np.savez`` of ``TemplateBank.to_arrays()``
+    bank:<id>     the template bank, ``np.savez`` of ``TemplateBank.to_arrays()``, and its version
     lock:<id>     build lease: the token of the process building <id>; expires unless renewed
     builds:<id>   how many times a build of <id> has started (a crash-resumed build counts twice)
     grasps:<id>   the model's grasps (list of dicts, as PUT /models/{id}/grasps sent them)
     camera:<name> a registered camera (dict: intrinsics, image size, extrinsics, plane)
 
 Ids are content hashes (``model_id``): the same mesh bytes with the same options give the same id.
+Each process keeps the banks it loaded in a ``BankCache`` bounded in MB (``POSE_BANK_CACHE_MB``).
 """
 
 from __future__ import annotations
@@ -27,17 +34,16 @@ import threading
 import uuid
 from collections import OrderedDict
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
-import diskcache
 import numpy as np
 
 from service.errors import BuildFailedError, NotReadyError, clause
 from service.vision.bank import TemplateBank
 
 ID_HEX_CHARS = 20
-BANK_LRU_SIZE = 8  # banks kept loaded per process
+DEFAULT_BANK_CACHE_MB = 256  # banks kept loaded per process (POSE_BANK_CACHE_MB)
+REDIS_SCHEMES = ("redis://", "rediss://", "unix://")
 
 
 def _number(v: Any) -> Any:
@@ -76,19 +82,71 @@ def bank_from_bytes(data: bytes) -> TemplateBank:
         return TemplateBank.from_arrays(a)
 
 
+def is_shared(location: str | os.PathLike[str]) -> bool:
+    """True when ``location`` names a Redis server (the shared store), False for a cache directory."""
+    return str(location).startswith(REDIS_SCHEMES)
+
+
+def bank_nbytes(bank: TemplateBank) -> int:
+    return int(sum(np.asarray(a).nbytes for a in bank.to_arrays().values()))
+
+
+class BankCache:
+    """The banks this process has loaded, least recently used dropped first, at most ``max_mb`` MB.
+
+    Entries are keyed by model id and carry the bank's version: a bank rebuilt or deleted anywhere
+    has a new version (or none), so a stale entry is never served."""
+
+    def __init__(self, max_mb: float = DEFAULT_BANK_CACHE_MB) -> None:
+        self.max_bytes = int(max_mb * 1024 * 1024)
+        self._items: OrderedDict[str, tuple[str, TemplateBank, int]] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, mid: str, version: str) -> TemplateBank | None:
+        with self._lock:
+            item = self._items.get(mid)
+            if item is None or item[0] != version:
+                return None
+            self._items.move_to_end(mid)
+            return item[1]
+
+    def put(self, mid: str, version: str, bank: TemplateBank) -> None:
+        size = bank_nbytes(bank)
+        with self._lock:
+            self._items.pop(mid, None)
+            if size > self.max_bytes:
+                return
+            self._items[mid] = (version, bank, size)
+            while sum(s for _, _, s in self._items.values()) > self.max_bytes:
+                self._items.popitem(last=False)
+
+    def drop(self, mid: str) -> None:
+        with self._lock:
+            self._items.pop(mid, None)
+
+
 class Store:
-    def __init__(self, directory: str | os.PathLike[str]) -> None:
-        self.directory = Path(directory)
-        self._cache = diskcache.Cache(str(self.directory))
-        self._banks: OrderedDict[str, TemplateBank] = OrderedDict()
-        self._banks_lock = threading.Lock()
+    """The interface of both backends (see the module docstring). ``Store(location)`` opens one."""
+
+    location: str
+    kind: str  # "disk" or "redis": what /health reports
+
+    def __new__(cls, location: str | os.PathLike[str] | None = None, **kwargs: Any) -> Store:
+        if cls is Store:
+            if location is None:
+                raise TypeError("Store(location): a cache directory or a redis:// URL")
+            if is_shared(location):
+                from service.stores.redis import RedisStore
+
+                cls = RedisStore
+            else:
+                from service.stores.disk import DiskStore
+
+                cls = DiskStore
+        return super().__new__(cls)
 
     def close(self) -> None:
-        self._cache.close()
-
-    def volume_bytes(self) -> int:
-        """Size of the cache on disk, bytes: its SQLite database and the value files beside it."""
-        return int(self._cache.volume())
+        raise NotImplementedError
 
     def __enter__(self) -> Store:
         return self
@@ -96,46 +154,28 @@ class Store:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    # --- records --------------------------------------------------------------------------------
+    def ping(self) -> str | None:
+        """None when the store answers; else one sentence saying what is wrong and how to fix it."""
+        return None
 
+    def volume_bytes(self) -> int:
+        raise NotImplementedError
+
+    # records
     def create(self, record: dict[str, Any], mesh: bytes) -> bool:
-        """Store a new model (mesh first, then its record). False if the id already exists."""
-        mid = record["id"]
-        if f"model:{mid}" in self._cache:
-            return False
-        self._cache.set(f"mesh:{mid}", mesh)
-        return bool(self._cache.add(f"model:{mid}", dict(record)))
+        raise NotImplementedError
 
     def get(self, mid: str) -> dict[str, Any] | None:
-        return self._cache.get(f"model:{mid}")
+        raise NotImplementedError
 
     def update(self, mid: str, **fields: Any) -> dict[str, Any] | None:
-        """Atomically merge ``fields`` into the record (across processes); None if it is gone."""
-        with self._cache.transact():
-            rec = self._cache.get(f"model:{mid}")
-            if rec is None:
-                return None
-            rec.update(fields)
-            self._cache.set(f"model:{mid}", rec)
-        return rec
+        raise NotImplementedError
 
     def update_if(self, mid: str, statuses: tuple[str, ...], **fields: Any) -> dict[str, Any] | None:
-        """``update`` only while the record's status is one of ``statuses``; None if it is not (or gone).
-
-        A build being stopped puts its model back to "queued" this way, so it can never undo a
-        "ready" or "failed" that was written a moment before."""
-        with self._cache.transact():
-            rec = self._cache.get(f"model:{mid}")
-            if rec is None or rec.get("status") not in statuses:
-                return None
-            rec.update(fields)
-            self._cache.set(f"model:{mid}", rec)
-        return rec
+        raise NotImplementedError
 
     def ids(self) -> Iterator[str]:
-        for key in self._cache.iterkeys():
-            if isinstance(key, str) and key.startswith("model:"):
-                yield key[len("model:"):]
+        raise NotImplementedError
 
     def records(self) -> list[dict[str, Any]]:
         recs = [r for r in (self.get(mid) for mid in self.ids()) if r is not None]
@@ -145,21 +185,17 @@ class Store:
         return [r["id"] for r in self.records() if r.get("status") in ("queued", "building")]
 
     def delete(self, mid: str) -> bool:
-        """Remove every record of the model. False if it did not exist."""
-        existed = self._cache.delete(f"model:{mid}")
-        for kind in ("mesh", "bank", "builds", "grasps", "lock"):
-            self._cache.delete(f"{kind}:{mid}")
-        with self._banks_lock:
-            self._banks.pop(mid, None)
-        return bool(existed)
+        raise NotImplementedError
 
-    # --- payloads -------------------------------------------------------------------------------
-
+    # payloads
     def mesh(self, mid: str) -> bytes | None:
-        return self._cache.get(f"mesh:{mid}")
+        raise NotImplementedError
 
     def put_bank(self, mid: str, bank: TemplateBank) -> None:
-        self._cache.set(f"bank:{mid}", bank_to_bytes(bank))
+        raise NotImplementedError
+
+    def bank(self, mid: str) -> TemplateBank | None:
+        raise NotImplementedError
 
     def ready_bank(self, record: dict[str, Any]) -> TemplateBank:
         """The template bank of the model ``record``; 409 with the reason when its build failed, 409
@@ -177,30 +213,12 @@ class Store:
                                 "is ready")
         return bank
 
-    def bank(self, mid: str) -> TemplateBank | None:
-        """The model's template bank, from the in-process LRU or the cache; None if not built."""
-        with self._banks_lock:
-            if mid in self._banks:
-                self._banks.move_to_end(mid)
-                return self._banks[mid]
-        data = self._cache.get(f"bank:{mid}")
-        if data is None:
-            return None
-        bank = bank_from_bytes(data)
-        with self._banks_lock:
-            self._banks[mid] = bank
-            self._banks.move_to_end(mid)
-            while len(self._banks) > BANK_LRU_SIZE:
-                self._banks.popitem(last=False)
-        return bank
-
-    # --- builds ---------------------------------------------------------------------------------
-
+    # builds
     def count_build(self, mid: str) -> int:
-        return int(self._cache.incr(f"builds:{mid}"))
+        raise NotImplementedError
 
     def build_count(self, mid: str) -> int:
-        return int(self._cache.get(f"builds:{mid}", 0))
+        raise NotImplementedError
 
     def try_lock(self, mid: str, lease_s: float) -> str | None:
         """Take the build lease of ``mid`` for ``lease_s`` seconds: a token, or None if another holds it.
@@ -209,47 +227,38 @@ class Store:
         the holder renews it while it works (``renew``); once it stops, the lease expires and the
         next process to ask takes over.
         """
-        token = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex}"
-        return token if self._cache.add(f"lock:{mid}", token, expire=lease_s) else None
+        raise NotImplementedError
 
     def renew(self, mid: str, token: str, lease_s: float) -> bool:
-        with self._cache.transact():
-            if self._cache.get(f"lock:{mid}") != token:
-                return False
-            self._cache.set(f"lock:{mid}", token, expire=lease_s)
-        return True
+        raise NotImplementedError
 
     def unlock(self, mid: str, token: str) -> None:
-        with self._cache.transact():
-            if self._cache.get(f"lock:{mid}") == token:
-                self._cache.delete(f"lock:{mid}")
+        raise NotImplementedError
 
     def lock_holder(self, mid: str) -> str | None:
-        return self._cache.get(f"lock:{mid}")
+        raise NotImplementedError
 
-    # --- grasps and cameras (service.cell) --------------------------------------------------------
-
+    # grasps and cameras (service.cell)
     def put_grasps(self, mid: str, grasps: list[dict[str, Any]]) -> None:
-        self._cache.set(f"grasps:{mid}", list(grasps))
+        raise NotImplementedError
 
     def grasps(self, mid: str) -> list[dict[str, Any]]:
-        return list(self._cache.get(f"grasps:{mid}", []))
+        raise NotImplementedError
 
     def put_camera(self, name: str, camera: dict[str, Any]) -> bool:
         """Register or replace camera ``name``: True if it is new."""
-        with self._cache.transact():
-            created = f"camera:{name}" not in self._cache
-            self._cache.set(f"camera:{name}", dict(camera))
-        return created
+        raise NotImplementedError
 
     def camera(self, name: str) -> dict[str, Any] | None:
-        return self._cache.get(f"camera:{name}")
+        raise NotImplementedError
 
     def cameras(self) -> list[tuple[str, dict[str, Any]]]:
         """Every registered camera as (name, record), by name."""
-        names = sorted(k[len("camera:"):] for k in self._cache.iterkeys()
-                       if isinstance(k, str) and k.startswith("camera:"))
-        return [(n, c) for n, c in ((n, self.camera(n)) for n in names) if c is not None]
+        raise NotImplementedError
 
     def delete_camera(self, name: str) -> bool:
-        return bool(self._cache.delete(f"camera:{name}"))
+        raise NotImplementedError
+
+
+def new_token() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex}"

@@ -1,4 +1,6 @@
-"""Store: content ids, records shared across Store instances (processes), banks, build leases, delete."""
+"""Store: content ids, records shared across Store instances (processes), banks, build leases, delete.
+
+The contract tests run on both backends: the diskcache directory and a real Redis (tests/redis_server.py)."""
 
 from __future__ import annotations
 
@@ -33,9 +35,17 @@ def _record(mid: str, status: str = "queued", created_at: str = "2024-01-01T00:0
     return {"id": mid, "name": "part.stl", "status": status, "progress": 0.0, "created_at": created_at}
 
 
+@pytest.fixture(params=["disk", "redis"])
+def location(request, tmp_path) -> str:
+    """Where a Store opens: a cache directory, or the URL of a real (emptied) Redis."""
+    if request.param == "redis":
+        return request.getfixturevalue("redis_url")
+    return str(tmp_path / "cache")
+
+
 @pytest.fixture
-def store(tmp_path):
-    with Store(tmp_path / "cache") as s:
+def store(location):
+    with Store(location) as s:
         yield s
 
 
@@ -53,8 +63,8 @@ def test_model_id_is_a_content_hash_of_bytes_and_options():
     assert base not in others and len(others) == 5
 
 
-def test_records_are_shared_between_store_instances(tmp_path):
-    with Store(tmp_path / "c") as a, Store(tmp_path / "c") as b:
+def test_records_are_shared_between_store_instances(location):
+    with Store(location) as a, Store(location) as b:
         assert a.create(_record("m1"), MESH)
         assert not b.create(_record("m1"), b"other")  # the id exists: first upload wins
         assert b.get("m1")["status"] == "queued" and b.mesh("m1") == MESH
@@ -86,7 +96,7 @@ def test_bank_round_trip_and_lru(store):
     assert first.n_templates == bank.n_templates
 
 
-def test_delete_removes_every_record(store, tmp_path):
+def test_delete_removes_every_record(store, location):
     store.create(_record("m"), MESH)
     store.put_bank("m", _bank())
     store.count_build("m")
@@ -95,12 +105,12 @@ def test_delete_removes_every_record(store, tmp_path):
     assert store.get("m") is None and store.mesh("m") is None and store.bank("m") is None
     assert store.build_count("m") == 0 and list(store.ids()) == []
     assert not store.delete("m")
-    with Store(tmp_path / "cache") as other:  # nothing is left on disk either
+    with Store(location) as other:  # nothing is left in the store either
         assert other.bank("m") is None
 
 
-def test_build_lease_is_exclusive_renewable_and_expires(tmp_path):
-    with Store(tmp_path / "c") as a, Store(tmp_path / "c") as b:
+def test_build_lease_is_exclusive_renewable_and_expires(location):
+    with Store(location) as a, Store(location) as b:
         token = a.try_lock("m", lease_s=60)
         assert token is not None and a.lock_holder("m") == token
         assert b.try_lock("m", lease_s=60) is None
@@ -118,3 +128,79 @@ def test_build_counter(store):
     assert store.build_count("m") == 0
     assert store.count_build("m") == 1 and store.count_build("m") == 2
     assert store.build_count("m") == 2
+
+
+def test_a_rebuilt_bank_replaces_every_process_s_loaded_copy(location):
+    with Store(location) as api, Store(location) as builder:
+        builder.put_bank("m", _bank(3))
+        assert api.bank("m").n_templates == 3
+        builder.put_bank("m", _bank(2))  # rebuilt elsewhere: a new version
+        assert api.bank("m").n_templates == 2
+        builder.delete("m")  # deleted elsewhere
+        assert api.bank("m") is None
+
+
+def test_grasps_and_cameras(store):
+    assert store.grasps("m") == [] and store.cameras() == []
+    store.put_grasps("m", [{"name": "top", "T_obj_grasp": {"R": [[1, 0, 0]], "t_mm": [0, 1, 2]}}])
+    assert store.grasps("m")[0]["name"] == "top"
+    assert store.put_camera("b", {"fx": 1.0}) and store.put_camera("a", {"fx": 2.0})
+    assert not store.put_camera("a", {"fx": 3.0})  # replaced
+    assert store.cameras() == [("a", {"fx": 3.0}), ("b", {"fx": 1.0})]
+    assert store.delete_camera("a") and not store.delete_camera("a") and store.camera("a") is None
+
+
+def test_update_if_keeps_a_finished_status(store):
+    store.create(_record("m", "ready"), MESH)
+    assert store.update_if("m", ("queued", "building"), status="queued") is None
+    assert store.get("m")["status"] == "ready"
+    assert store.update_if("m", ("ready",), progress=1.0)["progress"] == 1.0
+
+
+def test_the_bank_cache_is_bounded_in_megabytes():
+    from service.store import BankCache, bank_nbytes
+
+    bank = _bank()
+    cache = BankCache(max_mb=2.5 * bank_nbytes(bank) / (1024 * 1024))
+    for mid in ("a", "b", "c"):
+        cache.put(mid, "v1", bank)
+    assert cache.get("a", "v1") is None and cache.get("c", "v1") is bank  # least recently used went first
+    assert cache.get("c", "v2") is None  # another version is another bank
+
+
+def test_a_large_bank_is_stored_in_chunks(redis_url, monkeypatch):
+    import redis
+
+    from service.stores import redis as redis_store
+
+    monkeypatch.setattr(redis_store, "CHUNK_BYTES", 1000)
+    with Store(redis_url) as s:
+        bank = _bank()
+        s.put_bank("m", bank)
+        with redis.Redis.from_url(redis_url) as r:
+            version = r.get("posecell:v1:bank:m").decode()
+            assert r.llen(f"posecell:v1:bank:m:{version}") > 1
+        with Store(redis_url) as other:
+            np.testing.assert_array_equal(other.bank("m").xy_n, bank.xy_n)
+
+
+def test_an_unreachable_redis_is_a_503_sentence_not_a_crash():
+    from service.errors import StoreUnavailableError
+    from tests.redis_server import free_port
+
+    with Store(f"redis://127.0.0.1:{free_port()}/0") as s:
+        assert "cannot be reached" in s.ping()
+        with pytest.raises(StoreUnavailableError) as e:
+            s.get("m")
+        assert e.value.status_code == 503 and e.value.detail.endswith(".")
+
+
+def test_a_bank_written_before_banks_had_versions_still_loads(tmp_path):
+    import diskcache
+
+    with diskcache.Cache(str(tmp_path / "old")) as old:  # a cache volume as the last release left it
+        old.set("bank:m", bank_to_bytes(_bank()))
+    with Store(tmp_path / "old") as s:
+        assert s.bank("m").n_templates == 3
+        s.put_bank("m", _bank(2))  # rebuilt: versioned from now on
+        assert s.bank("m").n_templates == 2

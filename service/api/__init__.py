@@ -12,6 +12,7 @@ _DESCRIPTIONS = {
     413: "Upload over the size limit.",
     415: "The file is not a mesh / image format the service reads.",
     422: "Bad form part: bad JSON, out-of-range or implausible value, NaN, empty or unusable file.",
+    503: "The shared store (Redis, POSE_STORE) cannot be reached (with Retry-After); retry when it is back.",
 }
 
 

@@ -1,11 +1,14 @@
-"""``GET /health``: answers at once, whatever builds and estimates are running."""
+"""``GET /health``: answers at once, whatever builds and estimates are running; 503 with one sentence
+while the store (a shared Redis) cannot be reached, 200 again as soon as it can."""
 
 from __future__ import annotations
 
 from importlib.metadata import PackageNotFoundError, version
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Request
 
+from service.api import error_responses
+from service.errors import StoreUnavailableError
 from service.schemas import Health
 
 try:
@@ -22,6 +25,10 @@ except PackageNotFoundError:  # a source tree that was never installed: its pypr
 router = APIRouter(tags=["health"])
 
 
-@router.get("/health", response_model=Health)
-async def health() -> Health:
-    return Health(status="ok", version=VERSION)
+@router.get("/health", response_model=Health, responses=error_responses(503))
+def health(request: Request) -> Health:  # sync: a store ping must not hold the event loop
+    store = request.app.state.store
+    problem = store.ping()
+    if problem is not None:
+        raise StoreUnavailableError(problem)
+    return Health(status="ok", version=VERSION, store=store.kind)
