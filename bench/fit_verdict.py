@@ -45,7 +45,7 @@ def load(name: str) -> list[dict]:
 
 
 def design(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
-    X = np.array([feature_vector(r) for r in rows], float)
+    X = np.array([feature_vector(r["ev"]) for r in rows], float)
     y = np.array([(not r["absent"]) and r["mspd1"] < RIGHT_PX for r in rows], float)
     return X, y
 

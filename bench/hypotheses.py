@@ -111,11 +111,12 @@ def truth_hypotheses(recs: list[dict], seed: int = 0) -> list[dict]:
 
 
 def features(set_dir: Path, recs: list[dict], *, max_refine: int = 12) -> list[dict]:
-    """Per hypothesis: its coarse cost/score, its evidence, then the same at its refined pose."""
+    """Per hypothesis, what the pipeline's verdict reads: the hypothesis refined and checked exactly as
+    an estimate checks it (``pipeline.check_candidate``), with the refined pose's MSPD to the truth."""
+    from service.pipeline import PoseCandidate, check_candidate
     from service.vision.estimate.edges import to_grey_u8
-    from service.vision.estimate.evidence import colour_frame, evidence
-    from service.vision.estimate.refine import refine_pose
-    from service.vision.geometry.frames import canonical_spin
+    from service.vision.estimate.evidence import colour_frame
+    from service.vision.geometry.camera import undistort_image
 
     meta = read_meta(set_dir)
     minfo: dict = {}
@@ -125,27 +126,19 @@ def features(set_dir: Path, recs: list[dict], *, max_refine: int = 12) -> list[d
         bank = load_bank(g["model"], set_dir / "models" / f"{g['model']}.stl", None)
         image = read_colour(set_dir / g["image"])
         grey = to_grey_u8(image)
-        frame = colour_frame(image)
         intr = Intrinsics.from_K(np.asarray(g["K"], float))
+        frame = colour_frame(undistort_image(image, intr))
         info = load_model_info(set_dir, g["model"], meta, minfo)
         for j, h in enumerate(r["hyps"][:max_refine]):
-            pose = Pose(np.asarray(h["R"]), np.asarray(h["t"]))
-            e0 = evidence(bank, pose, intr, frame)
-            t0 = time.perf_counter()
-            rp = refine_pose(bank, pose, grey, intr)
-            t_ref = 1000 * (time.perf_counter() - t0)
-            pose1 = canonical_spin(rp.pose, bank.symmetry_axis_obj, bank.symmetry_point_obj)
-            e1 = evidence(bank, pose1, intr, frame)
+            cand = PoseCandidate(Pose(np.asarray(h["R"]), np.asarray(h["t"])), h["cost"], h["score"])
+            c = check_candidate(bank, cand, grey, frame, intr, distance_mm=None, distance_range_mm=None,
+                                min_score=None, n_channels=16)
             m1 = float("inf") if g.get("absent") else stage_errors(
-                pose1, g, info, np.asarray(g["K"], float), int(g["width"]))["mspd640_px"]
+                c.refined.pose, g, info, np.asarray(g["K"], float), int(g["width"]))["mspd640_px"]
             rows.append({"q": r["i"], "rank": -1 if r.get("truth") else j, "absent": bool(g.get("absent")),
-                         "image": g["image"],
-                         "model": g["model"], "vis": float(g.get("visible_fraction", 0.0)),
-                         "cost": h["cost"], "score": h["score"], "mspd0": h["mspd640"],
-                         **{f"{k}0": v for k, v in e0.as_dict().items()},
-                         "rscore": rp.score, "rcost": rp.cost, "unexplained": rp.unexplained,
-                         "inlier": rp.inlier_ratio, "mspd1": m1, "z1": float(pose1.t_mm[2]),
-                         "t_refine": t_ref, **{f"{k}1": v for k, v in e1.as_dict().items()}})
+                         "image": g["image"], "model": g["model"],
+                         "vis": float(g.get("visible_fraction", 0.0)), "mspd0": h["mspd640"], "mspd1": m1,
+                         "ev": c.verdict.evidence})
         print(f"{r['i']:4d} {g['image']} {g['model']}", file=sys.stderr)
     return rows
 

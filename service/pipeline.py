@@ -227,6 +227,20 @@ class Checked:
     verdict: Verdict
 
 
+def check_candidate(bank: TemplateBank, cand: PoseCandidate, grey: np.ndarray, frame: ColourFrame,
+                    intr: Intrinsics, *, distance_mm: float | None,
+                    distance_range_mm: tuple[float, float] | None, min_score: float | None,
+                    n_channels: int) -> Checked:
+    """One candidate refined, its evidence measured at the refined pose, and the verdict on it."""
+    kept, verified, unexplained = _refine(bank, cand, grey, intr, distance_mm=distance_mm,
+                                          n_channels=n_channels)
+    ev = evidence(bank, kept.pose, intr, frame).as_dict()
+    ev |= {"edge_support": verified, "unexplained": unexplained}
+    v = decide(ev, z_mm=float(kept.pose.t_mm[2]), distance_range_mm=distance_range_mm,
+               min_score=min_score)
+    return Checked(cand, kept, v)
+
+
 def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.ndarray, frame: ColourFrame,
                       intr: Intrinsics, *, distance_mm: float | None,
                       distance_range_mm: tuple[float, float] | None, min_score: float | None,
@@ -235,14 +249,10 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
     found one: the search ranks by chamfer cost, and on a clean frame the first is the truth."""
     out: list[Checked] = []
     for cand in cands[:N_VERIFY]:
-        kept, verified, unexplained = _refine(bank, cand, grey, intr, distance_mm=distance_mm,
-                                              n_channels=n_channels)
-        ev = evidence(bank, kept.pose, intr, frame).as_dict()
-        ev |= {"edge_support": verified, "unexplained": unexplained}
-        v = decide(ev, z_mm=float(kept.pose.t_mm[2]), distance_range_mm=distance_range_mm,
-                   min_score=min_score)
-        out.append(Checked(cand, kept, v))
-        if v.found:
+        c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm,
+                            distance_range_mm=distance_range_mm, min_score=min_score, n_channels=n_channels)
+        out.append(c)
+        if c.verdict.found:
             break
     out.sort(key=lambda c: (c.verdict.found, c.verdict.score), reverse=True)
     return out
@@ -264,16 +274,12 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
             break
         if any(silhouette_iou(bank, cand.pose, f.refined.pose, intr, size) > INSTANCE_IOU for f in found):
             continue
-        kept, verified, unexplained = _refine(bank, cand, grey, intr, distance_mm=distance_mm,
-                                              n_channels=n_channels)
-        ev = evidence(bank, kept.pose, intr, frame).as_dict()
-        ev |= {"edge_support": verified, "unexplained": unexplained}
-        v = decide(ev, z_mm=float(kept.pose.t_mm[2]), distance_range_mm=distance_range_mm,
-                   min_score=min_score)
-        c = Checked(cand, kept, v)
-        if not v.found:
+        c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm,
+                            distance_range_mm=distance_range_mm, min_score=min_score, n_channels=n_channels)
+        if not c.verdict.found:
             rejected.append(c)
-        elif all(silhouette_iou(bank, kept.pose, f.refined.pose, intr, size) <= INSTANCE_IOU for f in found):
+        elif all(silhouette_iou(bank, c.refined.pose, f.refined.pose, intr, size) <= INSTANCE_IOU
+                 for f in found):
             found.append(c)
     rejected.sort(key=lambda c: c.verdict.score, reverse=True)
     return found, rejected

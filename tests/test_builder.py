@@ -22,6 +22,7 @@ from service.main import create_app
 from service.settings import Settings
 from service.store import Store
 from tests.api_helpers import wait_built
+from tests.processes import alive
 
 with warnings.catch_warnings():
     warnings.filterwarnings("ignore", message="Using `httpx` with `starlette.testclient`")
@@ -42,14 +43,6 @@ def _until(condition, what: str, wait_s: float = WAIT_S):
         time.sleep(0.05)
     raise AssertionError(f"still waiting for {what} after {wait_s} s")
 
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    stat = Path(f"/proc/{pid}/stat")
-    return not (stat.exists() and stat.read_text().split(")")[-1].split()[0] == "Z")  # a zombie is dead
 
 
 def _stl(mesh: trimesh.Trimesh) -> bytes:
@@ -96,7 +89,7 @@ def test_delete_during_a_build_ends_its_process(tmp_path, sprayer_bytes):
         pid = _until(lambda: builder.running().get(mid), "the build process")
         _until(lambda: c.get(f"/models/{mid}").json()["status"] == "building", "the build to start")
         assert c.delete(f"/models/{mid}").status_code == 204
-        _until(lambda: mid not in builder.running() and not _alive(pid), "the build process to end", 10)
+        _until(lambda: mid not in builder.running() and not alive(pid), "the build process to end", 10)
         assert c.get(f"/models/{mid}").status_code == 404
         store = c.app.state.store
         assert store.mesh(mid) is None and store.lock_holder(mid) is None
@@ -116,7 +109,7 @@ def test_a_delete_by_another_process_ends_the_build_by_itself(tmp_path, sprayer_
             _until(lambda: store.get(rec["id"])["status"] == "building", "the build to start")
             with Store(settings.cache_dir) as other_process:
                 assert other_process.delete(rec["id"])
-            _until(lambda: not builder.running() and not _alive(pid), "the build process to exit", 10)
+            _until(lambda: not builder.running() and not alive(pid), "the build process to exit", 10)
             assert store.get(rec["id"]) is None
         finally:
             builder.shutdown()
@@ -188,7 +181,7 @@ def test_a_build_process_ends_with_its_killed_service_and_puts_its_model_back(tm
             _until(lambda: store.get(mid)["status"] == "building", "the build to start")
             service.kill()
             service.wait(timeout=30)
-            _until(lambda: not _alive(worker), "the orphaned build process to exit", 10)
+            _until(lambda: not alive(worker), "the orphaned build process to exit", 10)
         finally:
             service.kill()
             service.stdout.close()

@@ -19,6 +19,7 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from service.store import Store
+from tests.processes import alive
 from tests.test_server import GRID, SLOW_GRID, estimate, upload, wait_status
 
 pytestmark = pytest.mark.slow  # every test here starts `python -m service serve`
@@ -209,14 +210,6 @@ def test_two_workers_report_summed_metrics_from_a_fresh_directory(serve, tmp_pat
     assert not list(metrics_dir.glob("gauge_livesum_*.db")), "stopped workers leave no in-progress gauge"
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    stat = Path(f"/proc/{pid}/stat")
-    return not (stat.exists() and stat.read_text().split(")")[-1].split()[0] == "Z")
-
 
 def _children(pid: int) -> set[int]:
     out = set()
@@ -248,8 +241,8 @@ def test_kill_9_leaves_no_build_process_and_the_next_start_removes_its_metrics_d
     server.proc.kill()
     server.proc.wait(timeout=30)
     deadline = time.monotonic() + 15
-    while any(_alive(p) for p in children):
-        assert time.monotonic() < deadline, f"left alive: {[p for p in children if _alive(p)]}"
+    while any(alive(p) for p in children):
+        assert time.monotonic() < deadline, f"left alive: {[p for p in children if alive(p)]}"
         time.sleep(0.05)
     stale = list(tmp.glob("posecell-metrics-*"))
     assert len(stale) == 1

@@ -51,14 +51,8 @@ class Verdict:
 
 
 def feature_vector(ev: dict) -> np.ndarray:
-    """The features in ``FEATURES`` order from an evidence dict (bench rows use suffix 1: refined)."""
-    def get(k):
-        for key in (k, k + "1", {"edge_support": "rscore"}.get(k, k)):
-            if key in ev:
-                return float(ev[key])
-        raise KeyError(k)
-
-    return np.array([get(k) for k in FEATURES], float)
+    """The evidence in ``FEATURES`` order, (len(FEATURES),) float64."""
+    return np.array([float(ev[k]) for k in FEATURES], float)
 
 
 def verification_score(ev: dict, weights: dict | None = None) -> float:
