@@ -49,7 +49,6 @@ class Evidence:
     coherence: float  # |sum of inside-outside colour differences| / sum of their norms along the outline
     shading_r2: float  # share of the inside's grey variance explained by a quadratic in the normals
     shading_std: float  # grey-level standard deviation inside (small: the fit above says little)
-    visible_px: int  # silhouette pixels inside the image
     in_image: float  # fraction of the silhouette's pixels inside the image
 
     def as_dict(self) -> dict[str, float]:
@@ -59,7 +58,7 @@ class Evidence:
                 "in_image": self.in_image}
 
 
-NO_EVIDENCE = Evidence(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0.0)
+NO_EVIDENCE = Evidence(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 SHADING_ERODE_PX = 2  # the outline's mixed pixels and the pose's last pixel of error are not "inside"
 MIN_SHADING_PIXELS = 50
 
@@ -267,4 +266,4 @@ def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFram
     region, region_low, region_global = _region(win, mask, band)
     shading_r2, shading_std = _shading(win, fid, bank, pose)
     return Evidence(colour_edge, polarity, region, region_low, region_global, coherence, shading_r2,
-                    shading_std, n_px, float(in_image.mean()))
+                    shading_std, float(in_image.mean()))
