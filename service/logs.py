@@ -80,6 +80,14 @@ def logging_config(level: str = "info") -> dict[str, Any]:
 def configure(level: str = "info") -> None:
     """JSON logging for this process (the build processes call it; uvicorn applies the dict itself)."""
     logging.config.dictConfig(logging_config(level))
+    capture_warnings()
+
+
+def capture_warnings() -> None:
+    """Python warnings (a library's deprecation notice, say) go through logging when this process logs
+    JSON, so they come out as JSON lines too instead of raw text among them on stderr."""
+    if json_level() is not None:
+        logging.captureWarnings(True)
 
 
 def json_level() -> str | None:

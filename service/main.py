@@ -27,6 +27,7 @@ from service.api.deps import ApiKeyDocumented
 from service.api.health import VERSION
 from service.builder import make_builder
 from service.errors import install_handlers, sentence
+from service.logs import capture_warnings
 from service.middleware import ApiKeyGuard, RequestContext
 from service.settings import Settings
 from service.store import Store
@@ -102,6 +103,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        capture_warnings()  # uvicorn has applied logs.logging_config in this process by now
         threads.configure(settings.threads)
         if not settings.shared_store:
             settings.cache_dir.mkdir(parents=True, exist_ok=True)
