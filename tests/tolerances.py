@@ -71,3 +71,8 @@ CELL_GRASP_T_MM = 1.0  # base-frame grasp position against the known answer, ren
 CELL_GRASP_ROT_DEG = 0.5  # ... and its orientation
 CELL_EXACT_ATOL = 1e-9  # pure frame algebra (compositions, inverses, spins) against the closed form
 CELL_SPIN_GRID_DEG = 0.05  # spacing of the brute-force spin grid the closed-form best spin is checked on
+
+# --- resting on a plane ---
+STABLE_ATOL = 1e-9  # resting rotations and face probabilities of a box (closed form)
+PLANE_REST_TOL_MM = 1e-6  # a posed part built to rest on the plane touches it (pure geometry)
+PLANE_FOUND_T_MM = 5.0  # instances found with a plane against the rendered copies, translation

@@ -21,7 +21,9 @@ import numpy as np
 
 from service.vision.memo import Memo
 
-BANK_FORMAT_VERSION = 1
+# 2: the stable resting poses (R_rest_obj, rest_probability); a version-1 bank loads with them
+# None (the estimate then computes them from the mesh, once per bank).
+BANK_FORMAT_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -44,6 +46,9 @@ class TemplateBank:
     symmetry_axis_obj: np.ndarray | None  # (3,) unit, object frame; None = no continuous symmetry
     symmetry_point_obj: np.ndarray | None  # (3,) mm, object frame: a point on that axis (None with it)
     grid: dict = field(default_factory=dict)  # the grid options the bank was built with (steps, ranges)
+    # --- resting on a plane (build/stable.py): one pose per family, most probable first ---
+    R_rest_obj: np.ndarray | None = None  # (S, 3, 3) float64: object -> resting frame (+z up)
+    rest_probability: np.ndarray | None = None  # (S,) float64; None (both): a version-1 bank
 
     @property
     def n_templates(self) -> int:
@@ -55,13 +60,17 @@ class TemplateBank:
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Flat dict of arrays (for ``np.savez``); ``from_arrays`` inverts it exactly."""
         d = asdict(self)
-        special = ("grid", "symmetry_axis_obj", "symmetry_point_obj", "reference_distance_mm", "diameter_mm")
+        special = ("grid", "symmetry_axis_obj", "symmetry_point_obj", "reference_distance_mm", "diameter_mm",
+                   "R_rest_obj", "rest_probability")
         out = {k: np.asarray(v) for k, v in d.items() if k not in special}
         out["reference_distance_mm"] = np.float64(self.reference_distance_mm)
         out["diameter_mm"] = np.float64(self.diameter_mm)
         for k in ("symmetry_axis_obj", "symmetry_point_obj"):
             v = getattr(self, k)
             out[k] = np.zeros(0) if v is None else np.asarray(v, float)
+        if self.R_rest_obj is not None:
+            out["R_rest_obj"] = np.asarray(self.R_rest_obj, float).reshape(-1, 3, 3)
+            out["rest_probability"] = np.asarray(self.rest_probability, float)
         import json
 
         out["grid_json"] = np.frombuffer(json.dumps(self.grid, sort_keys=True).encode(), np.uint8)
@@ -84,6 +93,8 @@ class TemplateBank:
             symmetry_axis_obj=None if axis.size == 0 else axis,
             symmetry_point_obj=None if point.size == 0 else point,
             grid=json.loads(bytes(np.asarray(a["grid_json"], np.uint8)).decode()),
+            R_rest_obj=np.asarray(a["R_rest_obj"], float) if "R_rest_obj" in a else None,
+            rest_probability=np.asarray(a["rest_probability"], float) if "R_rest_obj" in a else None,
         )
 
 

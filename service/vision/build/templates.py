@@ -76,7 +76,7 @@ def build_bank(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | No
         "x" | "y" | "z" (through the bounding-box centre). grid : overrides of ``GRID_DEFAULTS``;
         unknown keys or bad values raise ``ValueError``. progress : called with the fraction of
         views done (0..1). ``diameter_mm`` is the largest vertex-to-vertex distance; ``centre_obj``
-        the bounding-box centre.
+        the bounding-box centre. The part's stable resting poses (``stable.py``) come with it.
     """
     explicit_distance = grid is not None and "reference_distance_mm" in grid
     g = merge_grid(grid)
@@ -135,6 +135,9 @@ def build_bank(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | No
             done += 1
             if progress is not None:
                 progress(done / len(R_all))
+    from service.vision.build.stable import stable_poses
+
+    stable = stable_poses(mesh, axis_obj=axis, diameter_mm=diameter)
     counts = np.array([len(r[0]) for r in results], np.int64)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     return TemplateBank(
@@ -153,6 +156,8 @@ def build_bank(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | No
         symmetry_axis_obj=None if axis is None else np.asarray(axis, float),
         symmetry_point_obj=None if point is None else np.asarray(point, float),
         grid=g,
+        R_rest_obj=stable.R_rest_obj,
+        rest_probability=stable.probability,
     )
 
 

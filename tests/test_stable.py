@@ -1,0 +1,73 @@
+"""Stable resting poses (service/vision/build/stable.py): known answers from boxes and a prism."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from service.vision.build.stable import MIN_PROBABILITY, stable_poses
+from tests.tolerances import STABLE_ATOL
+
+
+def _face_down_axes(sp) -> list[int]:
+    """For each family, the object axis (0 x, 1 y, 2 z) that points up (or down) while resting."""
+    return [int(np.argmax(np.abs(R[2]))) for R in sp.R_rest_obj]
+
+
+def test_a_box_rests_on_its_6_faces_3_distinct_up_to_symmetry():
+    raw, p = trimesh.poses.compute_stable_poses(trimesh.creation.box((80.0, 60.0, 40.0)))
+    assert len(raw) == 6  # its 6 faces ...
+    sp = stable_poses(trimesh.creation.box((80.0, 60.0, 40.0)))
+    assert len(sp.R_rest_obj) == 3  # ... 3 distinct: each face and its opposite are one family
+    # Most probable first: on the largest face (80 x 60, the z axis up), then 80 x 40 (y), then 60 x 40 (x).
+    assert _face_down_axes(sp) == [2, 1, 0]
+    assert sp.probability.sum() == pytest.approx(1.0, abs=STABLE_ATOL)
+    np.testing.assert_allclose(np.sort(sp.probability)[::-1], sp.probability)
+    for R in sp.R_rest_obj:  # proper rotations with an object axis straight up
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=STABLE_ATOL)
+        assert np.linalg.det(R) == pytest.approx(1.0, abs=STABLE_ATOL)
+        assert np.abs(R[2]).max() == pytest.approx(1.0, abs=STABLE_ATOL)
+
+
+def test_a_cube_rests_one_way():
+    sp = stable_poses(trimesh.creation.box((50.0, 50.0, 50.0)))
+    assert len(sp.R_rest_obj) == 1 and sp.probability[0] == pytest.approx(1.0, abs=STABLE_ATOL)
+
+
+def test_a_revolved_part_on_its_side_is_one_family_not_one_per_facet():
+    mesh = trimesh.creation.cylinder(radius=20.0, height=60.0, sections=64)  # axis z
+    raw, _ = trimesh.poses.compute_stable_poses(mesh)
+    assert len(raw) == 66  # 64 side facets and 2 ends
+    sp = stable_poses(mesh, axis_obj=np.array([0.0, 0.0, 1.0]))
+    assert len(sp.R_rest_obj) == 2  # on its side (axis horizontal) and on an end (the two ends are congruent)
+    side, end = sp.R_rest_obj
+    assert abs(side[2, 2]) < 1e-6 and abs(end[2, 2]) == pytest.approx(1.0, abs=STABLE_ATOL)
+    assert sp.probability.sum() == pytest.approx(1.0, abs=1e-6)
+
+
+def test_negligible_families_are_dropped():
+    # A thin slab: resting on an edge face (0.5 x 80) is rare, on the 80 x 80 faces almost always.
+    sp = stable_poses(trimesh.creation.box((80.0, 80.0, 0.5)))
+    assert all(p >= MIN_PROBABILITY for p in sp.probability)
+    assert _face_down_axes(sp)[0] == 2
+    everything = stable_poses(trimesh.creation.box((80.0, 80.0, 0.5)), min_probability=0.0)
+    assert len(everything.R_rest_obj) == 2 and len(sp.R_rest_obj) == 1
+
+
+def test_the_bank_carries_its_stable_poses_and_a_version_1_bank_loads_without_them():
+    from service.pipeline import build_templates
+    from service.vision.bank import BANK_FORMAT_VERSION, TemplateBank
+
+    bank = build_templates(trimesh.creation.box((80.0, 60.0, 40.0)), symmetry="none",
+                           grid={"view_step_deg": 45.0, "render_px": 64})
+    assert bank.R_rest_obj.shape == (3, 3, 3) and bank.rest_probability.shape == (3,)
+    arrays = bank.to_arrays()
+    assert int(arrays["format_version"]) == BANK_FORMAT_VERSION == 2
+    back = TemplateBank.from_arrays(arrays)
+    np.testing.assert_array_equal(back.R_rest_obj, bank.R_rest_obj)
+    old = {k: v for k, v in arrays.items() if k not in ("R_rest_obj", "rest_probability")}
+    old["format_version"] = np.int64(1)
+    v1 = TemplateBank.from_arrays(old)
+    assert v1.R_rest_obj is None and v1.rest_probability is None
+    assert "R_rest_obj" not in v1.to_arrays()
