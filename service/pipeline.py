@@ -21,12 +21,20 @@ from service.vision.estimate.chamfer import distance_tensor
 from service.vision.estimate.coarse import SearchParams, coarse_search, poses_of
 from service.vision.estimate.edges import detect_segments, to_grey_u8, undistort_segments
 from service.vision.estimate.evidence import ColourFrame, colour_frame, evidence
+from service.vision.estimate.plane import (
+    PLANE_TOLERANCE_MM,
+    Plane,
+    centre_height_mm,
+    plane_search,
+    rest_gap_mm,
+)
 from service.vision.estimate.roi import crop_segments, roi_mask
 from service.vision.estimate.roi import inside as roi_inside
 from service.vision.estimate.verdict import Verdict, decide
 from service.vision.geometry.camera import Intrinsics, project, undistort_image
 from service.vision.geometry.frames import Pose, Rx, canonical_spin
 from service.vision.geometry.render import rasterise_roi
+from service.vision.memo import Memo
 
 DEFAULT_DISTANCE_RANGE_MM = (300.0, 1200.0)  # searched when the request gives no distance
 
@@ -124,14 +132,19 @@ def search_params(max_instances: int) -> SearchParams:
 
 def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance_mm: float | None = None,
             distance_range_mm: tuple[float, float] | None = None, params: SearchParams | None = None,
-            roi_uv: np.ndarray | None = None):
+            roi_uv: np.ndarray | None = None, plane: Plane | None = None):
     """The proposal engine (the paper's method): LSD edges, their distance tensor and the coarse
     search -> (distinct candidates, lowest chamfer cost first; full-image segments; timing_ms with
     "edges" and "coarse").
 
     ``roi_uv``: (N, 2) polygon, pixels: only placements whose object centre projects inside it are
     searched (level A's anchors are restricted to it), and only the edges within the part's largest
-    projected radius of its bounding box are used."""
+    projected radius of its bounding box are used.
+
+    ``plane``: the supporting plane (camera frame): the search runs over the part's stable resting
+    poses x spin about the plane's normal x position on the plane (``estimate/plane.py``) instead of
+    all of 6D; ``distance_mm`` is then not used. A part without stable poses is searched in 6D."""
+    rest = resting_rotations(bank) if plane is not None else None
     p = params or SEARCH_PARAMS
     threads.use_budget()
     t0 = time.perf_counter()
@@ -156,21 +169,48 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     dtt_b = distance_tensor(seg, n_channels=p.n_channels, scale=p.fine_scale)
     t_edges = _ms(t0)
     t1 = time.perf_counter()
-    hyps = coarse_search(bank, dtt_b, intr, (h, w), p, distance_mm=distance_mm, distance_range_mm=rng,
-                         anchor_mask=anchor_mask)
-    Rs, ts = poses_of(bank, hyps, intr.K, distance_mm) if hyps else (np.zeros((0, 3, 3)), np.zeros((0, 3)))
-    cands = [_candidate(bank, Pose(R, t), hy.cost, hy.score) for R, t, hy in zip(Rs, ts, hyps, strict=True)]
+    if rest is not None and len(rest):
+        # Level B's scans per peak cost little on the plane: every peak is polished.
+        ph = plane_search(bank, rest, dtt_b, intr, (h, w), plane, replace(p, n_polish=p.n_peaks),
+                          distance_range_mm=rng, anchor_mask=anchor_mask)
+        cands = [_candidate(bank, Pose(x.R, x.t), x.cost, x.score) for x in ph]
+    else:
+        hyps = coarse_search(bank, dtt_b, intr, (h, w), p, distance_mm=distance_mm, distance_range_mm=rng,
+                             anchor_mask=anchor_mask)
+        Rs, ts = poses_of(bank, hyps, intr.K, distance_mm) if hyps else (np.zeros((0, 3, 3)),
+                                                                         np.zeros((0, 3)))
+        cands = [_candidate(bank, Pose(R, t), hy.cost, hy.score)
+                 for R, t, hy in zip(Rs, ts, hyps, strict=True)]
     if roi_uv is not None and cands:  # level B's local scans may have walked the centre out of the ROI
         cands = [c for c, ok in zip(cands, roi_inside(roi_uv, _centres_uv(cands, bank, intr.K)), strict=True)
                  if ok]
     return distinct_candidates(cands, bank, intr.K), seg, {"edges": t_edges, "coarse": _ms(t1)}
 
 
+_REST = Memo(8)
+
+
+def resting_rotations(bank: TemplateBank) -> np.ndarray:
+    """(S, 3, 3) ``R_rest_obj`` of the part's stable resting pose families: the bank's, or, for a bank
+    built before banks had them (format version 1), computed from its mesh once per bank."""
+    if bank.R_rest_obj is not None:
+        return np.asarray(bank.R_rest_obj, float).reshape(-1, 3, 3)
+
+    def make() -> np.ndarray:
+        from service.vision.build.stable import stable_poses
+
+        mesh = trimesh.Trimesh(np.asarray(bank.vertices_mm, float), np.asarray(bank.faces), process=False)
+        return stable_poses(mesh, axis_obj=bank.symmetry_axis_obj, diameter_mm=bank.diameter_mm).R_rest_obj
+
+    return _REST.get(bank, "rest", make)
+
+
 def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance_mm: float | None = None,
              distance_range_mm: tuple[float, float] | None = None, refine: bool = True, top_k: int = 5,
              overlay: bool = False, params: SearchParams | None = None,
              min_score: float | None = None, roi_uv: np.ndarray | None = None, max_instances: int = 1,
-             sort: str = "score") -> EstimateOutput:
+             sort: str = "score", plane: Plane | None = None,
+             plane_tolerance_mm: float = PLANE_TOLERANCE_MM) -> EstimateOutput:
     """Grey (H, W) or BGR (H, W, 3) image + intrinsics -> ranked poses and the verdict on the best.
 
     The coarse search proposes; up to ``N_VERIFY`` candidates are refined (also with ``refine``
@@ -181,19 +221,28 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     ``roi_uv``: see ``propose``. ``max_instances`` > 1: more proposals are kept (``search_params``) and
     verified until that many distinct instances are found (``verify_instances``); they are reported
     in ``instances`` sorted by ``sort`` ("score": verification score, highest first; "distance": the
-    part's centre nearest the camera first), and the top-level fields describe the first.
+    part's centre nearest the camera first; "height", with a plane: the part's centre highest above
+    it first), and the top-level fields describe the first.
+
+    ``plane``: the supporting plane (see ``propose``); a refined pose whose lowest point lies more than
+    ``plane_tolerance_mm`` above or below it is not found (verdict reason "off_plane").
     """
+    if sort == "height" and plane is None:
+        raise ValueError("sort 'height' needs a plane")
+    if plane is not None:
+        distance_mm = None  # the plane fixes the depth of every placement
     p = params or search_params(max_instances)
     t_start = time.perf_counter()
     grey = to_grey_u8(image)
     h, w = grey.shape
     cands, _, timing = propose(bank, grey, intr, distance_mm=distance_mm, distance_range_mm=distance_range_mm,
-                               params=p, roi_uv=roi_uv)
+                               params=p, roi_uv=roi_uv, plane=plane)
     t0 = time.perf_counter()
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
     # The evidence reads pixels where the ideal camera projects the model: undistort the frame once.
     frame = colour_frame(undistort_image(image, intr))
-    kw = dict(distance_mm=distance_mm, distance_range_mm=rng, min_score=min_score, n_channels=p.n_channels)
+    kw = dict(distance_mm=distance_mm, distance_range_mm=rng, min_score=min_score, n_channels=p.n_channels,
+              plane=plane, plane_tolerance_mm=plane_tolerance_mm)
     if max_instances <= 1:
         checked = verify_candidates(bank, cands, grey, frame, intr, **kw)
         best = checked[0] if checked else None
@@ -201,7 +250,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     else:
         found_list, rejected = verify_instances(bank, cands, grey, frame, intr, max_instances=max_instances,
                                                 **kw)
-        found_list = sort_instances(found_list, bank, sort)
+        found_list = sort_instances(found_list, bank, sort, plane)
         best = found_list[0] if found_list else (rejected[0] if rejected else None)
     instances = [Instance(c.candidate, c.refined if refine else None, c.verdict) for c in found_list]
     verdict = best.verdict if best is not None else decide(None)
@@ -230,27 +279,32 @@ class Checked:
 def check_candidate(bank: TemplateBank, cand: PoseCandidate, grey: np.ndarray, frame: ColourFrame,
                     intr: Intrinsics, *, distance_mm: float | None,
                     distance_range_mm: tuple[float, float] | None, min_score: float | None,
-                    n_channels: int) -> Checked:
-    """One candidate refined, its evidence measured at the refined pose, and the verdict on it."""
+                    n_channels: int, plane: Plane | None = None,
+                    plane_tolerance_mm: float = PLANE_TOLERANCE_MM) -> Checked:
+    """One candidate refined, its evidence measured at the refined pose, and the verdict on it (with a
+    plane, also whether the refined pose rests on it)."""
     kept, verified, unexplained = _refine(bank, cand, grey, intr, distance_mm=distance_mm,
                                           n_channels=n_channels)
     ev = evidence(bank, kept.pose, intr, frame).as_dict()
     ev |= {"edge_support": verified, "unexplained": unexplained}
+    gap = rest_gap_mm(bank, kept.pose, plane) if plane is not None else None
     v = decide(ev, z_mm=float(kept.pose.t_mm[2]), distance_range_mm=distance_range_mm,
-               min_score=min_score)
+               min_score=min_score, plane_gap_mm=gap, plane_tolerance_mm=plane_tolerance_mm)
     return Checked(cand, kept, v)
 
 
 def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.ndarray, frame: ColourFrame,
                       intr: Intrinsics, *, distance_mm: float | None,
                       distance_range_mm: tuple[float, float] | None, min_score: float | None,
-                      n_channels: int) -> list[Checked]:
+                      n_channels: int, plane: Plane | None = None,
+                      plane_tolerance_mm: float = PLANE_TOLERANCE_MM) -> list[Checked]:
     """Refine and verify the best ``N_VERIFY`` candidates, best verification first. Stops at the first
     found one: the search ranks by chamfer cost, and on a clean frame the first is the truth."""
     out: list[Checked] = []
     for cand in cands[:N_VERIFY]:
         c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm,
-                            distance_range_mm=distance_range_mm, min_score=min_score, n_channels=n_channels)
+                            distance_range_mm=distance_range_mm, min_score=min_score, n_channels=n_channels,
+                            plane=plane, plane_tolerance_mm=plane_tolerance_mm)
         out.append(c)
         if c.verdict.found:
             break
@@ -261,7 +315,8 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
 def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.ndarray, frame: ColourFrame,
                      intr: Intrinsics, *, max_instances: int, distance_mm: float | None,
                      distance_range_mm: tuple[float, float] | None, min_score: float | None,
-                     n_channels: int) -> tuple[list[Checked], list[Checked]]:
+                     n_channels: int, plane: Plane | None = None,
+                     plane_tolerance_mm: float = PLANE_TOLERANCE_MM) -> tuple[list[Checked], list[Checked]]:
     """Refine and verify candidates (best chamfer cost first) until ``max_instances`` distinct ones are
     found or the candidates run out -> (found, in the order found; rejected, best verification first).
     A candidate whose silhouette overlaps a found instance's by more than ``INSTANCE_IOU`` (IoU) is the
@@ -275,7 +330,8 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
         if any(silhouette_iou(bank, cand.pose, f.refined.pose, intr, size) > INSTANCE_IOU for f in found):
             continue
         c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm,
-                            distance_range_mm=distance_range_mm, min_score=min_score, n_channels=n_channels)
+                            distance_range_mm=distance_range_mm, min_score=min_score, n_channels=n_channels,
+                            plane=plane, plane_tolerance_mm=plane_tolerance_mm)
         if not c.verdict.found:
             rejected.append(c)
         elif all(silhouette_iou(bank, c.refined.pose, f.refined.pose, intr, size) <= INSTANCE_IOU
@@ -285,16 +341,21 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
     return found, rejected
 
 
-SORTS = ("score", "distance")
+SORTS = ("score", "distance", "height")
 
 
-def sort_instances(found: list[Checked], bank: TemplateBank, sort: str) -> list[Checked]:
-    """``found`` by verification score (highest first) or by the distance of the part's centre from the
-    camera (nearest first)."""
+def sort_instances(found: list[Checked], bank: TemplateBank, sort: str, plane: Plane | None = None
+                   ) -> list[Checked]:
+    """``found`` by verification score (highest first), by the distance of the part's centre from the
+    camera (nearest first) or by its height above ``plane`` (highest first: the top of a pile)."""
     if sort == "score":
         return sorted(found, key=lambda c: -c.verdict.score)
     if sort == "distance":
         return sorted(found, key=lambda c: float(np.linalg.norm(c.refined.pose.apply(bank.centre_obj[None]))))
+    if sort == "height":
+        if plane is None:
+            raise ValueError("sort 'height' needs a plane")
+        return sorted(found, key=lambda c: -centre_height_mm(bank, c.refined.pose, plane))
     raise ValueError(f"unknown sort {sort!r}: one of {SORTS}")
 
 

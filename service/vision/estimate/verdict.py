@@ -33,7 +33,7 @@ WEIGHTS = {"bias": -3.935, "unexplained": -0.339, "region_global": 5.265, "shadi
 MIN_SCORE = 0.98
 
 # The reasons a verdict gives.
-REASONS = ("found", "no_candidate", "outside_distance_range", "outside_image", "low_support",
+REASONS = ("found", "no_candidate", "outside_distance_range", "outside_image", "off_plane", "low_support",
            "interior_edges", "region_mismatch", "shading_mismatch", "low_score")
 # A rejected pose is said to fail on the evidence furthest below a true pose's typical value (medians
 # over the truth hypotheses of the tuning sets): the reason names the one a person should look at.
@@ -77,8 +77,13 @@ def rejection_reason(ev: dict) -> str:
 
 def decide(ev: dict | None, *, z_mm: float | None = None,
            distance_range_mm: tuple[float, float] | None = None, min_score: float | None = None,
-           weights: dict | None = None) -> Verdict:
-    """The verdict on one refined hypothesis's evidence (``None``: there was no hypothesis)."""
+           weights: dict | None = None, plane_gap_mm: float | None = None,
+           plane_tolerance_mm: float | None = None) -> Verdict:
+    """The verdict on one refined hypothesis's evidence (``None``: there was no hypothesis).
+
+    ``plane_gap_mm``: with a supporting plane, the height of the posed part's lowest point above it
+    (negative: through it); beyond +-``plane_tolerance_mm`` the pose does not rest on the plane and is
+    not found ("off_plane", the gap in the evidence as ``plane_gap_mm``)."""
     if ev is None:
         return Verdict(False, 0.0, "no_candidate")
     score = verification_score(ev, weights)
@@ -88,6 +93,10 @@ def decide(ev: dict | None, *, z_mm: float | None = None,
         return Verdict(False, score, "outside_distance_range", evidence | {"z_mm": float(z_mm)})
     if ev.get("in_image", 1.0) < MIN_IN_IMAGE:
         return Verdict(False, score, "outside_image", evidence)
+    if plane_gap_mm is not None:
+        evidence["plane_gap_mm"] = float(plane_gap_mm)
+        if plane_tolerance_mm is not None and abs(plane_gap_mm) > plane_tolerance_mm:
+            return Verdict(False, score, "off_plane", evidence)
     if score >= (MIN_SCORE if min_score is None else min_score):
         return Verdict(True, score, "found", evidence)
     return Verdict(False, score, rejection_reason(evidence), evidence)
