@@ -11,6 +11,7 @@ fx, fy                 50 .. 1,000,000 px          millimetres instead of pixels
 cx, cy                 inside the image            intrinsics of another resolution
 dist coefficients      |k| <= 1,000                not OpenCV's coefficients
 roi                    covers a pixel of the image  another resolution's coordinates
+plane                  10 mm .. 20 m away, in view  metres; a plane behind the camera
 =====================  ==========================  ===========================================
 """
 
@@ -62,6 +63,8 @@ def check_plausible(cam: Camera, opts: Options, image_size: tuple[int, int]) -> 
     if opts.distance_range_mm is not None:
         for v in opts.distance_range_mm:
             _distance("distance_range_mm", v)
+    if opts.plane is not None:
+        _plane(opts, cam, w, h)
     poly = opts.roi_uv()
     if poly is not None:
         from service.vision.estimate.roi import roi_mask
@@ -70,3 +73,28 @@ def check_plausible(cam: Camera, opts: Options, image_size: tuple[int, int]) -> 
             raise UnprocessableError(f"The options field roi covers no pixel of this {w} x {h} image: give a "
                                      f"region inside u 0 to {w - 1} and v 0 to {h - 1} (pixels, origin at "
                                      "the top left)")
+
+
+def _plane(opts: Options, cam: Camera, w: int, h: int) -> None:
+    """The plane is 10 mm .. 20 m from the camera and some pixel's viewing ray meets it in front."""
+    import numpy as np
+
+    from service.vision.estimate.plane import MIN_RAY_COS
+
+    lo, hi = DISTANCE_MM
+    dist = -opts.plane.d_mm  # the camera's height above the plane (unit normal, d_mm < 0)
+    if dist < lo:
+        raise UnprocessableError(f"The options field plane is {dist:g} mm from the camera, under {lo:g} mm: "
+                                 "d_mm is in millimetres (did you send metres?)")
+    if dist > hi:
+        raise UnprocessableError(f"The options field plane is {dist / 1000:g} m from the camera, over "
+                                 f"{hi / 1000:g} m: d_mm is in millimetres")
+    u = np.array([-0.5, w - 0.5, w - 0.5, -0.5, (w - 1) / 2])
+    v = np.array([-0.5, -0.5, h - 0.5, h - 0.5, (h - 1) / 2])
+    rays = np.column_stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones(5)])
+    cos = rays @ np.asarray(opts.plane.normal, float) / np.linalg.norm(rays, axis=1)
+    if not (cos < -MIN_RAY_COS).any():
+        raise UnprocessableError("The options field plane is not in view: no pixel of this image looks onto "
+                                 "it (it lies behind the camera, or the camera looks along it); send the "
+                                 "plane in the camera frame (OpenCV: x right, y down, z forward) with its "
+                                 "normal pointing towards the camera")

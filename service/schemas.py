@@ -20,6 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from service.cell import extent_warnings, nearest_rotation, rigid
 from service.errors import UnprocessableError, validation_sentence
 from service.pipeline import EstimateOutput, PoseCandidate, RefinedPose
+from service.vision.estimate.plane import PLANE_TOLERANCE_MM
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, euler_xyz_deg_from_R, quat_xyzw_from_R
 
@@ -97,17 +98,18 @@ class Options(_Request):
         "points; only placements whose projected centre lies inside are searched")
     max_instances: int = Field(1, ge=1, le=MAX_INSTANCES, description="report up to this many distinct "
                                "found instances in instances (each verified on its own)")
-    sort: Literal["score", "distance"] = Field(
-        "score", description="order of instances: score (verification score, highest first) or distance "
-        "(the part's centre nearest the camera first)")
-
-    @field_validator("sort", mode="before")
-    @classmethod
-    def _sort_height(cls, v: Any) -> Any:
-        if v == "height":
-            raise ValueError("sort 'height' needs the supporting plane, which the estimate does not use yet; "
-                             "sort by score or distance")
-        return v
+    sort: Literal["score", "distance", "height"] = Field(
+        "score", description="order of instances: score (verification score, highest first), distance "
+        "(the part's centre nearest the camera first) or height (the part's centre highest above the "
+        "plane first; needs plane)")
+    plane: Plane | None = Field(
+        None, description="the supporting plane the parts rest on, camera frame: points p with normal . p = "
+        "d_mm, the normal pointing out of the surface towards the camera (d_mm < 0). The search then runs "
+        "over the part's stable resting poses, spins about the normal and positions on the plane, and a "
+        "found part must rest on it within plane_tolerance_mm")
+    plane_tolerance_mm: float = Field(
+        PLANE_TOLERANCE_MM, gt=0, le=1000, description="with plane: a found part's lowest point lies within "
+        "this distance of the plane, mm")
 
     @field_validator("roi")
     @classmethod
@@ -140,7 +142,8 @@ class Options(_Request):
         return {"distance_mm": self.distance_mm, "distance_range_mm": self.distance_range_mm,
                 "refine": self.refine, "top_k": self.top_k, "overlay": self.overlay,
                 "min_score": self.min_score, "roi_uv": self.roi_uv(), "max_instances": self.max_instances,
-                "sort": self.sort}
+                "sort": self.sort, "plane": None if self.plane is None else self.plane.to_plane(),
+                "plane_tolerance_mm": self.plane_tolerance_mm}
 
     @model_validator(mode="after")
     def _distances(self) -> Options:
@@ -150,6 +153,12 @@ class Options(_Request):
                 raise ValueError(f"distance_range_mm must satisfy 0 < min < max, got [{lo:g}, {hi:g}]")
             if self.distance_mm is not None:
                 raise ValueError("give distance_mm or distance_range_mm, not both")
+        if self.sort == "height" and self.plane is None:
+            raise ValueError("sort 'height' orders the parts by their height above the supporting plane: "
+                             "send options.plane with it, or sort by score or distance")
+        if self.plane is not None and self.distance_mm is not None:
+            raise ValueError("give plane or distance_mm, not both: the plane fixes every placement's "
+                             "distance (distance_range_mm may limit the search on it)")
         return self
 
 
@@ -221,10 +230,12 @@ class VerdictJSON(BaseModel):
     score: float = Field(description="0..1 verification score of the pose reported, or of the best rejected "
                          "candidate when nothing is found")
     reason: str = Field(description="found | no_candidate | outside_distance_range | outside_image | "
-                        "low_support | interior_edges | region_mismatch | low_score")
+                        "off_plane | low_support | interior_edges | region_mismatch | shading_mismatch | "
+                        "low_score")
     evidence: dict[str, float] = Field(description="the evidence the score was computed from: edge_support, "
                                        "unexplained, colour_edge, polarity, region, region_low, in_image "
-                                       "(fractions; see docs/API.md)")
+                                       "(fractions; see docs/API.md); with options.plane also plane_gap_mm, "
+                                       "the height of the part's lowest point above the plane, mm")
 
 
 class InstanceJSON(BaseModel):
@@ -419,7 +430,20 @@ class Plane(_Request):
             raise ValueError("plane.normal must not be the zero vector")
         self.normal = [float(x) / n for x in self.normal]
         self.d_mm = float(self.d_mm) / n
+        if self.d_mm == 0:
+            raise ValueError("plane passes through the camera (d_mm 0): a supporting plane lies in front of "
+                             "the camera, with d_mm < 0 in mm")
+        if self.d_mm > 0:
+            raise ValueError(f"plane has d_mm {self.d_mm:g} > 0, so its normal points away from the camera: "
+                             "the normal must point out of the surface towards the camera; flip the signs "
+                             "of normal and d_mm")
         return self
+
+    def to_plane(self):
+        """The vision core's ``Plane`` (unit normal, camera frame)."""
+        from service.vision.estimate.plane import Plane as VisionPlane
+
+        return VisionPlane(np.asarray(self.normal, float), float(self.d_mm))
 
 
 class CellCamera(Camera):

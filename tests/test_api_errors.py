@@ -385,7 +385,7 @@ def test_multipart_parser_errors_are_400_sentences(client, body, content_type):
         assert_error(r, 422)
 
 
-# --- options.roi, max_instances, sort: 422 with the fix -------------------------------------------
+# --- options.roi, max_instances, sort, plane: 422 with the fix -------------------------------------------
 
 @pytest.mark.parametrize("options, words", [
     ({"roi": {"x": 10, "y": 10, "w": 0, "h": 50}}, "zero area"),
@@ -395,6 +395,15 @@ def test_multipart_parser_errors_are_400_sentences(client, body, content_type):
     ({"roi": {"x": 5000, "y": 5000, "w": 100, "h": 100}}, "covers no pixel"),
     ({"max_instances": 51}, "max_instances"),
     ({"sort": "height"}, "supporting plane"),
+    ({"plane": {"normal": [0, 0, 0], "d_mm": -500}}, "zero vector"),
+    ({"plane": {"normal": [0, 0, -1], "d_mm": 500}}, "normal points away from the camera"),
+    ({"plane": {"normal": [0, 0, -1], "d_mm": 0}}, "passes through the camera"),
+    ({"plane": {"normal": [0, 0, 1], "d_mm": -500}}, "not in view"),
+    ({"plane": {"normal": [0, 0, -1], "d_mm": -0.5}}, "did you send metres"),
+    ({"plane": {"normal": [0, 0, -1], "d_mm": -1e6}}, "over 20 m"),
+    ({"plane": {"normal": [0, 0, -1], "d_mm": -500}, "distance_mm": 500}, "give plane or distance_mm"),
+    ({"plane": {"normal": [0, 0, -1], "d_mm": -500}, "plane_tolerance_mm": 0}, "plane_tolerance_mm"),
+    ({"plane": {"normal": [0, 0, -1]}}, "d_mm"),
 ])
 def test_bad_roi_or_instances_is_422_with_the_fix(client, image_bytes, options, words):
     assert words in assert_error(estimate(client, client.ready_id, image=image_bytes, options=options), 422)

@@ -36,8 +36,10 @@ async def estimate(
         description='JSON intrinsics {"fx", "fy", "cx", "cy", optional "dist", "width", "height", '
                     '"T_base_cam" or "T_flange_cam"}, pixels and mm; or {"name": "<registered camera>"}')],
     options: Annotated[str | None, Form(
-        description="JSON: distance_mm or distance_range_mm [min, max], refine, top_k, overlay, robot_pose "
-                    "(T_base_flange, eye-in-hand)")] = None,
+        description="JSON: distance_mm or distance_range_mm [min, max], refine, top_k, overlay, min_score, "
+                    "robot_pose (T_base_flange, eye-in-hand), roi, max_instances, sort (score | distance | "
+                    'height), plane {"normal": [nx, ny, nz], "d_mm": d} (camera frame, normal towards the '
+                    "camera), plane_tolerance_mm (see docs/API.md)")] = None,
 ) -> EstimateResult:
     """Estimate the pose ``T_cam_obj`` of the model in the image."""
     data = await read_upload(image, settings.max_image_bytes, "image file", "POSE_MAX_IMAGE_BYTES")
