@@ -1,0 +1,165 @@
+"""The supporting plane (service/vision/estimate/plane.py and its use in the pipeline): placements that
+rest on it by construction, the off_plane verdict, sort by height, and rendered copies resting on it.
+
+Scenes: an L-shaped block (no symmetry) resting on a plane 450 mm along the optical axis of a camera
+looking down 40 deg from straight down, rendered with the project's rasteriser at 640 x 480.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from service import pipeline
+from service.pipeline import Checked, PoseCandidate, RefinedPose, sort_instances
+from service.vision.estimate.evidence import colour_frame
+from service.vision.estimate.plane import (
+    Plane,
+    R_cam_rest,
+    _poses,
+    centre_height_mm,
+    rest_gap_mm,
+    rest_heights_mm,
+)
+from service.vision.estimate.verdict import decide
+from service.vision.geometry.camera import Intrinsics, project
+from service.vision.geometry.frames import Pose, Rz
+from service.vision.geometry.render import render, render_shaded
+from tests.tolerances import PLANE_FOUND_T_MM, PLANE_REST_TOL_MM, ROUND_TRIP_ATOL
+
+INTR = Intrinsics(600.0, 600.0, 319.5, 239.5)
+SIZE = (640, 480)
+TILT_DEG, AXIS_DIST_MM = 40.0, 450.0
+
+
+def _camera() -> tuple[np.ndarray, np.ndarray]:
+    """(R_cam_world, t_cam_world): world = plane frame (z up, plane z = 0), the optical axis 40 deg
+    from straight down, meeting the plane at the world origin 450 mm away."""
+    a = np.radians(TILT_DEG)
+    z_c = np.array([0.0, np.sin(a), -np.cos(a)])
+    x_c = np.array([1.0, 0.0, 0.0])
+    R = np.stack([x_c, np.cross(z_c, x_c), z_c])
+    return R, R @ (AXIS_DIST_MM * z_c)  # t = -R @ C with C = -450 z_c
+
+
+R_CW, T_CW = _camera()
+PLANE = Plane(R_CW[:, 2], float(R_CW[:, 2] @ T_CW))
+
+
+@pytest.fixture(scope="module")
+def bank():
+    a = trimesh.creation.box((80.0, 20.0, 40.0))
+    b = trimesh.creation.box((20.0, 40.0, 40.0))  # arms of unequal length: no symmetry
+    b.apply_translation((-30.0, 30.0, 0.0))
+    return pipeline.build_templates(trimesh.util.concatenate([a, b]), symmetry="none",
+                                    grid={"view_step_deg": 15.0, "render_px": 160})
+
+
+def resting(bank, s: int, spin_deg: float, x_mm: float, y_mm: float, lift_mm: float = 0.0) -> Pose:
+    """The part in family s, spun about the plane normal, its bounding-box centre above (x, y) of the
+    plane frame, its lowest point ``lift_mm`` above the plane: T_cam_obj."""
+    R_wo = Rz(spin_deg) @ bank.R_rest_obj[s]
+    q = np.asarray(bank.vertices_mm, float) @ R_wo.T
+    c = R_wo @ bank.centre_obj
+    t_wo = np.array([x_mm - c[0], y_mm - c[1], lift_mm - q[:, 2].min()])
+    return Pose(R_CW @ R_wo, R_CW @ t_wo + T_CW)
+
+
+def scene(bank, poses) -> np.ndarray:
+    V = np.asarray(bank.vertices_mm, float)
+    F = np.asarray(bank.faces)
+    Vs = np.concatenate([p.apply(V) for p in poses])
+    Fs = np.concatenate([F + k * len(V) for k in range(len(poses))])
+    eye = Pose(np.eye(3), np.zeros(3))
+    shaded = render_shaded(Vs, Fs, eye, INTR.K, SIZE, background=0).astype(float)
+    cov = render(Vs, Fs, eye, INTR.K, SIZE, supersample=2).coverage
+    grey = np.clip(np.rint(70.0 * (1 - cov) + shaded), 0, 255).astype(np.uint8)
+    return np.repeat(grey[..., None], 3, axis=2)
+
+
+def test_the_test_plane_is_in_the_conventions():
+    # the normal points towards the camera (at the origin), d < 0, and the axis' foot point is on it
+    assert PLANE.d_mm == pytest.approx(-AXIS_DIST_MM * np.cos(np.radians(TILT_DEG)))
+    assert PLANE.height_mm(np.array([[0.0, 0.0, AXIS_DIST_MM]]))[0] == pytest.approx(0.0, abs=1e-9)
+    Rc = R_cam_rest(PLANE)
+    np.testing.assert_allclose(Rc.T @ Rc, np.eye(3), atol=ROUND_TRIP_ATOL)
+    np.testing.assert_allclose(Rc[:, 2], PLANE.normal, atol=ROUND_TRIP_ATOL)
+
+
+def test_every_placement_of_the_search_rests_on_the_plane_with_its_centre_at_the_pixel(bank):
+    rng = np.random.default_rng(15)
+    S = len(bank.R_rest_obj)
+    s = rng.integers(0, S, 20)
+    psi = rng.uniform(0, 360, 20)
+    uv = rng.uniform([100, 150], [540, 460], (20, 2))
+    R, t, ok = _poses(bank, bank.R_rest_obj, PLANE, INTR, s, psi, uv)
+    assert ok.all()
+    for k in range(20):
+        pose = Pose(R[k], t[k])
+        assert rest_gap_mm(bank, pose, PLANE) == pytest.approx(0.0, abs=PLANE_REST_TOL_MM)
+        np.testing.assert_allclose(project(pose.apply(bank.centre_obj[None]), INTR.K)[0], uv[k], atol=1e-6)
+        h = rest_heights_mm(bank, bank.R_rest_obj)[s[k]]
+        assert centre_height_mm(bank, pose, PLANE) == pytest.approx(h, abs=PLANE_REST_TOL_MM)
+
+
+def test_the_verdict_rejects_a_pose_off_the_plane():
+    ev = {"edge_support": 1.0, "unexplained": 0.0, "colour_edge": 1.0, "polarity": 1.0, "region": 1.0,
+          "region_low": 1.0, "region_global": 1.0, "coherence": 1.0, "shading_r2": 1.0, "shading_std": 10.0}
+    assert decide(ev).found
+    assert decide(ev, plane_gap_mm=4.0, plane_tolerance_mm=5.0).found
+    for gap in (50.0, -10.0):  # floating, or through the surface
+        v = decide(ev, plane_gap_mm=gap, plane_tolerance_mm=5.0)
+        assert not v.found and v.reason == "off_plane" and v.evidence["plane_gap_mm"] == gap
+
+
+def test_the_plane_rejects_a_part_floating_50_mm_above_it(bank):
+    floating = resting(bank, 0, 30.0, 0.0, 0.0, lift_mm=50.0)
+    img = scene(bank, [floating])
+    grey = img[..., 0]
+    frame = colour_frame(img)
+    cand = PoseCandidate(floating, 0.0, 1.0)
+    kw = dict(distance_mm=None, distance_range_mm=(300.0, 1200.0), min_score=None, n_channels=16)
+    free = pipeline.check_candidate(bank, cand, grey, frame, INTR, **kw)
+    assert free.verdict.found  # the image supports it ...
+    on = pipeline.check_candidate(bank, cand, grey, frame, INTR, plane=PLANE, plane_tolerance_mm=5.0, **kw)
+    assert not on.verdict.found and on.verdict.reason == "off_plane"  # ... but it does not rest on the plane
+    assert on.verdict.evidence["plane_gap_mm"] == pytest.approx(50.0, abs=5.0)
+
+
+def test_sort_height_puts_the_highest_centre_first(bank):
+    # family heights differ (the L-block lying flat vs on its side); sorted highest centre first
+    h = rest_heights_mm(bank, bank.R_rest_obj)
+    order = np.argsort(-h)
+    assert h[order[0]] > h[order[-1]] + 5.0
+    families = [int(order[-1]), int(order[0]), int(order[len(order) // 2])]  # lowest, highest, between
+    checked = []
+    for k, s in enumerate(families):
+        pose = resting(bank, s, 10.0 * k, 60.0 * k - 60.0, 0.0)
+        c = PoseCandidate(pose, 1.0, 1.0)
+        checked.append(Checked(c, RefinedPose(pose, 1.0, 1.0), decide(None)))
+    got = sort_instances(checked, bank, "height", PLANE)
+    assert [c.refined.pose for c in got] == [checked[1].refined.pose, checked[2].refined.pose,
+                                             checked[0].refined.pose]
+    assert [centre_height_mm(bank, c.refined.pose, PLANE) for c in got] == pytest.approx(
+        sorted(h[families], reverse=True), abs=PLANE_REST_TOL_MM)
+    with pytest.raises(ValueError, match="needs a plane"):
+        sort_instances(checked, bank, "height")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("n", [2, 4])
+def test_copies_resting_on_the_plane_come_back_as_that_many_instances(bank, n):
+    spots = [(-70.0, -40.0), (60.0, -30.0), (-40.0, 60.0), (70.0, 70.0)]
+    truth = [resting(bank, k % len(bank.R_rest_obj), 40.0 * k + 15.0, *spots[k]) for k in range(n)]
+    out = pipeline.estimate(bank, scene(bank, truth), INTR, max_instances=n, plane=PLANE, sort="height")
+    assert len(out.instances) == n
+    matched = []
+    for inst in out.instances:
+        d = [np.linalg.norm(inst.refined.pose.t_mm - p.t_mm) for p in truth]
+        assert min(d) <= PLANE_FOUND_T_MM, d
+        assert abs(inst.verdict.evidence["plane_gap_mm"]) <= 5.0
+        matched.append(int(np.argmin(d)))
+    assert sorted(matched) == list(range(n))
+    heights = [centre_height_mm(bank, i.refined.pose, PLANE) for i in out.instances]
+    assert heights == sorted(heights, reverse=True)
