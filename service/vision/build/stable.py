@@ -35,7 +35,16 @@ MIN_PROBABILITY = 0.02
 GROUP_ANGLE_DEG = 2.0  # revolved part: poses whose up directions make angles with the axis this close
 CONGRUENT_FRACTION = 0.005  # posed vertices within this fraction of the diameter: congruent
 MAX_CHECK_POINTS = 512  # vertices compared per congruence test (seeded sample)
-MAX_SPIN_CANDIDATES = 64  # spins tried per congruence test
+MAX_SPIN_CANDIDATES = 16  # spins tried per congruence test
+# Only the most probable poses are grouped: past them each pose rests less than 1/64 of drops, and a
+# ball's thousands of hull faces would cost millions of congruence tests (a revolved part's facets are
+# grouped by the axis first, so a 128-gon lying on its side still sums to one family).
+MAX_POSES = 64
+# Stable poses depend only on the convex hull and the centre of mass, and compute_stable_poses costs
+# ~10 ms per hull face (a 16,000-face ball: 47 s): a hull of more faces is simplified to about this many
+# first (quadric decimation, then its hull again), which moves its faces by a fraction of a millimetre.
+MAX_HULL_FACES = 2000
+HEIGHT_QUANTILES = 16  # a congruence test first compares this many quantiles of the vertex heights
 
 
 @dataclass(frozen=True)
@@ -44,21 +53,35 @@ class StablePoses:
     probability: np.ndarray  # (S,) float64: each family's share of random drops, most probable first
 
 
-def _posed(V: np.ndarray, R: np.ndarray, com: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _posed(V: np.ndarray, R: np.ndarray, com: np.ndarray) -> _Posed:
     """Vertices rotated by R, shifted so the centre of mass is on the z axis and the lowest point at 0."""
     q = V @ R.T
     c = R @ com
     shift = np.array([c[0], c[1], q[:, 2].min()])
-    return q - shift, c - shift
+    q = q - shift
+    return _Posed(q, c - shift, np.quantile(q[:, 2], np.linspace(0.0, 1.0, HEIGHT_QUANTILES)))
 
 
-def _congruent(qa: np.ndarray, ca: np.ndarray, qb: np.ndarray, cb: np.ndarray, tol: float,
-               sample: np.ndarray) -> bool:
-    """Are the posed vertex sets ``qa`` and ``qb`` (centres of mass ``ca``, ``cb`` on the z axis) the
-    same up to a rotation about z?"""
-    from scipy.spatial import cKDTree
+@dataclass
+class _Posed:
+    q: np.ndarray  # (V, 3) posed vertices (centre of mass on the z axis, lowest point at z = 0)
+    c: np.ndarray  # (3,) posed centre of mass
+    heights: np.ndarray  # (HEIGHT_QUANTILES,) quantiles of q[:, 2]: invariant to spin and shift
+    _tree: object = None
 
-    if abs(ca[2] - cb[2]) > tol or abs(qa[:, 2].max() - qb[:, 2].max()) > tol:
+    def tree(self):
+        from scipy.spatial import cKDTree
+
+        if self._tree is None:
+            self._tree = cKDTree(self.q)
+        return self._tree
+
+
+def _congruent(a: _Posed, b: _Posed, tol: float, sample: np.ndarray) -> bool:
+    """Are the posed vertex sets of ``a`` and ``b`` (centres of mass on the z axis) the same up to a
+    rotation about z?"""
+    qa, ca, qb, cb = a.q, a.c, b.q, b.c
+    if abs(ca[2] - cb[2]) > tol or np.abs(a.heights - b.heights).max() > tol:
         return False
     ra = np.hypot(qa[:, 0], qa[:, 1])
     rb = np.hypot(qb[:, 0], qb[:, 1])
@@ -68,7 +91,7 @@ def _congruent(qa: np.ndarray, ca: np.ndarray, qb: np.ndarray, cb: np.ndarray, t
     cand = np.flatnonzero((np.abs(rb - ra[k]) <= tol) & (np.abs(qb[:, 2] - qa[k, 2]) <= tol))
     if len(cand) == 0:
         return False
-    tree_b, tree_a = cKDTree(qb), cKDTree(qa)
+    tree_b, tree_a = b.tree(), a.tree()
     pa, pb = qa[sample[sample < len(qa)]], qb[sample[sample < len(qb)]]
     for j in cand[:MAX_SPIN_CANDIDATES]:
         th = math.atan2(qb[j, 1], qb[j, 0]) - math.atan2(qa[k, 1], qa[k, 0])
@@ -89,8 +112,15 @@ def stable_poses(mesh: trimesh.Trimesh, *, axis_obj: np.ndarray | None = None,
     V = np.asarray(mesh.vertices, float)
     none = StablePoses(np.zeros((0, 3, 3)), np.zeros(0))
     try:
-        com = np.asarray(mesh.center_mass if mesh.is_watertight else mesh.convex_hull.center_mass, float)
-        T, prob = trimesh.poses.compute_stable_poses(mesh, center_mass=com)
+        hull = mesh.convex_hull
+        com = np.asarray(mesh.center_mass if mesh.is_watertight else hull.center_mass, float)
+        if len(hull.faces) > MAX_HULL_FACES:
+            import fast_simplification
+
+            v, f = fast_simplification.simplify(np.asarray(hull.vertices, float), np.asarray(hull.faces),
+                                                target_reduction=1.0 - MAX_HULL_FACES / 2 / len(hull.faces))
+            hull = trimesh.Trimesh(v, f).convex_hull
+        T, prob = trimesh.poses.compute_stable_poses(hull, center_mass=com)
     except Exception:  # noqa: BLE001 - qhull or a degenerate hull: no resting poses to search
         return none
     if len(T) == 0:
@@ -103,23 +133,30 @@ def stable_poses(mesh: trimesh.Trimesh, *, axis_obj: np.ndarray | None = None,
     a = None if axis_obj is None else np.asarray(axis_obj, float) / np.linalg.norm(axis_obj)
     fam_R: list[np.ndarray] = []
     fam_p: list[float] = []
-    fam_posed: list[tuple[np.ndarray, np.ndarray]] = []
+    fam_posed: list[_Posed] = []
     fam_angle: list[float] = []
-    for i in np.argsort(-prob, kind="stable"):
+    for rank, i in enumerate(np.argsort(-prob, kind="stable")):
         R = Rs[i]
         up = R[2]  # the resting frame's +z in the object frame
-        angle = math.degrees(math.acos(float(np.clip(up @ a, -1.0, 1.0)))) if a is not None else math.nan
-        posed = _posed(V, R, com)
-        for f in range(len(fam_R)):
-            if (a is not None and abs(angle - fam_angle[f]) <= GROUP_ANGLE_DEG) or _congruent(
-                    fam_posed[f][0], fam_posed[f][1], posed[0], posed[1], tol, sample):
+        if a is not None:
+            angle = math.degrees(math.acos(float(np.clip(up @ a, -1.0, 1.0))))
+            f = next((f for f in range(len(fam_R)) if abs(angle - fam_angle[f]) <= GROUP_ANGLE_DEG), None)
+            if f is not None:
                 fam_p[f] += float(prob[i])
-                break
+                continue
         else:
-            fam_R.append(R)
-            fam_p.append(float(prob[i]))
-            fam_posed.append(posed)
-            fam_angle.append(angle)
+            angle = math.nan
+        if rank >= MAX_POSES:
+            continue  # rests less than 1 / MAX_POSES of drops and is not a revolved part's facet
+        posed = _posed(V, R, com)
+        f = next((f for f in range(len(fam_R)) if _congruent(fam_posed[f], posed, tol, sample)), None)
+        if f is not None:
+            fam_p[f] += float(prob[i])
+            continue
+        fam_R.append(R)
+        fam_p.append(float(prob[i]))
+        fam_posed.append(posed)
+        fam_angle.append(angle)
     keep = [f for f in np.argsort(-np.asarray(fam_p), kind="stable") if fam_p[f] >= min_probability]
     if not keep:
         return none
