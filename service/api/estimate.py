@@ -22,7 +22,7 @@ def run_estimate(model: Loaded, data: bytes, cam: Camera, opts: Options, setting
                  camera_name: str | None = None, grasps: list[Grasp] | None = None) -> EstimateResult:
     """Image bytes -> EstimateResult (blocking: call it from a worker thread)."""
     return estimate_result(model.record, model.bank, data, cam, opts, max_pixels=settings.max_image_pixels,
-                           camera_name=camera_name, grasps=grasps)
+                           camera_name=camera_name, grasps=grasps, default_deadline_ms=settings.deadline_ms)
 
 
 @router.post("/models/{model_id}/estimate", response_model=EstimateResult,
