@@ -108,6 +108,9 @@ class _Mean:
 # What checking a candidate (refine + evidence + verdict) takes in this process: the anytime search
 # keeps this much of its deadline for it. Starts at a paper render's (1280 x 960) on 2 cores.
 _CHECK_MS = _Mean(35.0)
+# The search keeps a little more than one check for the first candidate's: its own last unit of work
+# (a polish) overruns by a part of the mean it was judged against.
+SEARCH_RESERVE_CHECKS = 1.25
 
 # The search keeps as many polished hypotheses as the verdict checks.
 SEARCH_PARAMS = SearchParams(n_polish=5)
@@ -213,7 +216,8 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     grey = to_grey_u8(image)
     h, w = grey.shape
     cands, _, timing = propose(bank, grey, intr, distance_mm=distance_mm, distance_range_mm=distance_range_mm,
-                               params=p, roi_uv=roi_uv, deadline=deadline, reserve_ms=_CHECK_MS.value)
+                               params=p, roi_uv=roi_uv, deadline=deadline,
+                               reserve_ms=SEARCH_RESERVE_CHECKS * _CHECK_MS.value)
     t0 = time.perf_counter()
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
     # The evidence reads pixels where the ideal camera projects the model: undistort the frame once.

@@ -116,7 +116,9 @@ def test_level_a_scans_the_anchors_with_most_edges_first(bank, image):
     r = max(int(tpl.extent_px * float(scales.min()) * coarse.EDGE_COUNT_EXTENT), 1)
     counts = np.array([edges[max(v - r, 0):v + r + 1, max(u - r, 0):u + r + 1].sum()
                        for u, v in zip(part[0], part[1], strict=True)])
-    chunks = np.array_split(np.argsort(-counts, kind="stable"), coarse.LEVEL_A_CHUNKS)
+    chunks = np.array_split(np.argsort(-counts, kind="stable"),
+                            int(np.ceil(len(counts) / coarse.LEVEL_A_CHUNK_ANCHORS)))
+    assert len(chunks) > 1
     first = chunks[0]
     rest = np.concatenate(chunks[1:])
     np.testing.assert_array_equal(part[3][first], full[3][first])

@@ -68,8 +68,12 @@ FINE_VIEW_STEPS = 1.5  # level B's fine block: bank views within this many grid 
 # The fine block contains the first block's best, so it finds at least as good a placement unless the
 # denser sampling raises that one's cost by more than this factor.
 FINE_BLOCK_SLACK = 1.25
-# With a deadline, level A's anchors are scanned in this many chunks, checking the time between them.
-LEVEL_A_CHUNKS = 8
+# With a deadline, level A's anchors are scanned in chunks of this many, checking the time between them
+# (a chunk of a non-symmetric part's anchors with the most edges took ~0.2 s on 2 cores: 1/8 of them).
+LEVEL_A_CHUNK_ANCHORS = 64
+# ... and level A leaves this many times the caller's reserve: one for level B and the polish of the
+# best peaks, one for verifying a candidate.
+LEVEL_A_RESERVE_FACTOR = 2.0
 
 
 @dataclass(frozen=True)
@@ -266,8 +270,8 @@ def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, 
     """Level A's scan. ``anchor_mask``: (h, w) bool full-resolution, where the reference point may be
     placed (a region of interest): anchors elsewhere are not scanned at all. With a ``deadline`` the
     anchors are scanned in chunks, those with the most edge pixels round them first, until it leaves
-    less than ``reserve_ms``; unscanned anchors cost inf (each anchor's result does not depend on the
-    others', so a scan that finishes is the unchunked one)."""
+    less than ``LEVEL_A_RESERVE_FACTOR`` x ``reserve_ms``; unscanned anchors cost inf (each anchor's
+    result does not depend on the others', so a scan that finishes is the unchunked one)."""
     C, hl, wl = dtt.dt.shape
     dt_q, tau_q = quantised(dtt, dtt.tau_px)
     au, av = np.meshgrid(np.arange(0, wl, p.anchor_stride), np.arange(0, hl, p.anchor_stride))
@@ -304,8 +308,9 @@ def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, 
     t = np.full(len(au), -1, np.int32)
     d = np.full(len(au), -1, np.int32)
     deadline.new_loop()
-    for chunk in np.array_split(np.argsort(-count[keep], kind="stable"), LEVEL_A_CHUNKS):
-        if not deadline.allows_next(reserve_ms):
+    order = np.argsort(-count[keep], kind="stable")
+    for chunk in np.array_split(order, max(1, math.ceil(len(order) / LEVEL_A_CHUNK_ANCHORS))):
+        if not deadline.allows_next(LEVEL_A_RESERVE_FACTOR * reserve_ms):
             break
         cost[chunk], t[chunk], d[chunk] = _scan(dt_q, tau_q, off_u, off_v, tpl.chan, au[chunk], av[chunk],
                                                 tile[chunk], accept, LEVEL_A_SENTINEL_POINTS, False)
