@@ -133,17 +133,17 @@ t2 = time.perf_counter()
 fs = frames("paper", 6)
 out = []
 for f in fs:
-    r = estimate(f["bank"], f["image"], f["intr"], distance_mm=float(f["g"]["t_mm"][2]){extra})
+    r = estimate(f["bank"], f["image"], f["intr"], distance_mm={distance})
     out.append(r.timing_ms["total"])
 print(json.dumps({{"import_ms": 1000 * (t1 - t0), "warm_up_ms": 1000 * (t2 - t1), "frames_ms": out}}))
 """
 
 
 def first_table() -> None:
-    print("| process start | imports ms | warm_up ms | first frame ms | warm frames p50 ms | first / warm |")
+    print("| fresh process | imports ms | warm_up ms | first frame ms | warm frames p50 ms | first / warm |")
     print("|---|---|---|---|---|---|")
-    for name in ("fresh process",):
-        res = subprocess.run([sys.executable, "-c", FIRST_SCRIPT.format(root=str(ROOT), extra="")],
+    for name, distance in (("distance given", 'float(f["g"]["t_mm"][2])'), ("distance not given", "None")):
+        res = subprocess.run([sys.executable, "-c", FIRST_SCRIPT.format(root=str(ROOT), distance=distance)],
                              capture_output=True, text=True, check=True, cwd=ROOT)
         d = json.loads(res.stdout.strip().splitlines()[-1])
         first, warm = d["frames_ms"][0], float(np.median(d["frames_ms"][1:]))
