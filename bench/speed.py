@@ -5,9 +5,9 @@ Prints markdown tables; asserts nothing::
     python bench/speed.py [--parts runs,deadline,first,clients] [--limit N] [--repeat R]
 
 runs      paper renders (1280 x 960) with the distance given and not given, and the clutter renders
-          (distance not given) with the default deadline and without one: p50 / p95 of each stage of
-          ``timing_ms``, found / right / wrong found, recall at MSPD < 5 px (targets >= half visible)
-          and the refined pose's mean errors beside them (the accuracy must not move).
+          (distance not given; ``--clutter-sets``) with the default deadline and without one: p50 / p95
+          of each stage of ``timing_ms``, found / right / wrong found, recall at MSPD < 5 px (targets
+          >= half visible) and the refined pose's mean errors beside them (the accuracy must not move).
 deadline  clutter renders at several ``deadline_ms``: p50 / p95 of the total against the deadline,
           and the share of frames answered past it by more than 10 %.
 first     a fresh ``python`` process: start-up (imports + ``warm_up``), then the first paper frame with
@@ -46,7 +46,7 @@ STAGES = ("edges", "coarse", "refine", "total")
 
 
 def frames(set_name: str, limit: int | None) -> list[dict]:
-    set_dir = DATA_DIR / set_name
+    set_dir = Path(set_name) if Path(set_name).is_dir() else DATA_DIR / set_name
     out = []
     for g in read_gt(set_dir)[:limit] if limit else read_gt(set_dir):
         out.append({"g": g, "set_dir": set_dir, "image": read_colour(set_dir / g["image"]),
@@ -77,17 +77,19 @@ def pct(xs, q) -> float:
     return float(np.percentile(xs, q)) if len(xs) else float("nan")
 
 
-def runs_table(limit: int | None, repeat: int) -> None:
+def runs_table(limit: int | None, repeat: int, clutter_sets: list[str]) -> None:
     paper = frames("paper", limit)
-    clutter = frames("clutter", limit)
-    for f in paper[:1] + clutter[:1]:  # level-A templates of each camera / distance, outside the timing
+    for f in paper[:1]:  # level-A templates of the camera and distance, outside the timing
         run([f], distance_given=False, deadline_ms=None)
     run(paper[:1], distance_given=True, deadline_ms=None)
     rows = [("paper, distance given", run(paper, distance_given=True, deadline_ms=None, repeat=repeat)),
-            ("paper, distance not given", run(paper, distance_given=False, deadline_ms=None, repeat=repeat)),
-            (f"clutter, deadline {DEFAULT_DEADLINE_MS:g} ms",
-             run(clutter, distance_given=False, deadline_ms=DEFAULT_DEADLINE_MS)),
-            ("clutter, no deadline", run(clutter, distance_given=False, deadline_ms=None))]
+            ("paper, distance not given", run(paper, distance_given=False, deadline_ms=None, repeat=repeat))]
+    for name in clutter_sets:
+        clutter = frames(name, limit)
+        label = Path(name).name
+        rows += [(f"{label}, deadline {DEFAULT_DEADLINE_MS:g} ms",
+                  run(clutter, distance_given=False, deadline_ms=DEFAULT_DEADLINE_MS)),
+                 (f"{label}, no deadline", run(clutter, distance_given=False, deadline_ms=None))]
     print("| run | frames | " + " | ".join(f"{s} p50 / p95 ms" for s in STAGES)
           + " | found | right | wrong found | recall <5px | deadline reached "
           "| refined tx / ty / tz mm, rot deg |")
@@ -180,11 +182,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--parts", default="runs,deadline,first,clients")
     ap.add_argument("--limit", type=int, default=None, help="first N images of each set")
     ap.add_argument("--repeat", type=int, default=1, help="estimates per paper image (latency spread)")
+    ap.add_argument("--clutter-sets", default="clutter", help="comma-separated sets (names under the data "
+                    "dir, or folders like bench/synth_scenes.py's) run with and without the default deadline")
     a = ap.parse_args(argv)
     parts = a.parts.split(",")
     warm_up()
     if "runs" in parts:
-        runs_table(a.limit, a.repeat)
+        runs_table(a.limit, a.repeat, a.clutter_sets.split(","))
         print()
     if "deadline" in parts:
         deadline_table(a.limit)
