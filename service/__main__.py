@@ -206,7 +206,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         bank = store.ready_bank(record)  # 409 with the reason if the build failed
         result = estimate_result(record, bank, image.read_bytes(), cam, opts,
                                  max_pixels=settings.max_image_pixels, camera_name=camera_name,
-                                 grasps=grasps_of(store.grasps(record["id"])))
+                                 grasps=grasps_of(store.grasps(record["id"])),
+                                 default_deadline_ms=settings.deadline_ms)
     if args.overlay_out and result.overlay_png_base64 is not None:
         Path(args.overlay_out).write_bytes(base64.b64decode(result.overlay_png_base64))
         result.overlay_png_base64 = None

@@ -104,14 +104,17 @@ def add_cell_frames(result: EstimateResult, bank: TemplateBank, cam: CellCamera,
 
 
 def estimate_result(record: dict[str, Any], bank: TemplateBank, data: bytes, cam: Camera, opts: Options, *,
-                    max_pixels: int, camera_name: str | None = None,
-                    grasps: list[Grasp] | None = None) -> EstimateResult:
+                    max_pixels: int, camera_name: str | None = None, grasps: list[Grasp] | None = None,
+                    default_deadline_ms: float | None = None) -> EstimateResult:
     """Image bytes -> EstimateResult (blocking: the API calls it from a worker thread; the CLI calls it
     too).
 
     The intrinsics and distances are held to the plausibility bounds (``service.bounds``) for the
     decoded image's size before the search. With a ``CellCamera`` (image size, extrinsics) the image
-    size is checked too and the result gains the robot-frame poses and the placed ``grasps``."""
+    size is checked too and the result gains the robot-frame poses and the placed ``grasps``.
+    ``default_deadline_ms`` (the service's setting; None or 0: none) applies when ``opts`` give none and
+    no plane (the plane search is not anytime yet: under the default 450 ms it would leave no time to
+    verify)."""
     cell = isinstance(cam, CellCamera)
     if cell:
         size = image_size(data)
@@ -123,8 +126,10 @@ def estimate_result(record: dict[str, Any], bank: TemplateBank, data: bytes, cam
             check_image_size(cam, size, camera_name)
         check_plausible(cam, opts, size)
 
-    out = estimate_image(bank, data, cam.to_intrinsics(), max_pixels=max_pixels, check=check,
-                         **opts.estimate_kwargs())
+    kwargs = opts.estimate_kwargs()
+    if kwargs["deadline_ms"] is None and opts.plane is None:
+        kwargs["deadline_ms"] = default_deadline_ms or None
+    out = estimate_image(bank, data, cam.to_intrinsics(), max_pixels=max_pixels, check=check, **kwargs)
     result = EstimateResult.from_output(record["id"], out)
     result.warnings = ModelInfo.from_record(record).warnings
     if cell:

@@ -17,6 +17,7 @@ import trimesh
 
 from service.vision import threads
 from service.vision.bank import TemplateBank
+from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.chamfer import distance_tensor
 from service.vision.estimate.coarse import SearchParams, coarse_search, poses_of
 from service.vision.estimate.edges import detect_segments, to_grey_u8, undistort_segments
@@ -66,6 +67,7 @@ class EstimateOutput:
     # every found instance, each refined and verified on its own, sorted (``estimate``'s ``sort``); the
     # fields above describe instances[0]; empty when nothing is found
     instances: list[Instance] = field(default_factory=list)
+    deadline_reached: bool = False  # the search stopped early at ``deadline_ms`` (anytime)
 
 
 @dataclass(frozen=True)
@@ -101,6 +103,23 @@ def _ms(t0: float) -> float:
     return (time.perf_counter() - t0) * 1000.0
 
 
+class _Mean:
+    """A running mean of recent durations, ms (exponential, weight ``alpha`` on the newest)."""
+
+    def __init__(self, initial_ms: float, alpha: float = 0.2):
+        self.value, self.alpha = initial_ms, alpha
+
+    def add(self, ms: float) -> None:
+        self.value += self.alpha * (ms - self.value)
+
+
+# What checking a candidate (refine + evidence + verdict) takes in this process: the anytime search
+# keeps this much of its deadline for it. Starts at a paper render's (1280 x 960) on 2 cores.
+_CHECK_MS = _Mean(35.0)
+# The search keeps a little more than one check for the first candidate's: its own last unit of work
+# (a polish) overruns by a part of the mean it was judged against.
+SEARCH_RESERVE_CHECKS = 1.25
+
 # The search keeps as many polished hypotheses as the verdict checks.
 SEARCH_PARAMS = SearchParams(n_polish=5)
 N_VERIFY = 5  # candidates refined and verified per frame at most (best chamfer cost first): on 120
@@ -132,18 +151,21 @@ def search_params(max_instances: int) -> SearchParams:
 
 def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance_mm: float | None = None,
             distance_range_mm: tuple[float, float] | None = None, params: SearchParams | None = None,
-            roi_uv: np.ndarray | None = None, plane: Plane | None = None):
+            roi_uv: np.ndarray | None = None, deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0,
+            plane: Plane | None = None):
     """The proposal engine (the paper's method): LSD edges, their distance tensor and the coarse
     search -> (distinct candidates, lowest chamfer cost first; full-image segments; timing_ms with
     "edges" and "coarse").
 
     ``roi_uv``: (N, 2) polygon, pixels: only placements whose object centre projects inside it are
     searched (level A's anchors are restricted to it), and only the edges within the part's largest
-    projected radius of its bounding box are used.
+    projected radius of its bounding box are used. ``deadline`` / ``reserve_ms``: see ``coarse_search``
+    (no search at all when the edges already used the time).
 
     ``plane``: the supporting plane (camera frame): the search runs over the part's stable resting
     poses x spin about the plane's normal x position on the plane (``estimate/plane.py``) instead of
-    all of 6D; ``distance_mm`` is then not used. A part without stable poses is searched in 6D."""
+    all of 6D; ``distance_mm`` is then not used. A part without stable poses is searched in 6D. The
+    plane search does not watch the deadline yet (it runs whole when it starts)."""
     rest = resting_rotations(bank) if plane is not None else None
     p = params or SEARCH_PARAMS
     threads.use_budget()
@@ -172,11 +194,13 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     if rest is not None and len(rest):
         # Level B's scans per peak cost little on the plane: every peak is polished.
         ph = plane_search(bank, rest, dtt_b, intr, (h, w), plane, replace(p, n_polish=p.n_peaks),
-                          distance_range_mm=rng, anchor_mask=anchor_mask)
+                          distance_range_mm=rng, anchor_mask=anchor_mask) \
+            if deadline.allows(reserve_ms) else []
         cands = [_candidate(bank, Pose(x.R, x.t), x.cost, x.score) for x in ph]
     else:
         hyps = coarse_search(bank, dtt_b, intr, (h, w), p, distance_mm=distance_mm, distance_range_mm=rng,
-                             anchor_mask=anchor_mask)
+                             anchor_mask=anchor_mask, deadline=deadline, reserve_ms=reserve_ms) \
+            if deadline.allows(reserve_ms) else []
         Rs, ts = poses_of(bank, hyps, intr.K, distance_mm) if hyps else (np.zeros((0, 3, 3)),
                                                                          np.zeros((0, 3)))
         cands = [_candidate(bank, Pose(R, t), hy.cost, hy.score)
@@ -209,8 +233,8 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
              distance_range_mm: tuple[float, float] | None = None, refine: bool = True, top_k: int = 5,
              overlay: bool = False, params: SearchParams | None = None,
              min_score: float | None = None, roi_uv: np.ndarray | None = None, max_instances: int = 1,
-             sort: str = "score", plane: Plane | None = None,
-             plane_tolerance_mm: float = PLANE_TOLERANCE_MM) -> EstimateOutput:
+             sort: str = "score", deadline_ms: float | None = None, started_at: float | None = None,
+             plane: Plane | None = None, plane_tolerance_mm: float = PLANE_TOLERANCE_MM) -> EstimateOutput:
     """Grey (H, W) or BGR (H, W, 3) image + intrinsics -> ranked poses and the verdict on the best.
 
     The coarse search proposes; up to ``N_VERIFY`` candidates are refined (also with ``refine``
@@ -224,6 +248,11 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     part's centre nearest the camera first; "height", with a plane: the part's centre highest above
     it first), and the top-level fields describe the first.
 
+    ``deadline_ms``: the search is anytime (``vision/deadline.py``): it stops starting new work when
+    the deadline, counted from ``started_at`` (a ``time.perf_counter()`` reading; default: now), no
+    longer leaves time to verify a candidate, and reports the best verified result so far;
+    ``deadline_reached`` says so, and ``verdict.reason`` is "deadline" when nothing was found.
+
     ``plane``: the supporting plane (see ``propose``); a refined pose whose lowest point lies more than
     ``plane_tolerance_mm`` above or below it is not found (verdict reason "off_plane").
     """
@@ -232,17 +261,19 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     if plane is not None:
         distance_mm = None  # the plane fixes the depth of every placement
     p = params or search_params(max_instances)
-    t_start = time.perf_counter()
+    t_start = time.perf_counter() if started_at is None else started_at
+    deadline = Deadline(deadline_ms, start=t_start)
     grey = to_grey_u8(image)
     h, w = grey.shape
     cands, _, timing = propose(bank, grey, intr, distance_mm=distance_mm, distance_range_mm=distance_range_mm,
-                               params=p, roi_uv=roi_uv, plane=plane)
+                               params=p, roi_uv=roi_uv, deadline=deadline,
+                               reserve_ms=SEARCH_RESERVE_CHECKS * _CHECK_MS.value, plane=plane)
     t0 = time.perf_counter()
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
     # The evidence reads pixels where the ideal camera projects the model: undistort the frame once.
     frame = colour_frame(undistort_image(image, intr))
     kw = dict(distance_mm=distance_mm, distance_range_mm=rng, min_score=min_score, n_channels=p.n_channels,
-              plane=plane, plane_tolerance_mm=plane_tolerance_mm)
+              deadline=deadline, plane=plane, plane_tolerance_mm=plane_tolerance_mm)
     if max_instances <= 1:
         checked = verify_candidates(bank, cands, grey, frame, intr, **kw)
         best = checked[0] if checked else None
@@ -254,6 +285,8 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
         best = found_list[0] if found_list else (rejected[0] if rejected else None)
     instances = [Instance(c.candidate, c.refined if refine else None, c.verdict) for c in found_list]
     verdict = best.verdict if best is not None else decide(None)
+    if deadline.hit and not verdict.found:
+        verdict = replace(verdict, reason="deadline")
     found = verdict.found
     coarse = best.candidate if found else None
     refined = best.refined if found and refine else None
@@ -266,7 +299,8 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
                                       refined.pose if refined else None, found=found, score=verdict.score,
                                       rejected=None if found or best is None else best.refined.pose))
     timing["total"] = _ms(t_start)
-    return EstimateOutput((w, h), found, coarse, refined, cands[:top_k], timing, png, verdict, instances)
+    return EstimateOutput((w, h), found, coarse, refined, cands[:top_k], timing, png, verdict, instances,
+                          deadline.hit)
 
 
 @dataclass(frozen=True)
@@ -283,6 +317,7 @@ def check_candidate(bank: TemplateBank, cand: PoseCandidate, grey: np.ndarray, f
                     plane_tolerance_mm: float = PLANE_TOLERANCE_MM) -> Checked:
     """One candidate refined, its evidence measured at the refined pose, and the verdict on it (with a
     plane, also whether the refined pose rests on it)."""
+    t0 = time.perf_counter()
     kept, verified, unexplained = _refine(bank, cand, grey, intr, distance_mm=distance_mm,
                                           n_channels=n_channels)
     ev = evidence(bank, kept.pose, intr, frame).as_dict()
@@ -290,18 +325,22 @@ def check_candidate(bank: TemplateBank, cand: PoseCandidate, grey: np.ndarray, f
     gap = rest_gap_mm(bank, kept.pose, plane) if plane is not None else None
     v = decide(ev, z_mm=float(kept.pose.t_mm[2]), distance_range_mm=distance_range_mm,
                min_score=min_score, plane_gap_mm=gap, plane_tolerance_mm=plane_tolerance_mm)
+    _CHECK_MS.add(_ms(t0))
     return Checked(cand, kept, v)
 
 
 def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.ndarray, frame: ColourFrame,
                       intr: Intrinsics, *, distance_mm: float | None,
                       distance_range_mm: tuple[float, float] | None, min_score: float | None,
-                      n_channels: int, plane: Plane | None = None,
+                      n_channels: int, deadline: Deadline = NO_DEADLINE, plane: Plane | None = None,
                       plane_tolerance_mm: float = PLANE_TOLERANCE_MM) -> list[Checked]:
     """Refine and verify the best ``N_VERIFY`` candidates, best verification first. Stops at the first
-    found one: the search ranks by chamfer cost, and on a clean frame the first is the truth."""
+    found one: the search ranks by chamfer cost, and on a clean frame the first is the truth; and
+    before a check the ``deadline`` leaves no time for."""
     out: list[Checked] = []
     for cand in cands[:N_VERIFY]:
+        if not deadline.allows(_CHECK_MS.value):
+            break
         c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm,
                             distance_range_mm=distance_range_mm, min_score=min_score, n_channels=n_channels,
                             plane=plane, plane_tolerance_mm=plane_tolerance_mm)
@@ -315,12 +354,13 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
 def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.ndarray, frame: ColourFrame,
                      intr: Intrinsics, *, max_instances: int, distance_mm: float | None,
                      distance_range_mm: tuple[float, float] | None, min_score: float | None,
-                     n_channels: int, plane: Plane | None = None,
+                     n_channels: int, deadline: Deadline = NO_DEADLINE, plane: Plane | None = None,
                      plane_tolerance_mm: float = PLANE_TOLERANCE_MM) -> tuple[list[Checked], list[Checked]]:
     """Refine and verify candidates (best chamfer cost first) until ``max_instances`` distinct ones are
     found or the candidates run out -> (found, in the order found; rejected, best verification first).
     A candidate whose silhouette overlaps a found instance's by more than ``INSTANCE_IOU`` (IoU) is the
-    same instance: it is skipped before refinement, and a refined one is dropped."""
+    same instance: it is skipped before refinement, and a refined one is dropped. No check starts that
+    the ``deadline`` leaves no time for."""
     found: list[Checked] = []
     rejected: list[Checked] = []
     size = (grey.shape[1], grey.shape[0])
@@ -329,6 +369,8 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
             break
         if any(silhouette_iou(bank, cand.pose, f.refined.pose, intr, size) > INSTANCE_IOU for f in found):
             continue
+        if not deadline.allows(_CHECK_MS.value):
+            break
         c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm,
                             distance_range_mm=distance_range_mm, min_score=min_score, n_channels=n_channels,
                             plane=plane, plane_tolerance_mm=plane_tolerance_mm)
@@ -388,13 +430,15 @@ def estimate_image(bank: TemplateBank, data: bytes, intr: Intrinsics, *, max_pix
                    check: Callable[[tuple[int, int]], None] | None = None, **options) -> EstimateOutput:
     """Image file bytes -> ``estimate`` (blocking: the API calls it from a worker thread; the CLI
     calls it too). ``check``, if given, is called with the decoded image's (w, h) before the search
-    (it raises to refuse the request). ``options``: ``estimate``'s keyword arguments."""
+    (it raises to refuse the request). ``options``: ``estimate``'s keyword arguments; a
+    ``deadline_ms`` counts from here, decoding included."""
     from service.decode import decode_image
 
+    started_at = time.perf_counter()
     image = decode_image(data, max_pixels=max_pixels)
     if check is not None:
         check((image.shape[1], image.shape[0]))
-    return estimate(bank, image, intr, **options)
+    return estimate(bank, image, intr, started_at=started_at, **options)
 
 
 def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.ndarray) -> list[PoseCandidate]:

@@ -76,6 +76,7 @@ class RectROI(_Request):
 
 Polygon = Annotated[list[Annotated[list[float], Field(min_length=2, max_length=2)]], Field(max_length=1000)]
 MAX_INSTANCES = 50
+MAX_DEADLINE_MS = 600_000.0
 
 
 class Options(_Request):
@@ -98,6 +99,12 @@ class Options(_Request):
         "points; only placements whose projected centre lies inside are searched")
     max_instances: int = Field(1, ge=1, le=MAX_INSTANCES, description="report up to this many distinct "
                                "found instances in instances (each verified on its own)")
+    deadline_ms: float | None = Field(
+        None, gt=0, le=MAX_DEADLINE_MS, description="time budget of this estimate, ms, counted from when the "
+        "service starts decoding the image (default: the service's POSE_DEADLINE_MS): the search is anytime, "
+        "it stops starting new work when the budget no longer leaves time to verify a candidate and answers "
+        "with the best verified result so far (deadline_reached true; verdict.reason deadline when nothing "
+        "was found)")
     sort: Literal["score", "distance", "height"] = Field(
         "score", description="order of instances: score (verification score, highest first), distance "
         "(the part's centre nearest the camera first) or height (the part's centre highest above the "
@@ -143,7 +150,7 @@ class Options(_Request):
                 "refine": self.refine, "top_k": self.top_k, "overlay": self.overlay,
                 "min_score": self.min_score, "roi_uv": self.roi_uv(), "max_instances": self.max_instances,
                 "sort": self.sort, "plane": None if self.plane is None else self.plane.to_plane(),
-                "plane_tolerance_mm": self.plane_tolerance_mm}
+                "plane_tolerance_mm": self.plane_tolerance_mm, "deadline_ms": self.deadline_ms}
 
     @model_validator(mode="after")
     def _distances(self) -> Options:
@@ -231,7 +238,7 @@ class VerdictJSON(BaseModel):
                          "candidate when nothing is found")
     reason: str = Field(description="found | no_candidate | outside_distance_range | outside_image | "
                         "off_plane | low_support | interior_edges | region_mismatch | shading_mismatch | "
-                        "low_score")
+                        "low_score | deadline (the search stopped at options.deadline_ms before finding one)")
     evidence: dict[str, float] = Field(description="the evidence the score was computed from: edge_support, "
                                        "unexplained, colour_edge, polarity, region, region_low, in_image "
                                        "(fractions; see docs/API.md); with options.plane also plane_gap_mm, "
@@ -270,6 +277,9 @@ class EstimateResult(BaseModel):
         default_factory=list, description="the found instances (at most options.max_instances), distinct, "
         "sorted by options.sort; the top-level coarse, refined and verdict describe instances[0]; empty when "
         "nothing is found")
+    deadline_reached: bool = Field(
+        False, description="the search stopped early at the deadline (options.deadline_ms or the service's): "
+        "the answer is the best verified result found by then")
 
     @classmethod
     def from_output(cls, model_id: str, out: EstimateOutput) -> EstimateResult:
@@ -285,6 +295,7 @@ class EstimateResult(BaseModel):
             instances=[InstanceJSON(coarse=Coarse.from_candidate(i.coarse),
                                     refined=None if i.refined is None else Refined.from_refined(i.refined),
                                     verdict=_verdict_json(i.verdict)) for i in out.instances],
+            deadline_reached=bool(out.deadline_reached),
         )
 
 

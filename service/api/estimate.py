@@ -22,7 +22,7 @@ def run_estimate(model: Loaded, data: bytes, cam: Camera, opts: Options, setting
                  camera_name: str | None = None, grasps: list[Grasp] | None = None) -> EstimateResult:
     """Image bytes -> EstimateResult (blocking: call it from a worker thread)."""
     return estimate_result(model.record, model.bank, data, cam, opts, max_pixels=settings.max_image_pixels,
-                           camera_name=camera_name, grasps=grasps)
+                           camera_name=camera_name, grasps=grasps, default_deadline_ms=settings.deadline_ms)
 
 
 @router.post("/models/{model_id}/estimate", response_model=EstimateResult,
@@ -39,7 +39,7 @@ async def estimate(
         description="JSON: distance_mm or distance_range_mm [min, max], refine, top_k, overlay, min_score, "
                     "robot_pose (T_base_flange, eye-in-hand), roi, max_instances, sort (score | distance | "
                     'height), plane {"normal": [nx, ny, nz], "d_mm": d} (camera frame, normal towards the '
-                    "camera), plane_tolerance_mm (see docs/API.md)")] = None,
+                    "camera), plane_tolerance_mm, deadline_ms (see docs/API.md)")] = None,
 ) -> EstimateResult:
     """Estimate the pose ``T_cam_obj`` of the model in the image."""
     data = await read_upload(image, settings.max_image_bytes, "image file", "POSE_MAX_IMAGE_BYTES")

@@ -36,6 +36,7 @@ from service.vision.bank import (
     view_step_deg,
     views_within,
 )
+from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.chamfer import (
     DT_QUANT,
     DistanceTensor,
@@ -67,6 +68,12 @@ FINE_VIEW_STEPS = 1.5  # level B's fine block: bank views within this many grid 
 # The fine block contains the first block's best, so it finds at least as good a placement unless the
 # denser sampling raises that one's cost by more than this factor.
 FINE_BLOCK_SLACK = 1.25
+# With a deadline, level A's anchors are scanned in chunks of this many, checking the time between them
+# (a chunk of a non-symmetric part's anchors with the most edges took ~0.2 s on 2 cores: 1/8 of them).
+LEVEL_A_CHUNK_ANCHORS = 64
+# ... and level A leaves this many times the caller's reserve: one for level B and the polish of the
+# best peaks, one for verifying a candidate.
+LEVEL_A_RESERVE_FACTOR = 2.0
 
 
 @dataclass(frozen=True)
@@ -258,9 +265,13 @@ def level_a_templates(bank: TemplateBank, intr: Intrinsics, image_shape: tuple[i
 
 
 def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, image_shape, p: SearchParams,
-                 anchor_mask: np.ndarray | None = None):
+                 anchor_mask: np.ndarray | None = None, deadline: Deadline = NO_DEADLINE,
+                 reserve_ms: float = 0.0):
     """Level A's scan. ``anchor_mask``: (h, w) bool full-resolution, where the reference point may be
-    placed (a region of interest): anchors elsewhere are not scanned at all."""
+    placed (a region of interest): anchors elsewhere are not scanned at all. With a ``deadline`` the
+    anchors are scanned in chunks, those with the most edge pixels round them first, until it leaves
+    less than ``LEVEL_A_RESERVE_FACTOR`` x ``reserve_ms``; unscanned anchors cost inf (each anchor's
+    result does not depend on the others', so a scan that finishes is the unchunked one)."""
     C, hl, wl = dtt.dt.shape
     dt_q, tau_q = quantised(dtt, dtt.tau_px)
     au, av = np.meshgrid(np.arange(0, wl, p.anchor_stride), np.arange(0, hl, p.anchor_stride))
@@ -288,8 +299,21 @@ def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, 
     tile = (np.minimum((vf / h * nj_v).astype(np.int32), nj_v - 1) * nj_u
             + np.minimum((uf / w * nj_u).astype(np.int32), nj_u - 1)).astype(np.int32)
     off_u, off_v = scaled_offsets(tpl, scales)
-    cost, t, d = _scan(dt_q, tau_q, off_u, off_v, tpl.chan, au, av, tile,
-                       np.int64(p.accept_frac * tau_q), LEVEL_A_SENTINEL_POINTS, False)
+    accept = np.int64(p.accept_frac * tau_q)
+    if deadline.ms is None:
+        cost, t, d = _scan(dt_q, tau_q, off_u, off_v, tpl.chan, au, av, tile, accept, LEVEL_A_SENTINEL_POINTS,
+                           False)
+        return au, av, tile, cost / DT_QUANT, t, d
+    cost = np.full(len(au), np.inf)
+    t = np.full(len(au), -1, np.int32)
+    d = np.full(len(au), -1, np.int32)
+    deadline.new_loop()
+    order = np.argsort(-count[keep], kind="stable")
+    for chunk in np.array_split(order, max(1, math.ceil(len(order) / LEVEL_A_CHUNK_ANCHORS))):
+        if not deadline.allows_next(LEVEL_A_RESERVE_FACTOR * reserve_ms):
+            break
+        cost[chunk], t[chunk], d[chunk] = _scan(dt_q, tau_q, off_u, off_v, tpl.chan, au[chunk], av[chunk],
+                                                tile[chunk], accept, LEVEL_A_SENTINEL_POINTS, False)
     return au, av, tile, cost / DT_QUANT, t, d
 
 
@@ -548,17 +572,22 @@ def depth_scales(distance_range_mm: tuple[float, float], depth_step: float) -> t
 
 def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
                   image_shape: tuple[int, int], p: SearchParams, *, distance_mm: float | None,
-                  distance_range_mm: tuple[float, float], anchor_mask: np.ndarray | None = None
-                  ) -> list[Hypothesis]:
+                  distance_range_mm: tuple[float, float], anchor_mask: np.ndarray | None = None,
+                  deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0) -> list[Hypothesis]:
     """Ranked, polished, mutually distinct hypotheses (best first). ``dtt_b`` is the DT3 at
     ``fine_scale``; level A's grid is min-pooled from it. ``anchor_mask`` (full-resolution (h, w)
-    bool): level A places the reference point only there (``scan_level_a``)."""
+    bool): level A places the reference point only there (``scan_level_a``).
+
+    Anytime: each unit of work (a chunk of level-A anchors, a peak's local scan, a polish) starts only
+    while the ``deadline`` leaves more than ``reserve_ms`` (the caller's time to verify a result); what
+    was reached by then is returned, hypotheses left unpolished with their level-B costs."""
     K = intr.K
     dtt_a = pooled_distance_tensor(dtt_b, p.level_scale)
     z_ref, scales = (distance_mm, np.array([1.0])) if distance_mm is not None else \
         depth_scales(distance_range_mm, p.depth_step)
     tpl = _cached_level_a(bank, intr, image_shape, p, distance_mm, z_ref)
-    au, av, tile, cost, t, d = scan_level_a(dtt_a, tpl, scales, image_shape, p, anchor_mask)
+    au, av, tile, cost, t, d = scan_level_a(dtt_a, tpl, scales, image_shape, p, anchor_mask, deadline,
+                                            reserve_ms)
     radius = PEAK_RADIUS_EXTENT * tpl.extent_px * float(np.median(scales))
     peaks = pick_peaks(au, av, cost, p.n_peaks, max(radius, MIN_PEAK_RADIUS_PX))
     n_phi = len(tpl.phis_deg)
@@ -575,7 +604,10 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
     dt_q, tau_q = quantised(dtt_b, p.rank_tau_px * dtt_b.scale)
     scanned: list[Hypothesis] = []
     best_q = np.inf
+    deadline.new_loop()
     for h in starts:
+        if not deadline.allows_next(reserve_ms):
+            break
         # A peak whose neighbourhood cannot come near the best so far would never be reported first.
         accept = int(min(tau_q, p.peak_accept_ratio * best_q))
         hyp, q = local_scan(bank, h, dt_q, tau_q, dtt_b, K, p, distance_mm=distance_mm, accept_q=accept)
@@ -585,13 +617,21 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
     if not scanned:
         return []
     Rs, ts = poses_of(bank, scanned, K, distance_mm)
-    cost_b, _ = evaluate(bank, np.array([h.view for h in scanned]), Rs, ts, K, dtt_b, p.fine_points,
-                         p.score_px, p.rank_tau_px)
+    cost_b, score_b = evaluate(bank, np.array([h.view for h in scanned]), Rs, ts, K, dtt_b, p.fine_points,
+                               p.score_px, p.rank_tau_px)
     order = np.argsort(cost_b)[:p.n_polish]
     neighbours = view_neighbours(bank)
-    out = [polish(bank, scanned[i], dtt_b, K, p, distance_mm=distance_mm, neighbours=neighbours,
-                  step_phi_deg=p.local_phi_step_deg / 2, step_uv_px=1.0 / dtt_b.scale,
-                  step_z=p.depth_step / 4) for i in order]
+    out = []
+    deadline.new_loop()
+    for i in order:
+        if deadline.allows_next(reserve_ms):
+            out.append(polish(bank, scanned[i], dtt_b, K, p, distance_mm=distance_mm, neighbours=neighbours,
+                              step_phi_deg=p.local_phi_step_deg / 2, step_uv_px=1.0 / dtt_b.scale,
+                              step_z=p.depth_step / 4))
+        else:
+            h = scanned[i]
+            h.cost, h.score = float(cost_b[i]), float(score_b[i])
+            out.append(h)
     out.sort(key=lambda h: h.cost)
     return out
 

@@ -78,7 +78,12 @@ class _Window:
     """Arrays of one hypothesis's region of interest (gradients only where they are read)."""
     bgr: np.ndarray  # (h, w, 3) uint8
     blur: np.ndarray  # (h, w, 3) float32: bgr smoothed by a 1 px Gaussian (gradients are read off it)
-    quantised: np.ndarray  # (h, w) int64: colour bin index in [0, REGION_BINS ** 3)
+
+    def quantised_at(self, v: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Colour bin index in [0, REGION_BINS ** 3) of the pixels (v, u), int64: only where the
+        region test reads (the band), not over the whole window."""
+        q = (self.bgr[v, u].astype(np.int64) * REGION_BINS) // 256
+        return (q[:, 0] * REGION_BINS + q[:, 1]) * REGION_BINS + q[:, 2]
 
 
 def colour_frame(image: np.ndarray) -> ColourFrame:
@@ -98,9 +103,7 @@ def colour_frame(image: np.ndarray) -> ColourFrame:
 def _window(frame: ColourFrame, u0: int, v0: int, w: int, h: int) -> _Window:
     bgr = frame.bgr[v0:v0 + h, u0:u0 + w]
     blur = cv2.GaussianBlur(bgr, (0, 0), 1.0).astype(np.float32)
-    q = (bgr.astype(np.int64) * REGION_BINS) // 256
-    quantised = (q[..., 0] * REGION_BINS + q[..., 1]) * REGION_BINS + q[..., 2]
-    return _Window(bgr, blur, quantised)
+    return _Window(bgr, blur)
 
 
 def _gradient_at(win: _Window, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -210,7 +213,7 @@ def _region(win: _Window, mask: np.ndarray, band_px: int) -> tuple[float, float,
     bv, bu = np.nonzero(inner | outer)  # sectors only where the bands are: not over the whole window
     angle = np.arctan2(bv - vs.mean(), bu - us.mean()) + np.pi
     sector_of_band = np.minimum((angle * (REGION_SECTORS / (2 * np.pi))).astype(int), REGION_SECTORS - 1)
-    q_band = win.quantised[bv, bu]
+    q_band = win.quantised_at(bv, bu)
     in_band = inner[bv, bu]
     nb = REGION_BINS ** 3
     seps = []
@@ -234,8 +237,9 @@ def _shading(win: _Window, fid: np.ndarray, bank: TemplateBank, pose: Pose) -> t
     inner[:, 1::2] = False
     if inner.sum() < MIN_SHADING_PIXELS:
         return 0.0, 0.0
-    grey = cv2.cvtColor(win.bgr, cv2.COLOR_BGR2GRAY)[inner].astype(np.float64)
-    visible, index = np.unique(fid[inner], return_inverse=True)
+    vi, ui = np.nonzero(inner)
+    grey = cv2.cvtColor(win.bgr[vi, ui][None], cv2.COLOR_BGR2GRAY)[0].astype(np.float64)  # inner px only
+    visible, index = np.unique(fid[vi, ui], return_inverse=True)
     n = face_normals_cam(bank.vertices_mm, bank.faces[visible], pose.R, pose.t_mm)[index].astype(np.float64)
     A = np.hstack([np.ones((len(n), 1)), n, n * n, n[:, [0]] * n[:, [1]], n[:, [1]] * n[:, [2]],
                    n[:, [0]] * n[:, [2]]])

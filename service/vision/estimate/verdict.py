@@ -34,7 +34,9 @@ MIN_SCORE = 0.98
 
 # The reasons a verdict gives.
 REASONS = ("found", "no_candidate", "outside_distance_range", "outside_image", "off_plane", "low_support",
-           "interior_edges", "region_mismatch", "shading_mismatch", "low_score")
+           "interior_edges", "region_mismatch", "shading_mismatch", "low_score", "deadline")
+# "deadline": the search stopped early (``deadline_ms``) before a candidate was found; the pipeline
+# sets it (``decide`` judges one hypothesis and never returns it).
 # A rejected pose is said to fail on the evidence furthest below a true pose's typical value (medians
 # over the truth hypotheses of the tuning sets): the reason names the one a person should look at.
 TYPICAL_RIGHT = {"edge_support": 0.9, "unexplained": 0.1, "colour_edge": 0.95, "region_global": 0.85,

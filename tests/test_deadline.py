@@ -1,0 +1,172 @@
+"""The anytime search (issue 19): ``deadline_ms`` bounds an estimate and the answer says when it did.
+
+No wall-clock limits: a deadline that has passed before the search starts, a clock the test drives,
+and a deadline so far away it never matters give answers known without timing anything.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+import trimesh
+
+from service import pipeline
+from service.vision.deadline import Deadline
+from service.vision.estimate import coarse
+from service.vision.estimate.chamfer import distance_tensor
+from service.vision.estimate.edges import detect_segments, to_grey_u8
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose, Rx, Ry
+from service.vision.geometry.render import render_shaded
+
+with warnings.catch_warnings():  # starlette would like httpx2; the test extra installs httpx
+    warnings.filterwarnings("ignore", message="Using `httpx` with `starlette.testclient`")
+    from fastapi.testclient import TestClient
+
+INTR = Intrinsics(600.0, 600.0, 319.5, 239.5)
+SIZE = (640, 480)
+TRUTH = Pose(Rx(40.0) @ Ry(25.0), np.array([30.0, -20.0, 450.0]))
+PAST = 1e-6  # ms: gone before the edges are detected
+NEVER = 1e9  # ms: 11 days
+
+
+class TickingClock:
+    """Advances ``tick_s`` every time it is read."""
+
+    def __init__(self, tick_s: float):
+        self.now, self.tick_s = 0.0, tick_s
+
+    def __call__(self) -> float:
+        self.now += self.tick_s
+        return self.now
+
+
+@pytest.fixture(scope="module")
+def bank():
+    mesh = trimesh.creation.box((80.0, 40.0, 20.0))
+    return pipeline.build_templates(mesh, symmetry="none", grid={"view_step_deg": 20.0, "render_px": 128})
+
+
+@pytest.fixture(scope="module")
+def image(bank):
+    grey = render_shaded(bank.vertices_mm, bank.faces, TRUTH, INTR.K, SIZE, background=60)
+    return np.repeat(grey[..., None], 3, axis=2)
+
+
+def test_deadline_counts_down_on_its_clock():
+    clock = TickingClock(0.010)  # 10 ms per reading
+    d = Deadline(25.0, clock=clock)  # start = 0.010
+    assert d.left_ms() == pytest.approx(15.0)  # read at 0.020
+    assert d.allows(0.0) and not d.hit  # 0.030: 5 ms left
+    assert not d.allows(10.0) and d.hit  # 0.040: -5 ms left
+    unbounded = Deadline(None, clock=clock)
+    assert unbounded.left_ms() == float("inf") and unbounded.allows(1e12) and not unbounded.hit
+
+
+def test_allows_next_budgets_the_last_unit_again():
+    clock = TickingClock(0.010)
+    d = Deadline(100.0, clock=clock)  # start 0.010, deadline 0.110
+    assert d.allows_next(0.0)  # first unit: no duration known yet (read 0.020, left read 0.030: 80 ms)
+    # next call reads 0.040: the unit took 20 ms, 60 ms left at 0.050 >= 20 + 30 reserve
+    assert d.allows_next(30.0)
+    # reads 0.060 (unit 20 ms) and 0.070: 40 ms left < 20 + 30
+    assert not d.allows_next(30.0) and d.hit
+
+
+def test_a_passed_deadline_answers_at_once_and_says_why(bank, image):
+    out = pipeline.estimate(bank, image, INTR, distance_range_mm=(300.0, 700.0), deadline_ms=PAST)
+    assert out.found is False and out.deadline_reached is True
+    assert out.verdict.reason == "deadline"
+    assert out.candidates == [] and out.instances == []
+    assert out.timing_ms["coarse"] < out.timing_ms["edges"] + 1.0  # no search ran (ms, same clock)
+
+
+def test_a_deadline_that_never_comes_changes_nothing(bank, image):
+    free = pipeline.estimate(bank, image, INTR, distance_range_mm=(300.0, 700.0))
+    bounded = pipeline.estimate(bank, image, INTR, distance_range_mm=(300.0, 700.0), deadline_ms=NEVER)
+    assert free.found and bounded.found and not bounded.deadline_reached
+    assert bounded.verdict.reason == "found"
+    np.testing.assert_array_equal(bounded.refined.pose.R, free.refined.pose.R)
+    np.testing.assert_array_equal(bounded.refined.pose.t_mm, free.refined.pose.t_mm)
+    assert [c.cost for c in bounded.candidates] == [c.cost for c in free.candidates]
+
+
+def test_level_a_scans_the_anchors_with_most_edges_first(bank, image):
+    grey = to_grey_u8(image)
+    p = pipeline.SEARCH_PARAMS
+    dtt_a = coarse.pooled_distance_tensor(distance_tensor(detect_segments(grey), n_channels=p.n_channels,
+                                                          scale=p.fine_scale), p.level_scale)
+    z_ref, scales = coarse.depth_scales((300.0, 700.0), p.depth_step)
+    tpl = coarse.level_a_templates(bank, INTR, grey.shape, p, distance_mm=None, z_ref_mm=z_ref)
+    full = coarse.scan_level_a(dtt_a, tpl, scales, grey.shape, p)
+    # Chunked and run to the end: every anchor's result is the unchunked scan's.
+    whole = coarse.scan_level_a(dtt_a, tpl, scales, grey.shape, p, deadline=Deadline(NEVER))
+    for a, b in zip(full, whole, strict=True):
+        np.testing.assert_array_equal(a, b)
+    # A clock that ticks 10 ms per reading and a 45 ms budget: the first chunk is scanned, then the
+    # next would not fit (allows_next reads the clock twice per chunk).
+    part = coarse.scan_level_a(dtt_a, tpl, scales, grey.shape, p,
+                               deadline=Deadline(45.0, clock=TickingClock(0.010)))
+    np.testing.assert_array_equal(part[0], full[0])
+    # The chunks, recounted here: anchors ordered by the edge pixels round them, most first.
+    edges = (dtt_a.dt.min(axis=0) < coarse.EDGE_PIXEL_DT_PX).astype(np.int32)
+    r = max(int(tpl.extent_px * float(scales.min()) * coarse.EDGE_COUNT_EXTENT), 1)
+    counts = np.array([edges[max(v - r, 0):v + r + 1, max(u - r, 0):u + r + 1].sum()
+                       for u, v in zip(part[0], part[1], strict=True)])
+    chunks = np.array_split(np.argsort(-counts, kind="stable"),
+                            int(np.ceil(len(counts) / coarse.LEVEL_A_CHUNK_ANCHORS)))
+    assert len(chunks) > 1
+    first = chunks[0]
+    rest = np.concatenate(chunks[1:])
+    np.testing.assert_array_equal(part[3][first], full[3][first])
+    np.testing.assert_array_equal(part[4][first], full[4][first])
+    assert np.all(np.isinf(part[3][rest])) and np.all(part[4][rest] == -1)
+    assert np.isfinite(full[3][rest]).any()  # the cut-off lost something the full scan found
+
+
+def test_api_deadline_option(tmp_path, sprayer_bytes, frame):
+    from service.main import create_app
+    from service.settings import Settings
+    from tests.api_helpers import wait_built
+
+    image_bytes, camera = frame
+    settings = Settings(cache_dir=tmp_path, template_grid={"tilt_step_deg": 15, "view_step_deg": 45})
+    with TestClient(create_app(settings)) as c:
+        mid = c.post("/models", files={"file": ("sprayer.stl", sprayer_bytes)}).json()["id"]
+        assert wait_built(c, mid)["status"] == "ready"
+
+        def post(options):
+            return c.post(f"/models/{mid}/estimate", files={"image": ("image", image_bytes)},
+                          data={"camera": json.dumps(camera), "options": json.dumps(options)})
+
+        r = post({"distance_mm": 500, "deadline_ms": PAST})
+        assert r.status_code == 200, r.text
+        res = r.json()
+        assert res["found"] is False and res["deadline_reached"] is True
+        assert res["verdict"]["reason"] == "deadline" and res["candidates"] == []
+        r = post({"distance_mm": 500, "deadline_ms": 600_000})  # the largest accepted: 10 min
+        assert r.status_code == 200 and r.json()["found"] is True and r.json()["deadline_reached"] is False
+        for bad in (0, -5, 1e7):
+            r = post({"distance_mm": 500, "deadline_ms": bad})
+            assert r.status_code == 422, (bad, r.text)
+            assert "deadline_ms" in r.text
+
+
+def test_service_default_deadline_applies(tmp_path, sprayer_bytes, frame, monkeypatch):
+    from service.main import create_app
+    from service.settings import Settings
+    from tests.api_helpers import wait_built
+
+    image_bytes, camera = frame
+    monkeypatch.setenv("POSE_DEADLINE_MS", str(PAST))
+    settings = Settings(cache_dir=tmp_path, template_grid={"tilt_step_deg": 15, "view_step_deg": 45})
+    assert settings.deadline_ms == PAST
+    with TestClient(create_app(settings)) as c:
+        mid = c.post("/models", files={"file": ("sprayer.stl", sprayer_bytes)}).json()["id"]
+        assert wait_built(c, mid)["status"] == "ready"
+        r = c.post(f"/models/{mid}/estimate", files={"image": ("image", image_bytes)},
+                   data={"camera": json.dumps(camera), "options": json.dumps({"distance_mm": 500})})
+        assert r.status_code == 200 and r.json()["verdict"]["reason"] == "deadline"
