@@ -112,9 +112,7 @@ def estimate_result(record: dict[str, Any], bank: TemplateBank, data: bytes, cam
     The intrinsics and distances are held to the plausibility bounds (``service.bounds``) for the
     decoded image's size before the search. With a ``CellCamera`` (image size, extrinsics) the image
     size is checked too and the result gains the robot-frame poses and the placed ``grasps``.
-    ``default_deadline_ms`` (the service's setting; None or 0: none) applies when ``opts`` give none and
-    no plane (the plane search is not anytime yet: under the default 450 ms it would leave no time to
-    verify)."""
+    ``default_deadline_ms`` (the service's setting; None or 0: none) applies when ``opts`` give none."""
     cell = isinstance(cam, CellCamera)
     if cell:
         size = image_size(data)
@@ -127,7 +125,7 @@ def estimate_result(record: dict[str, Any], bank: TemplateBank, data: bytes, cam
         check_plausible(cam, opts, size)
 
     kwargs = opts.estimate_kwargs()
-    if kwargs["deadline_ms"] is None and opts.plane is None:
+    if kwargs["deadline_ms"] is None:
         kwargs["deadline_ms"] = default_deadline_ms or None
     out = estimate_image(bank, data, cam.to_intrinsics(), max_pixels=max_pixels, check=check, **kwargs)
     result = EstimateResult.from_output(record["id"], out)

@@ -165,7 +165,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     ``plane``: the supporting plane (camera frame): the search runs over the part's stable resting
     poses x spin about the plane's normal x position on the plane (``estimate/plane.py``) instead of
     all of 6D; ``distance_mm`` is then not used. A part without stable poses is searched in 6D. The
-    plane search does not watch the deadline yet (it runs whole when it starts)."""
+    plane search is anytime too (``plane.plane_search``)."""
     rest = resting_rotations(bank) if plane is not None else None
     p = params or SEARCH_PARAMS
     threads.use_budget()
@@ -194,8 +194,8 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     if rest is not None and len(rest):
         # Level B's scans per peak cost little on the plane: every peak is polished.
         ph = plane_search(bank, rest, dtt_b, intr, (h, w), plane, replace(p, n_polish=p.n_peaks),
-                          distance_range_mm=rng, anchor_mask=anchor_mask) \
-            if deadline.allows(reserve_ms) else []
+                          distance_range_mm=rng, anchor_mask=anchor_mask, deadline=deadline,
+                          reserve_ms=reserve_ms) if deadline.allows(reserve_ms) else []
         cands = [_candidate(bank, Pose(x.R, x.t), x.cost, x.score) for x in ph]
     else:
         hyps = coarse_search(bank, dtt_b, intr, (h, w), p, distance_mm=distance_mm, distance_range_mm=rng,

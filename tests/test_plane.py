@@ -163,3 +163,30 @@ def test_copies_resting_on_the_plane_come_back_as_that_many_instances(bank, n):
     assert sorted(matched) == list(range(n))
     heights = [centre_height_mm(bank, i.refined.pose, PLANE) for i in out.instances]
     assert heights == sorted(heights, reverse=True)
+
+
+def test_coverage_order_looks_at_every_family_at_the_coarsest_spins_first():
+    from service.vision.estimate.plane import coverage_order
+
+    family = np.repeat([0, 1, 2], 36)  # 3 families x 36 spins of 10 deg, spins in order within each
+    spin_deg = np.tile(np.arange(36) * 10.0, 3)
+    order = coverage_order(family, 3)
+    assert sorted(order.tolist()) == list(range(len(family)))  # a permutation
+    first = order[:6]  # two spins of each family: 0 and 180 deg
+    assert sorted(family[first].tolist()) == [0, 0, 1, 1, 2, 2]
+    assert set(spin_deg[first].tolist()) == {0.0, 180.0}
+    first = order[:12]  # four of each: every 90 deg
+    assert set(spin_deg[first].tolist()) == {0.0, 90.0, 180.0, 270.0}
+    assert np.bincount(family[first]).tolist() == [4, 4, 4]
+
+
+def test_the_plane_search_is_anytime(bank):
+    truth = [resting(bank, 0, 25.0, 10.0, -20.0)]
+    img = scene(bank, truth)
+    free = pipeline.estimate(bank, img, INTR, plane=PLANE)
+    bounded = pipeline.estimate(bank, img, INTR, plane=PLANE, deadline_ms=1e9)  # never comes
+    assert free.found and bounded.found and not bounded.deadline_reached
+    np.testing.assert_array_equal(bounded.refined.pose.t_mm, free.refined.pose.t_mm)
+    gone = pipeline.estimate(bank, img, INTR, plane=PLANE, deadline_ms=1e-6)  # passed before the search
+    assert not gone.found and gone.deadline_reached and gone.verdict.reason == "deadline"
+    assert gone.candidates == []

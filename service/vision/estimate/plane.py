@@ -31,8 +31,9 @@ import numba as nb
 import numpy as np
 
 from service.vision.bank import TemplateBank, border_triplets, spread_order, view_dirs_obj
+from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.chamfer import DT_QUANT, DistanceTensor, pooled_distance_tensor, quantised
-from service.vision.estimate.coarse import SearchParams, evaluate, pick_peaks
+from service.vision.estimate.coarse import LEVEL_A_RESERVE_FACTOR, SearchParams, evaluate, pick_peaks
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, R_align_axis_to_y, Rz
 from service.vision.memo import Memo
@@ -286,12 +287,17 @@ def _poses(bank, R_rest_obj, plane, intr, s, psi, uv):
 def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTensor, intr: Intrinsics,
                  image_shape: tuple[int, int], plane: Plane, p: SearchParams, *,
                  distance_range_mm: tuple[float, float] | None = None,
-                 anchor_mask: np.ndarray | None = None) -> list[PlaneHypothesis]:
+                 anchor_mask: np.ndarray | None = None, deadline: Deadline = NO_DEADLINE,
+                 reserve_ms: float = 0.0) -> list[PlaneHypothesis]:
     """Ranked, polished hypotheses resting on ``plane`` (best first, at most ``p.n_polish``).
 
     ``dtt_b``: DT3 at ``p.fine_scale``; level A's is min-pooled from it. ``anchor_mask``
     (full-resolution (h, w) bool): only anchors there (a region of interest). ``distance_range_mm``:
-    anchors whose reference point would lie outside this depth range are not searched."""
+    anchors whose reference point would lie outside this depth range are not searched.
+
+    Anytime, as ``coarse.coarse_search``: level A goes rotation by rotation in ``coverage_order``
+    (every family at coarse spins first), level B peak by peak, the polish hypothesis by hypothesis,
+    each only while the ``deadline`` leaves the unit plus ``reserve_ms`` (level A: twice that)."""
     h_img, w_img = image_shape
     if len(R_rest_obj) == 0:
         return []
@@ -310,7 +316,10 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
     if A == 0:
         return []
     cost = np.full((A, M), np.inf)
-    for m in range(M):
+    deadline.new_loop()
+    for m in coverage_order(hyp.s, len(R_rest_obj)):
+        if not deadline.allows_next(LEVEL_A_RESERVE_FACTOR * reserve_ms):
+            break
         t, ok = placements(np.broadcast_to(hyp.R[m], (A, 3, 3)), np.full(A, hyp.h_mm[m]), anchors, bank, intr,
                            plane)
         if distance_range_mm is not None:
@@ -339,7 +348,10 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
     dpsi = np.arange(-p.inplane_step_deg, p.inplane_step_deg + 1e-9, p.local_phi_step_deg)
     dpsi = dpsi[np.argsort(np.abs(dpsi), kind="stable")]
     scanned: list[PlaneHypothesis] = []
+    deadline.new_loop()
     for a in peaks:
+        if not deadline.allows_next(reserve_ms):
+            break
         s_list, psi_list = [], []
         for s in range(len(R_rest_obj)):
             ms = np.flatnonzero(hyp.s == s)
@@ -365,9 +377,40 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
     if not scanned:
         return []
     scanned.sort(key=lambda x: x.cost)
-    out = [polish(bank, R_rest_obj, h, dtt_b, intr, plane, p) for h in scanned[:p.n_polish]]
+    out = []
+    deadline.new_loop()
+    for h in scanned[:p.n_polish]:
+        go = deadline.allows_next(reserve_ms)
+        out.append(polish(bank, R_rest_obj, h, dtt_b, intr, plane, p) if go else h)
     out.sort(key=lambda x: x.cost)
     return out
+
+
+def coverage_order(family: np.ndarray, n_families: int) -> np.ndarray:
+    """Indices of level A's rotations (``family`` (M,) per rotation, its spins evenly spaced and in
+    order within each) so that any prefix covers every family, at the coarsest spins first: within a
+    family spins come farthest from those already taken first (0, 1/2, 1/4, 3/4 ... of the turn),
+    and the families take turns."""
+    rank = np.empty(len(family), float)
+    for s in range(n_families):
+        ms = np.flatnonzero(family == s)
+        rank[ms[_farthest_first(len(ms))]] = np.arange(len(ms)) / max(len(ms), 1)
+    return np.lexsort((family, rank))
+
+
+def _farthest_first(n: int) -> np.ndarray:
+    """0..n-1 round a circle of n evenly spaced spins, each next the one farthest from those taken (ties:
+    the lowest)."""
+    taken = [0]
+    gap = np.minimum(np.arange(n), n - np.arange(n)).astype(float)  # circular distance to spin 0
+    gap[0] = -1.0
+    for _ in range(n - 1):
+        k = int(np.argmax(gap))
+        taken.append(k)
+        d = np.abs(np.arange(n) - k)
+        gap = np.minimum(gap, np.minimum(d, n - d))
+        gap[taken] = -1.0
+    return np.array(taken, int)
 
 
 def polish(bank: TemplateBank, R_rest_obj: np.ndarray, h: PlaneHypothesis, dtt: DistanceTensor,
