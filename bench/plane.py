@@ -173,6 +173,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--parts", default="2-8", help="copies per scene, lo-hi")
     ap.add_argument("--no-baseline", action="store_true", help="skip the searches without a plane")
+    ap.add_argument("--min-score", type=float, default=None, help="the verdict's operating point (default: "
+                    "the pipeline's)")
     args = ap.parse_args()
     lo, hi = (int(x) for x in args.parts.split("-"))
     bank = pipeline.build_templates(part(), symmetry="none", grid={"view_step_deg": 15.0, "render_px": 160})
@@ -187,7 +189,7 @@ def main() -> None:
             n = int(rng.integers(lo, hi + 1))
             img, truth, visible, plane = scene(rng, bank, n, textured)
             for mode in modes:
-                kw = {"max_instances": n}
+                kw = {"max_instances": n, "min_score": args.min_score}
                 if mode == "no plane":
                     kw["distance_range_mm"] = RANGE
                 else:

@@ -116,6 +116,7 @@ class _Mean:
 # What checking a candidate (refine + evidence + verdict) takes in this process: the anytime search
 # keeps this much of its deadline for it. Starts at a paper render's (1280 x 960) on 2 cores.
 _CHECK_MS = _Mean(35.0)
+EVIDENCE_MS = 10.0  # judging a refined pose again (its evidence only) on a 1280 x 960 frame
 # The search keeps a little more than one check for the first candidate's: its own last unit of work
 # (a polish) overruns by a part of the mean it was judged against.
 SEARCH_RESERVE_CHECKS = 1.25
@@ -314,19 +315,34 @@ def check_candidate(bank: TemplateBank, cand: PoseCandidate, grey: np.ndarray, f
                     intr: Intrinsics, *, distance_mm: float | None,
                     distance_range_mm: tuple[float, float] | None, min_score: float | None,
                     n_channels: int, plane: Plane | None = None,
-                    plane_tolerance_mm: float = PLANE_TOLERANCE_MM) -> Checked:
+                    plane_tolerance_mm: float = PLANE_TOLERANCE_MM,
+                    others_depth_mm: np.ndarray | None = None) -> Checked:
     """One candidate refined, its evidence measured at the refined pose, and the verdict on it (with a
-    plane, also whether the refined pose rests on it)."""
+    plane, also whether the refined pose rests on it; ``others_depth_mm``: see ``judge``)."""
     t0 = time.perf_counter()
     kept, verified, unexplained = _refine(bank, cand, grey, intr, distance_mm=distance_mm,
                                           n_channels=n_channels)
-    ev = evidence(bank, kept.pose, intr, frame).as_dict()
-    ev |= {"edge_support": verified, "unexplained": unexplained}
-    gap = rest_gap_mm(bank, kept.pose, plane) if plane is not None else None
-    v = decide(ev, z_mm=float(kept.pose.t_mm[2]), distance_range_mm=distance_range_mm,
-               min_score=min_score, plane_gap_mm=gap, plane_tolerance_mm=plane_tolerance_mm)
+    c = judge(bank, Checked(cand, kept, decide(None)), frame, intr, edge_support=verified,
+              unexplained=unexplained, distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
+              plane_tolerance_mm=plane_tolerance_mm, others_depth_mm=others_depth_mm)
     _CHECK_MS.add(_ms(t0))
-    return Checked(cand, kept, v)
+    return c
+
+
+def judge(bank: TemplateBank, c: Checked, frame: ColourFrame, intr: Intrinsics, *, edge_support: float,
+          unexplained: float, distance_range_mm: tuple[float, float] | None, min_score: float | None,
+          plane: Plane | None = None, plane_tolerance_mm: float = PLANE_TOLERANCE_MM,
+          others_depth_mm: np.ndarray | None = None) -> Checked:
+    """``c`` with the verdict on its refined pose: the evidence measured there (``evidence``; the
+    refinement's ``edge_support`` and ``unexplained`` edges with it), the distance range and the
+    plane."""
+    pose = c.refined.pose
+    ev = evidence(bank, pose, intr, frame, others_depth_mm).as_dict()
+    ev |= {"edge_support": edge_support, "unexplained": unexplained}
+    gap = rest_gap_mm(bank, pose, plane) if plane is not None else None
+    v = decide(ev, z_mm=float(pose.t_mm[2]), distance_range_mm=distance_range_mm, min_score=min_score,
+               plane_gap_mm=gap, plane_tolerance_mm=plane_tolerance_mm)
+    return Checked(c.candidate, c.refined, v)
 
 
 def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.ndarray, frame: ColourFrame,
@@ -360,10 +376,29 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
     found or the candidates run out -> (found, in the order found; rejected, best verification first).
     A candidate whose silhouette overlaps a found instance's by more than ``INSTANCE_IOU`` (IoU) is the
     same instance: it is skipped before refinement, and a refined one is dropped. No check starts that
-    the ``deadline`` leaves no time for."""
+    the ``deadline`` leaves no time for.
+
+    Found instances explain their pixels (``judge``'s ``others_depth_mm``): candidates checked after
+    one is found are judged with it, and a rejected candidate is judged again (its evidence only: the
+    refinement does not change) once an instance is found after it: a copy touching another looked
+    like a part on a background of its own colour until that one was found."""
     found: list[Checked] = []
     rejected: list[Checked] = []
     size = (grey.shape[1], grey.shape[0])
+    others = np.full((grey.shape[0], grey.shape[1]), np.inf, np.float32)
+    jkw = dict(distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
+               plane_tolerance_mm=plane_tolerance_mm)
+
+    def distinct(c: Checked) -> bool:
+        return all(silhouette_iou(bank, c.refined.pose, f.refined.pose, intr, size) <= INSTANCE_IOU
+                   for f in found)
+
+    def add(c: Checked) -> None:
+        found.append(c)
+        depth, _, (u0, v0) = rasterise_roi(bank.vertices_mm, bank.faces, c.refined.pose, intr, size)
+        win = others[v0:v0 + depth.shape[0], u0:u0 + depth.shape[1]]
+        np.minimum(win, depth, out=win)
+
     for cand in cands:
         if len(found) >= max_instances:
             break
@@ -371,16 +406,46 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
             continue
         if not deadline.allows(_CHECK_MS.value):
             break
-        c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm,
-                            distance_range_mm=distance_range_mm, min_score=min_score, n_channels=n_channels,
-                            plane=plane, plane_tolerance_mm=plane_tolerance_mm)
+        c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm, n_channels=n_channels,
+                            others_depth_mm=others if found else None, **jkw)
         if not c.verdict.found:
             rejected.append(c)
-        elif all(silhouette_iou(bank, c.refined.pose, f.refined.pose, intr, size) <= INSTANCE_IOU
-                 for f in found):
-            found.append(c)
+            continue
+        if distinct(c):
+            add(c)
+            _rejudge_rejected(bank, rejected, frame, intr, others, jkw, max_instances, found, distinct, add,
+                              deadline)
     rejected.sort(key=lambda c: c.verdict.score, reverse=True)
     return found, rejected
+
+
+REJUDGE_REASONS = ("region_mismatch", "shading_mismatch", "low_score")  # what a touching copy can cause
+
+
+def _rejudged(bank, c: Checked, frame, intr, others, jkw) -> Checked:
+    """``c`` judged again among the found instances (``others``), if its rejection could be theirs."""
+    if c.verdict.reason not in REJUDGE_REASONS:
+        return c
+    return judge(bank, c, frame, intr, edge_support=c.verdict.evidence["edge_support"],
+                 unexplained=c.verdict.evidence["unexplained"], others_depth_mm=others, **jkw)
+
+
+def _rejudge_rejected(bank, rejected, frame, intr, others, jkw, max_instances, found, distinct, add,
+                      deadline) -> None:
+    """Judge the rejected candidates again after an instance was found, until none changes."""
+    changed = True
+    while changed and len(found) < max_instances:
+        changed = False
+        for i, c in enumerate(rejected):
+            if not deadline.allows(EVIDENCE_MS):
+                return
+            again = _rejudged(bank, c, frame, intr, others, jkw)
+            rejected[i] = again
+            if again.verdict.found and distinct(again):
+                rejected.pop(i)
+                add(again)
+                changed = True
+                break
 
 
 SORTS = ("score", "distance", "height")

@@ -61,6 +61,9 @@ class Evidence:
 NO_EVIDENCE = Evidence(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 SHADING_ERODE_PX = 2  # the outline's mixed pixels and the pose's last pixel of error are not "inside"
 MIN_SHADING_PIXELS = 50
+# Another found part hides a pixel of this one where its surface is nearer by more than this (mm):
+# rasterised depths of touching parts differ by less along their contact.
+OCCLUSION_MARGIN_MM = 1.0
 
 
 @dataclass(frozen=True)
@@ -119,12 +122,13 @@ def _gradient_at(win: _Window, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def face_ids_roi(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, margin_px: int
-                 ) -> tuple[np.ndarray, tuple[int, int]]:
+                 ) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
     """Visible face index (h_r, w_r) int32 (-1 off the model) at ``pose`` in the image ROI of its
-    projection widened by ``margin_px``, and the ROI's top-left pixel (u0, v0)."""
-    _, fid, origin = rasterise_roi(bank.vertices_mm, bank.faces, pose, intr, image_size, margin_px=margin_px,
-                                   inverse_depth=True)
-    return fid, origin
+    projection widened by ``margin_px``, 1 / depth there (1/mm, 0 off the model), and the ROI's
+    top-left pixel (u0, v0)."""
+    invz, fid, origin = rasterise_roi(bank.vertices_mm, bank.faces, pose, intr, image_size,
+                                      margin_px=margin_px, inverse_depth=True)
+    return fid, invz, origin
 
 
 def _outline(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -203,12 +207,18 @@ def _tv(a: np.ndarray, b: np.ndarray, nb: int) -> float:
     return float(0.5 * np.abs(ha - hb).sum())
 
 
-def _region(win: _Window, mask: np.ndarray, band_px: int) -> tuple[float, float, float]:
+def _region(win: _Window, mask: np.ndarray, band_px: int, hidden: np.ndarray | None = None,
+            explained: np.ndarray | None = None) -> tuple[float, float, float]:
+    """``hidden``: pixels of the silhouette another, nearer part covers; ``explained``: pixels outside
+    it another part covers. Neither is the part's inside nor its background."""
     m8 = mask.astype(np.uint8)
     d_in = cv2.distanceTransform(m8, cv2.DIST_L2, 3)
     d_out = cv2.distanceTransform(1 - m8, cv2.DIST_L2, 3)
     inner = mask & (d_in <= band_px)
     outer = ~mask & (d_out <= band_px)
+    if hidden is not None:
+        inner &= ~hidden
+        outer &= ~explained
     vs, us = np.nonzero(mask)
     bv, bu = np.nonzero(inner | outer)  # sectors only where the bands are: not over the whole window
     angle = np.arctan2(bv - vs.mean(), bu - us.mean()) + np.pi
@@ -250,12 +260,27 @@ def _shading(win: _Window, fid: np.ndarray, bank: TemplateBank, pose: Pose) -> t
     return (float(1.0 - res.var() / var) if var > 0 else 0.0), float(np.sqrt(var))
 
 
-def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFrame) -> Evidence:
+def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFrame,
+             others_depth_mm: np.ndarray | None = None) -> Evidence:
     """The colour, polarity and region evidence for ``pose`` (T_cam_obj) in ``frame`` (ideal camera
-    ``intr``, i.e. undistorted image coordinates)."""
+    ``intr``, i.e. undistorted image coordinates).
+
+    ``others_depth_mm``: (H, W) float32 depth of other parts already found in the frame (inf where
+    there are none). Their pixels are explained: where one is nearer than this pose's surface it hides
+    the part (left out of the inside and the shading fit), and next to the outline it is not the
+    background (left out of the outside). Touching copies otherwise look like a part on a background
+    of its own colour."""
     H, W = frame.shape
-    fid, (u0, v0) = face_ids_roi(bank, pose, intr, (W, H), margin_px=BAND_MAX_PX + 2)
+    fid, invz, (u0, v0) = face_ids_roi(bank, pose, intr, (W, H), margin_px=BAND_MAX_PX + 2)
     mask = fid >= 0
+    hidden = explained = None
+    if others_depth_mm is not None:
+        others = others_depth_mm[v0:v0 + mask.shape[0], u0:u0 + mask.shape[1]]
+        with np.errstate(divide="ignore"):
+            own_depth = np.where(mask, 1.0 / np.maximum(invz, 1e-12), np.inf)
+        hidden = mask & (others < own_depth - OCCLUSION_MARGIN_MM)
+        explained = ~mask & np.isfinite(others)
+        fid = np.where(hidden, -1, fid)
     n_px = int(mask.sum())
     if n_px == 0:
         return NO_EVIDENCE
@@ -267,7 +292,7 @@ def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFram
     u, v = p[:, 0] + u0, p[:, 1] + v0
     in_image = (u >= 1) & (u < W - 1) & (v >= 1) & (v < H - 1)
     colour_edge, polarity, coherence = _edge_and_polarity(win, p, n, in_image)
-    region, region_low, region_global = _region(win, mask, band)
+    region, region_low, region_global = _region(win, mask, band, hidden, explained)
     shading_r2, shading_std = _shading(win, fid, bank, pose)
     return Evidence(colour_edge, polarity, region, region_low, region_global, coherence, shading_r2,
                     shading_std, float(in_image.mean()))
