@@ -395,9 +395,7 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
 
     def add(c: Checked) -> None:
         found.append(c)
-        depth, _, (u0, v0) = rasterise_roi(bank.vertices_mm, bank.faces, c.refined.pose, intr, size)
-        win = others[v0:v0 + depth.shape[0], u0:u0 + depth.shape[1]]
-        np.minimum(win, depth, out=win)
+        _paint_depth(others, bank, c.refined.pose, intr)
 
     for cand in cands:
         if len(found) >= max_instances:
@@ -415,8 +413,49 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
             add(c)
             _rejudge_rejected(bank, rejected, frame, intr, others, jkw, max_instances, found, distinct, add,
                               deadline)
+    _mutual(bank, rejected, frame, intr, others, jkw, max_instances, found, distinct, add, deadline)
     rejected.sort(key=lambda c: c.verdict.score, reverse=True)
     return found, rejected
+
+
+def _paint_depth(depth_mm: np.ndarray, bank: TemplateBank, pose: Pose, intr: Intrinsics) -> None:
+    """Draw the part at ``pose`` into the (H, W) depth map ``depth_mm`` (nearest surface wins)."""
+    h, w = depth_mm.shape
+    depth, _, (u0, v0) = rasterise_roi(bank.vertices_mm, bank.faces, pose, intr, (w, h))
+    win = depth_mm[v0:v0 + depth.shape[0], u0:u0 + depth.shape[1]]
+    np.minimum(win, depth, out=win)
+
+
+# Two copies that hide or touch each other can each fail alone for the other's pixels, and neither is
+# found first to explain them. Candidates nearly found alone (at least this score, rejected for a
+# reason another part's pixels can cause) are judged with each other explaining their pixels.
+MUTUAL_MIN_SCORE = 0.85
+
+
+def _mutual(bank, rejected, frame, intr, others, jkw, max_instances, found, distinct, add, deadline) -> None:
+    """Judge each near miss (``MUTUAL_MIN_SCORE``) with the found instances and the other near misses
+    explaining their pixels, best first; one found joins the instances and the rest are judged again."""
+    changed = True
+    while changed and len(found) < max_instances:
+        changed = False
+        near = [i for i, c in enumerate(rejected) if c.verdict.reason in REJUDGE_REASONS
+                and c.verdict.score >= MUTUAL_MIN_SCORE and distinct(c)]
+        near.sort(key=lambda i: -rejected[i].verdict.score)
+        for i in near:
+            if not deadline.allows(EVIDENCE_MS):
+                return
+            scene_depth = others.copy()
+            for j in near:
+                if j != i:
+                    _paint_depth(scene_depth, bank, rejected[j].refined.pose, intr)
+            again = _rejudged(bank, rejected[i], frame, intr, scene_depth, jkw)
+            if again.verdict.found:
+                rejected.pop(i)
+                add(again)
+                _rejudge_rejected(bank, rejected, frame, intr, others, jkw, max_instances, found, distinct,
+                                  add, deadline)
+                changed = True
+                break
 
 
 REJUDGE_REASONS = ("region_mismatch", "shading_mismatch", "low_score")  # what a touching copy can cause
