@@ -194,7 +194,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     t1 = time.perf_counter()
     if rest is not None and len(rest):
         # Level B's scans per peak cost little on the plane: every peak is polished.
-        ph = plane_search(bank, rest, dtt_b, intr, (h, w), plane, replace(p, n_polish=p.n_peaks),
+        ph = plane_search(bank, rest, dtt_b, intr, (h, w), plane, p,
                           distance_range_mm=rng, anchor_mask=anchor_mask, deadline=deadline,
                           reserve_ms=reserve_ms) if deadline.allows(reserve_ms) else []
         cands = [_candidate(bank, Pose(x.R, x.t), x.cost, x.score) for x in ph]
