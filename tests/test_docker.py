@@ -444,7 +444,9 @@ def test_image_replayed_serves_health_upload_estimate_and_metrics(tmp_path, spra
 
             png, camera = frame
             r = client.post(f"/models/{mid}/estimate", files={"image": ("0001.png", png)},
-                            data={"camera": json.dumps(camera), "options": json.dumps({"distance_mm": 500})},
+                            # the smoke test judges the image, not this machine's speed: no default deadline
+                            data={"camera": json.dumps(camera),
+                                  "options": json.dumps({"distance_mm": 500, "deadline_ms": 600_000})},
                             headers={"X-Request-ID": "smoke-estimate-1"})
             assert r.status_code == 200, r.text
             assert r.json()["found"] is True and r.headers["X-Request-ID"] == "smoke-estimate-1"
