@@ -19,12 +19,10 @@ from service.vision import threads
 from service.vision.bank import TemplateBank
 from service.vision.estimate.chamfer import distance_tensor
 from service.vision.estimate.coarse import SearchParams, coarse_search, poses_of
-from service.vision.estimate.colour_edges import canny_tensor
 from service.vision.estimate.edges import detect_segments, to_grey_u8, undistort_segments
 from service.vision.estimate.evidence import ColourFrame, colour_frame, evidence
 from service.vision.estimate.roi import crop_segments, roi_mask
 from service.vision.estimate.roi import inside as roi_inside
-from service.vision.estimate.small_parts import is_small
 from service.vision.estimate.verdict import Verdict, decide
 from service.vision.geometry.camera import Intrinsics, project, undistort_image
 from service.vision.geometry.frames import Pose, Rx, canonical_spin
@@ -144,15 +142,10 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
         # Straighten the edges once; everything after works in the ideal pinhole camera intr.K.
         seg = undistort_segments(seg, intr)
     rng = distance_range_mm or DEFAULT_DISTANCE_RANGE_MM
-    small = is_small(bank, intr, (h, w), distance_mm, rng)  # searched on colour edges (small_parts.py)
-    edge_box = None
     anchor_mask = None
     if roi_uv is not None:
         z_near = max((distance_mm if distance_mm is not None else rng[0]) - 0.5 * bank.diameter_mm, 1.0)
-        margin = 0.5 * bank.diameter_mm * max(intr.fx, intr.fy) / z_near
-        seg = crop_segments(seg, roi_uv, margin)
-        corners = np.asarray(roi_uv, float)
-        edge_box = (corners.min(axis=0) - margin, corners.max(axis=0) + margin)
+        seg = crop_segments(seg, roi_uv, 0.5 * bank.diameter_mm * max(intr.fx, intr.fy) / z_near)
         # Anchors are 16 px apart: one whose cell touches the ROI is scanned (level B searches round it).
         reach = int(math.ceil(p.anchor_stride / p.level_scale / 2))
         anchor_mask = cv2.dilate(roi_mask(roi_uv, (h, w)).astype(np.uint8),
@@ -160,11 +153,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
         # Level B's scans cost per peak: keep the peaks as dense as over the whole image.
         p = replace(p, n_peaks=max(ROI_MIN_PEAKS, math.ceil(p.n_peaks * float(anchor_mask.mean()))))
     # Level A's coarse grid is pooled from level B's (coarse_search): one set of distance transforms.
-    if small:
-        ideal = undistort_image(image, intr)  # pixel edges: straightened as the segments are
-        dtt_b = canny_tensor(ideal, n_channels=p.n_channels, scale=p.fine_scale, box_uv=edge_box)
-    else:
-        dtt_b = distance_tensor(seg, n_channels=p.n_channels, scale=p.fine_scale)
+    dtt_b = distance_tensor(seg, n_channels=p.n_channels, scale=p.fine_scale)
     t_edges = _ms(t0)
     t1 = time.perf_counter()
     hyps = coarse_search(bank, dtt_b, intr, (h, w), p, distance_mm=distance_mm, distance_range_mm=rng,
@@ -198,8 +187,8 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     t_start = time.perf_counter()
     grey = to_grey_u8(image)
     h, w = grey.shape
-    cands, _, timing = propose(bank, image, intr, distance_mm=distance_mm,
-                               distance_range_mm=distance_range_mm, params=p, roi_uv=roi_uv)
+    cands, _, timing = propose(bank, grey, intr, distance_mm=distance_mm, distance_range_mm=distance_range_mm,
+                               params=p, roi_uv=roi_uv)
     t0 = time.perf_counter()
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
     # The evidence reads pixels where the ideal camera projects the model: undistort the frame once.

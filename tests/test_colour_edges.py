@@ -1,4 +1,4 @@
-"""Colour edges and the small-part proposal settings: known answers."""
+"""Colour edges (Canny on the colour image, for the proposal engine): known answers."""
 
 from __future__ import annotations
 
@@ -7,8 +7,6 @@ import pytest
 
 from service.vision.estimate.colour_edges import canny_tensor
 from service.vision.estimate.edges import detect_segments, to_grey_u8
-from service.vision.estimate.small_parts import far_size_px, is_small
-from service.vision.geometry.camera import Intrinsics
 
 # BGR colours of equal grey level (0.114 B + 0.587 G + 0.299 R = 100): the rectangle has no grey edge.
 FLOOR_BGR, PART_BGR = (100, 100, 100), (95, 50, 200)
@@ -53,17 +51,3 @@ def test_canny_tensor_box_keeps_only_the_edges_inside():
                        box_uv=(np.array([0.0, 0.0]), np.array([100.0, 199.0])))
     assert min(dtt.dt[8, 100, 59], dtt.dt[8, 100, 60]) <= 1.0  # the left side is in the box
     assert dtt.dt[8, 100, 139] > 10.0  # the right side (u = 139.5) is not
-
-
-class _Bank:  # the only field far_size_px reads
-    diameter_mm = 100.0
-
-
-def test_far_size_and_small_rule():
-    intr = Intrinsics(500.0, 500.0, 320.0, 240.0)
-    # A 100 mm part at 1000 mm through a 500 px focal length: 50 px; the distance, when given, wins.
-    assert far_size_px(_Bank(), intr, None, (300.0, 1000.0)) == pytest.approx(50.0)
-    assert far_size_px(_Bank(), intr, 250.0, (300.0, 1000.0)) == pytest.approx(200.0)
-    assert is_small(_Bank(), intr, (480, 640), None, (300.0, 1000.0))
-    assert not is_small(_Bank(), intr, (480, 640), 250.0, (300.0, 1000.0))
-    assert not is_small(_Bank(), intr, (960, 1280), None, (300.0, 1000.0))  # a large frame: the usual grid
