@@ -271,57 +271,44 @@ def _quantise_hwc(dt, factor, tau_q):  # numpy's transposed copy alone took 13 m
 # --- DT3 from segments, exact in a band -------------------------------------------------------
 
 
-SEGMENT_DT_BAND_ROWS = 16  # _segment_dt's work items: bands of this many rows
-
-
-@nb.njit(parallel=True, cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True)
 def _segment_dt(dt, p0, p1, chan, lam, tau):  # pragma: no cover - compiled
     """dt (C, h, w) float32 initialised to tau: min over segments of the exact point-to-segment
-    distance plus ``lam`` per cyclic channel step (eq. 11 without rasterising the edges).
-
-    Work items are bands of rows, each visiting every segment's rows within it: threads never write
-    the same pixel, and a min does not depend on the order it is taken in, so any thread count gives
-    the same tensor."""
+    distance plus ``lam`` per cyclic channel step (eq. 11 without rasterising the edges)."""
     C, h, w = dt.shape
-    n_bands = (h + SEGMENT_DT_BAND_ROWS - 1) // SEGMENT_DT_BAND_ROWS
-    for b in nb.prange(n_bands):
-        b_lo = b * SEGMENT_DT_BAND_ROWS
-        b_hi = min(b_lo + SEGMENT_DT_BAND_ROWS, h) - 1
-        for s in range(p0.shape[0]):
-            ax = p0[s, 0]
-            ay = p0[s, 1]
-            dx = p1[s, 0] - ax
-            dy = p1[s, 1] - ay
-            v_lo = max(int(math.floor(min(ay, ay + dy) - tau)), b_lo)
-            v_hi = min(int(math.ceil(max(ay, ay + dy) + tau)), b_hi)
-            if v_lo > v_hi:
-                continue
-            L2 = dx * dx + dy * dy
-            u_lo = max(int(math.floor(min(ax, ax + dx) - tau)), 0)
-            u_hi = min(int(math.ceil(max(ax, ax + dx) + tau)), w - 1)
-            cs = chan[s]
-            for v in range(v_lo, v_hi + 1):
-                for u in range(u_lo, u_hi + 1):
-                    t = 0.0
-                    if L2 > 0.0:
-                        t = ((u - ax) * dx + (v - ay) * dy) / L2
-                        t = min(max(t, 0.0), 1.0)
-                    ex = u - (ax + t * dx)
-                    ey = v - (ay + t * dy)
-                    d = math.sqrt(ex * ex + ey * ey)
-                    if d >= tau:
-                        continue
-                    if d < dt[cs, v, u]:
-                        dt[cs, v, u] = d
-                    reach = min(int((tau - d) / lam) if lam > 0 else C, C // 2)
-                    for j in range(1, reach + 1):
-                        val = d + lam * j
-                        k = (cs + j) % C
-                        if val < dt[k, v, u]:
-                            dt[k, v, u] = val
-                        k = (cs - j) % C
-                        if val < dt[k, v, u]:
-                            dt[k, v, u] = val
+    for s in range(p0.shape[0]):
+        ax = p0[s, 0]
+        ay = p0[s, 1]
+        dx = p1[s, 0] - ax
+        dy = p1[s, 1] - ay
+        L2 = dx * dx + dy * dy
+        u_lo = max(int(math.floor(min(ax, ax + dx) - tau)), 0)
+        u_hi = min(int(math.ceil(max(ax, ax + dx) + tau)), w - 1)
+        v_lo = max(int(math.floor(min(ay, ay + dy) - tau)), 0)
+        v_hi = min(int(math.ceil(max(ay, ay + dy) + tau)), h - 1)
+        cs = chan[s]
+        for v in range(v_lo, v_hi + 1):
+            for u in range(u_lo, u_hi + 1):
+                t = 0.0
+                if L2 > 0.0:
+                    t = ((u - ax) * dx + (v - ay) * dy) / L2
+                    t = min(max(t, 0.0), 1.0)
+                ex = u - (ax + t * dx)
+                ey = v - (ay + t * dy)
+                d = math.sqrt(ex * ex + ey * ey)
+                if d >= tau:
+                    continue
+                if d < dt[cs, v, u]:
+                    dt[cs, v, u] = d
+                reach = min(int((tau - d) / lam) if lam > 0 else C, C // 2)
+                for j in range(1, reach + 1):
+                    val = d + lam * j
+                    k = (cs + j) % C
+                    if val < dt[k, v, u]:
+                        dt[k, v, u] = val
+                    k = (cs - j) % C
+                    if val < dt[k, v, u]:
+                        dt[k, v, u] = val
 
 
 def segment_distance_tensor(seg: Segments, roi: tuple[int, int, int, int], *, n_channels: int = 16,

@@ -22,7 +22,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from service.vision import threads
 from service.vision.bank import TemplateBank
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
@@ -292,10 +291,8 @@ def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFram
         return NO_EVIDENCE
     u, v = p[:, 0] + u0, p[:, 1] + v0
     in_image = (u >= 1) & (u < W - 1) & (v >= 1) & (v < H - 1)
-    # The shading fit reads other pixels than the outline and the bands: a second core takes it.
-    shading = threads.background().submit(_shading, win, fid, bank, pose)
     colour_edge, polarity, coherence = _edge_and_polarity(win, p, n, in_image)
     region, region_low, region_global = _region(win, mask, band, hidden, explained)
-    shading_r2, shading_std = shading.result()
+    shading_r2, shading_std = _shading(win, fid, bank, pose)
     return Evidence(colour_edge, polarity, region, region_low, region_global, coherence, shading_r2,
                     shading_std, float(in_image.mean()))
