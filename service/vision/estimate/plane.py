@@ -159,11 +159,12 @@ def scoring_poses(bank: TemplateBank, R: np.ndarray, t: np.ndarray
 
 
 @nb.njit(parallel=True, cache=True)
-def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, p_prev, p_next, views, R, t, n_ch, limit,
-           shared):
+def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t, n_ch, limit, shared):
     """Mean quantised DT3 (1/DT_QUANT grid px, nearest pixel) of M posed templates: view ``views[m]``'s
-    points (N, P, 3) (and their neighbours along the border, for the projected orientation) posed
-    by ``R[m]``, ``t[m]``. dt_q: (H, W, C) uint8; a point outside costs ``tau_q``.
+    points (N, P, 3) posed by ``R[m]``, ``t[m]``, each with the direction ``d_obj`` (N, P, 3) of the
+    border through it (successor minus predecessor): its projected orientation is the derivative of
+    the projection along it, one projection per point instead of three. dt_q: (H, W, C) uint8; a
+    point outside costs ``tau_q``.
 
     A template is abandoned (inf) once its partial sum reaches ``limit`` x P (all terms are >= 0); with
     ``shared`` the limit drops to the best total reached so far (only the best matters: threads read it
@@ -178,29 +179,20 @@ def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, p_prev, p_next, vi
         acc = 0.0
         ok = True
         for i in range(P):
-            u0 = 0.0
-            v0 = 0.0
-            up = 0.0
-            vp = 0.0
-            for k in range(3):
-                q = p_mid[n, i] if k == 0 else (p_prev[n, i] if k == 1 else p_next[n, i])
-                X = R[m, 0, 0] * q[0] + R[m, 0, 1] * q[1] + R[m, 0, 2] * q[2] + t[m, 0]
-                Y = R[m, 1, 0] * q[0] + R[m, 1, 1] * q[1] + R[m, 1, 2] * q[2] + t[m, 1]
-                Z = max(R[m, 2, 0] * q[0] + R[m, 2, 1] * q[1] + R[m, 2, 2] * q[2] + t[m, 2], 1e-6)
-                u = fx * X / Z + cx
-                v = fy * Y / Z + cy
-                if k == 0:
-                    u0, v0 = u, v
-                elif k == 1:
-                    up, vp = u, v
-                else:
-                    up, vp = u - up, v - vp
-            x = int(np.floor((u0 - ou + 0.5) * scale))
-            y = int(np.floor((v0 - ov + 0.5) * scale))
+            q = p_mid[n, i]
+            d = d_obj[n, i]
+            X = R[m, 0, 0] * q[0] + R[m, 0, 1] * q[1] + R[m, 0, 2] * q[2] + t[m, 0]
+            Y = R[m, 1, 0] * q[0] + R[m, 1, 1] * q[1] + R[m, 1, 2] * q[2] + t[m, 1]
+            Z = max(R[m, 2, 0] * q[0] + R[m, 2, 1] * q[1] + R[m, 2, 2] * q[2] + t[m, 2], 1e-6)
+            x = int(np.floor((fx * X / Z + cx - ou + 0.5) * scale))
+            y = int(np.floor((fy * Y / Z + cy - ov + 0.5) * scale))
             if x < 0 or x >= W or y < 0 or y >= H:
                 acc += tau_q
             else:
-                th = math.atan2(vp, up) % math.pi
+                dX = R[m, 0, 0] * d[0] + R[m, 0, 1] * d[1] + R[m, 0, 2] * d[2]
+                dY = R[m, 1, 0] * d[0] + R[m, 1, 1] * d[1] + R[m, 1, 2] * d[2]
+                dZ = R[m, 2, 0] * d[0] + R[m, 2, 1] * d[1] + R[m, 2, 2] * d[2]
+                th = math.atan2(fy * (dY * Z - Y * dZ), fx * (dX * Z - X * dZ)) % math.pi
                 c = int(math.floor(th * (n_ch / math.pi) + 0.5)) % n_ch
                 acc += dt_q[y, x, c]
             if acc >= bound[0]:
@@ -230,15 +222,17 @@ def _nearest_views(dirs, z):
     return out
 
 
-def _points(bank: TemplateBank, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _points(bank: TemplateBank, count: int) -> tuple[np.ndarray, np.ndarray]:
     """(N, count, 3) border points of every view in ``spread_order`` (early ones spread round the
-    border: a fair sample for the early abandon), and each one's neighbours along the border."""
+    border: a fair sample for the early abandon), and the border's direction through each (its
+    successor minus its predecessor, object frame)."""
 
     def make():
         idx, prev, nxt = border_triplets(bank, count)
         order = spread_order(idx.shape[1])
         p = np.asarray(bank.p_obj, np.float64)
-        return tuple(np.ascontiguousarray(p[i[:, order]]) for i in (idx, prev, nxt))
+        return (np.ascontiguousarray(p[idx[:, order]]),
+                np.ascontiguousarray(p[nxt[:, order]] - p[prev[:, order]]))
 
     return _POINTS.get(bank, count, make)
 
@@ -254,9 +248,9 @@ def score_poses(bank: TemplateBank, R: np.ndarray, t: np.ndarray, dt_q: np.ndarr
     if len(R) == 0:
         return np.zeros(0)
     views, R2, t2 = scoring_poses(bank, R, t)
-    mid, prev, nxt = _points(bank, n_points)
+    mid, direction = _points(bank, n_points)
     return _score(dt_q, tau_q, dtt.scale, dtt.origin_uv[0], dtt.origin_uv[1], intr.fx, intr.fy, intr.cx,
-                  intr.cy, mid, prev, nxt, views.astype(np.int64), np.ascontiguousarray(R2),
+                  intr.cy, mid, direction, views.astype(np.int64), np.ascontiguousarray(R2),
                   np.ascontiguousarray(t2), dtt.n_channels, float(limit_q), best_only)
 
 
