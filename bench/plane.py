@@ -36,19 +36,14 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.instances import part  # noqa: E402
+from bench.instances import INTR, RIGHT_MSPD_PX, SIZE, part, roi_of  # noqa: E402
 from service import pipeline  # noqa: E402
 from service.vision.estimate.plane import Plane  # noqa: E402
-from service.vision.estimate.roi import rect_polygon  # noqa: E402
-from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.frames import Pose, Rz  # noqa: E402
 from service.vision.geometry.render import render, render_shaded  # noqa: E402
 from service.vision.reference.metrics import mspd_px  # noqa: E402
 
-INTR = Intrinsics(600.0, 600.0, 319.5, 239.5)
-SIZE = (640, 480)
 RANGE = (300.0, 700.0)
-RIGHT_MSPD_PX = 5.0
 WRONG_MSPD_PX = 20.0
 MIN_VISIBLE = 0.7
 
@@ -136,18 +131,6 @@ def floor(rng: np.random.Generator, R_cw: np.ndarray, t_cw: np.ndarray, textured
     gy = np.clip(p_world[..., 1] / cells + 32, 0, 63).astype(np.float32)
     tex = cv2.remap(noise.astype(np.float32), gx, gy, cv2.INTER_CUBIC)
     return np.clip(base + 30.0 * tex / max(float(np.abs(noise).max()), 1e-6) * 2.0, 15, 130)
-
-
-def roi_of(poses, bank, margin_px: float = 40.0) -> np.ndarray:
-    uv = []
-    for p in poses:
-        x = p.apply(bank.vertices_mm.astype(float))
-        uv.append(np.column_stack([INTR.fx * x[:, 0] / x[:, 2] + INTR.cx,
-                                   INTR.fy * x[:, 1] / x[:, 2] + INTR.cy]))
-    uv = np.concatenate(uv)
-    lo = np.maximum(uv.min(axis=0) - margin_px, 0)
-    hi = np.minimum(uv.max(axis=0) + margin_px, np.array(SIZE) - 1)
-    return rect_polygon(lo[0], lo[1], hi[0] - lo[0], hi[1] - lo[1])
 
 
 def judge(instances, truth, visible, pts) -> tuple[int, int, int]:

@@ -382,40 +382,28 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
     one is found are judged with it, and a rejected candidate is judged again (its evidence only: the
     refinement does not change) once an instance is found after it: a copy touching another looked
     like a part on a background of its own colour until that one was found."""
-    found: list[Checked] = []
-    rejected: list[Checked] = []
+    scene = _Instances(bank, frame, intr, max_instances, deadline,
+                       dict(distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
+                            plane_tolerance_mm=plane_tolerance_mm))
     size = (grey.shape[1], grey.shape[0])
-    others = np.full((grey.shape[0], grey.shape[1]), np.inf, np.float32)
-    jkw = dict(distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
-               plane_tolerance_mm=plane_tolerance_mm)
-
-    def distinct(c: Checked) -> bool:
-        return all(silhouette_iou(bank, c.refined.pose, f.refined.pose, intr, size) <= INSTANCE_IOU
-                   for f in found)
-
-    def add(c: Checked) -> None:
-        found.append(c)
-        _paint_depth(others, bank, c.refined.pose, intr)
-
     for cand in cands:
-        if len(found) >= max_instances:
+        if scene.full():
             break
-        if any(silhouette_iou(bank, cand.pose, f.refined.pose, intr, size) > INSTANCE_IOU for f in found):
+        if any(silhouette_iou(bank, cand.pose, f.refined.pose, intr, size) > INSTANCE_IOU
+               for f in scene.found):
             continue
         if not deadline.allows(_CHECK_MS.value):
             break
         c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm, n_channels=n_channels,
-                            others_depth_mm=others if found else None, **jkw)
+                            others_depth_mm=scene.others if scene.found else None, **scene.judge_kw)
         if not c.verdict.found:
-            rejected.append(c)
-            continue
-        if distinct(c):
-            add(c)
-            _rejudge_rejected(bank, rejected, frame, intr, others, jkw, max_instances, found, distinct, add,
-                              deadline)
-    _mutual(bank, rejected, frame, intr, others, jkw, max_instances, found, distinct, add, deadline)
-    rejected.sort(key=lambda c: c.verdict.score, reverse=True)
-    return found, rejected
+            scene.rejected.append(c)
+        elif scene.distinct(c):
+            scene.add(c)
+            scene.rejudge_rejected()
+    scene.mutual()
+    scene.rejected.sort(key=lambda c: c.verdict.score, reverse=True)
+    return scene.found, scene.rejected
 
 
 def _paint_depth(depth_mm: np.ndarray, bank: TemplateBank, pose: Pose, intr: Intrinsics) -> None:
@@ -426,65 +414,83 @@ def _paint_depth(depth_mm: np.ndarray, bank: TemplateBank, pose: Pose, intr: Int
     np.minimum(win, depth, out=win)
 
 
+REJUDGE_REASONS = ("region_mismatch", "shading_mismatch", "low_score")  # what a touching copy can cause
 # Two copies that hide or touch each other can each fail alone for the other's pixels, and neither is
 # found first to explain them. Candidates nearly found alone (at least this score, rejected for a
 # reason another part's pixels can cause) are judged with each other explaining their pixels.
 MUTUAL_MIN_SCORE = 0.85
 
 
-def _mutual(bank, rejected, frame, intr, others, jkw, max_instances, found, distinct, add, deadline) -> None:
-    """Judge each near miss (``MUTUAL_MIN_SCORE``) with the found instances and the other near misses
-    explaining their pixels, best first; one found joins the instances and the rest are judged again."""
-    changed = True
-    while changed and len(found) < max_instances:
-        changed = False
-        near = [i for i, c in enumerate(rejected) if c.verdict.reason in REJUDGE_REASONS
-                and c.verdict.score >= MUTUAL_MIN_SCORE and distinct(c)]
-        near.sort(key=lambda i: -rejected[i].verdict.score)
-        for i in near:
-            if not deadline.allows(EVIDENCE_MS):
-                return
-            scene_depth = others.copy()
-            for j in near:
-                if j != i:
-                    _paint_depth(scene_depth, bank, rejected[j].refined.pose, intr)
-            again = _rejudged(bank, rejected[i], frame, intr, scene_depth, jkw)
-            if again.verdict.found:
-                rejected.pop(i)
-                add(again)
-                _rejudge_rejected(bank, rejected, frame, intr, others, jkw, max_instances, found, distinct,
-                                  add, deadline)
-                changed = True
-                break
+class _Instances:
+    """One frame's found instances (and the depth map of their pixels, ``others``) and its rejected
+    candidates, for ``verify_instances``."""
 
+    def __init__(self, bank: TemplateBank, frame: ColourFrame, intr: Intrinsics, max_instances: int,
+                 deadline: Deadline, judge_kw: dict):
+        self.bank, self.frame, self.intr = bank, frame, intr
+        self.max_instances, self.deadline, self.judge_kw = max_instances, deadline, judge_kw
+        self.found: list[Checked] = []
+        self.rejected: list[Checked] = []
+        self.others = np.full(frame.shape, np.inf, np.float32)
+        self.size = (frame.shape[1], frame.shape[0])
 
-REJUDGE_REASONS = ("region_mismatch", "shading_mismatch", "low_score")  # what a touching copy can cause
+    def full(self) -> bool:
+        return len(self.found) >= self.max_instances
 
+    def distinct(self, c: Checked) -> bool:
+        return all(silhouette_iou(self.bank, c.refined.pose, f.refined.pose, self.intr, self.size)
+                   <= INSTANCE_IOU for f in self.found)
 
-def _rejudged(bank, c: Checked, frame, intr, others, jkw) -> Checked:
-    """``c`` judged again among the found instances (``others``), if its rejection could be theirs."""
-    if c.verdict.reason not in REJUDGE_REASONS:
-        return c
-    return judge(bank, c, frame, intr, edge_support=c.verdict.evidence["edge_support"],
-                 unexplained=c.verdict.evidence["unexplained"], others_depth_mm=others, **jkw)
+    def add(self, c: Checked) -> None:
+        self.found.append(c)
+        _paint_depth(self.others, self.bank, c.refined.pose, self.intr)
 
+    def rejudged(self, c: Checked, others: np.ndarray) -> Checked:
+        """``c`` judged again with the parts in ``others`` explaining their pixels, if its rejection
+        could be theirs (its evidence only: the refinement does not change)."""
+        if c.verdict.reason not in REJUDGE_REASONS:
+            return c
+        return judge(self.bank, c, self.frame, self.intr, edge_support=c.verdict.evidence["edge_support"],
+                     unexplained=c.verdict.evidence["unexplained"], others_depth_mm=others, **self.judge_kw)
 
-def _rejudge_rejected(bank, rejected, frame, intr, others, jkw, max_instances, found, distinct, add,
-                      deadline) -> None:
-    """Judge the rejected candidates again after an instance was found, until none changes."""
-    changed = True
-    while changed and len(found) < max_instances:
-        changed = False
-        for i, c in enumerate(rejected):
-            if not deadline.allows(EVIDENCE_MS):
-                return
-            again = _rejudged(bank, c, frame, intr, others, jkw)
-            rejected[i] = again
-            if again.verdict.found and distinct(again):
-                rejected.pop(i)
-                add(again)
-                changed = True
-                break
+    def rejudge_rejected(self) -> None:
+        """Judge the rejected candidates again among the found instances, until none changes."""
+        changed = True
+        while changed and not self.full():
+            changed = False
+            for i, c in enumerate(self.rejected):
+                if not self.deadline.allows(EVIDENCE_MS):
+                    return
+                self.rejected[i] = again = self.rejudged(c, self.others)
+                if again.verdict.found and self.distinct(again):
+                    self.add(self.rejected.pop(i))
+                    changed = True
+                    break
+
+    def mutual(self) -> None:
+        """Judge each near miss (``MUTUAL_MIN_SCORE``) with the found instances and the other near misses
+        explaining their pixels, best first; one found joins the instances and the rest are judged
+        again."""
+        changed = True
+        while changed and not self.full():
+            changed = False
+            near = [i for i, c in enumerate(self.rejected) if c.verdict.reason in REJUDGE_REASONS
+                    and c.verdict.score >= MUTUAL_MIN_SCORE and self.distinct(c)]
+            near.sort(key=lambda i: -self.rejected[i].verdict.score)
+            for i in near:
+                if not self.deadline.allows(EVIDENCE_MS):
+                    return
+                scene_depth = self.others.copy()
+                for j in near:
+                    if j != i:
+                        _paint_depth(scene_depth, self.bank, self.rejected[j].refined.pose, self.intr)
+                again = self.rejudged(self.rejected[i], scene_depth)
+                if again.verdict.found:
+                    self.rejected.pop(i)
+                    self.add(again)
+                    self.rejudge_rejected()
+                    changed = True
+                    break
 
 
 SORTS = ("score", "distance", "height")

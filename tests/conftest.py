@@ -69,6 +69,16 @@ def frame(data_dir, paper_gt) -> tuple[bytes, dict]:
 
 
 @pytest.fixture(scope="session")
+def l_block_bank():
+    """The template bank of bench/instances.py's L-shaped block (arms of unequal length: no symmetry),
+    on the coarse grid the instance and plane tests use."""
+    from bench.instances import part
+    from service import pipeline
+
+    return pipeline.build_templates(part(), symmetry="none", grid={"view_step_deg": 15.0, "render_px": 160})
+
+
+@pytest.fixture(scope="session")
 def lbracket(data_dir):
     """models/lbracket.stl (mm, no symmetry): (its bytes, the trimesh)."""
     import trimesh

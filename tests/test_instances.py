@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import trimesh
 
 from service import pipeline
 from service.vision.estimate.roi import rect_polygon
@@ -27,12 +26,8 @@ POSES = [Pose(R15, np.array([90.0, -60.0, 430.0])), Pose(R105, np.array([-90.0, 
 
 
 @pytest.fixture(scope="module")
-def bank():
-    a = trimesh.creation.box((80.0, 20.0, 40.0))
-    b = trimesh.creation.box((20.0, 40.0, 40.0))  # arms of unequal length: no symmetry
-    b.apply_translation((-30.0, 30.0, 0.0))
-    return pipeline.build_templates(trimesh.util.concatenate([a, b]), symmetry="none",
-                                    grid={"view_step_deg": 15.0, "render_px": 160})
+def bank(l_block_bank):
+    return l_block_bank
 
 
 def scene(bank, poses) -> np.ndarray:

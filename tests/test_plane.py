@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import trimesh
 
 from service import pipeline
 from service.pipeline import Checked, PoseCandidate, RefinedPose, sort_instances
@@ -48,12 +47,8 @@ PLANE = Plane(R_CW[:, 2], float(R_CW[:, 2] @ T_CW))
 
 
 @pytest.fixture(scope="module")
-def bank():
-    a = trimesh.creation.box((80.0, 20.0, 40.0))
-    b = trimesh.creation.box((20.0, 40.0, 40.0))  # arms of unequal length: no symmetry
-    b.apply_translation((-30.0, 30.0, 0.0))
-    return pipeline.build_templates(trimesh.util.concatenate([a, b]), symmetry="none",
-                                    grid={"view_step_deg": 15.0, "render_px": 160})
+def bank(l_block_bank):
+    return l_block_bank
 
 
 def resting(bank, s: int, spin_deg: float, x_mm: float, y_mm: float, lift_mm: float = 0.0) -> Pose:
@@ -66,11 +61,16 @@ def resting(bank, s: int, spin_deg: float, x_mm: float, y_mm: float, lift_mm: fl
     return Pose(R_CW @ R_wo, R_CW @ t_wo + T_CW)
 
 
-def scene(bank, poses) -> np.ndarray:
+def copies(bank, poses) -> tuple[np.ndarray, np.ndarray]:
+    """The copies at ``poses`` as one mesh in the camera frame: (vertices, faces), copy k's faces k-th."""
     V = np.asarray(bank.vertices_mm, float)
     F = np.asarray(bank.faces)
-    Vs = np.concatenate([p.apply(V) for p in poses])
     Fs = np.concatenate([F + k * len(V) for k in range(len(poses))])
+    return np.concatenate([p.apply(V) for p in poses]), Fs
+
+
+def scene(bank, poses) -> np.ndarray:
+    Vs, Fs = copies(bank, poses)
     eye = Pose(np.eye(3), np.zeros(3))
     shaded = render_shaded(Vs, Fs, eye, INTR.K, SIZE, background=0).astype(float)
     cov = render(Vs, Fs, eye, INTR.K, SIZE, supersample=2).coverage
@@ -194,13 +194,11 @@ def test_the_plane_search_is_anytime(bank):
 
 def visible_fraction(bank, poses, k: int) -> float:
     """Share of copy k's silhouette that the others (rendered together, z-buffered) leave visible."""
-    V = np.asarray(bank.vertices_mm, float)
-    F = np.asarray(bank.faces)
-    Vs = np.concatenate([p.apply(V) for p in poses])
-    Fs = np.concatenate([F + i * len(V) for i in range(len(poses))])
-    r = render(Vs, Fs, Pose(np.eye(3), np.zeros(3)), INTR.K, SIZE, supersample=2)
-    own = r.mask & (r.face_id >= k * len(F)) & (r.face_id < (k + 1) * len(F))
-    return float(own.sum()) / float(render(V, F, poses[k], INTR.K, SIZE, supersample=2).mask.sum())
+    n_faces = len(bank.faces)
+    r = render(*copies(bank, poses), Pose(np.eye(3), np.zeros(3)), INTR.K, SIZE, supersample=2)
+    own = r.mask & (r.face_id >= k * n_faces) & (r.face_id < (k + 1) * n_faces)
+    return float(own.sum()) / float(render(bank.vertices_mm, bank.faces, poses[k], INTR.K, SIZE,
+                                           supersample=2).mask.sum())
 
 
 @pytest.mark.slow

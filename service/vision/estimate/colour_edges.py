@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from service.vision.estimate.chamfer import DEFAULT_TAU_PX, DistanceTensor, distance_tensor_from_edges
-from service.vision.estimate.edges import DEFAULT_LSD_SCALE, Segments, channel_of, detect_segments
+from service.vision.estimate.edges import DEFAULT_LSD_SCALE, Segments, channel_of, detect_segments, stretch_u8
 
 CANNY_LOW, CANNY_HIGH = 20, 40  # hysteresis thresholds on the L2 gradient of 8-bit channels (Sobel 3x3)
 
@@ -31,18 +31,11 @@ def channel_segments(image: np.ndarray, *, scale: float = DEFAULT_LSD_SCALE) -> 
 
 def colour_u8(image: np.ndarray) -> np.ndarray:
     """(H, W) or (H, W, 3) uint8 from a grey, BGR or BGRA image of any depth (``edges.to_grey_u8``'s
-    stretch: 16-bit to the range the sensor used, float to its own range)."""
+    ``stretch_u8``: 16-bit to the range the sensor used, float to its own range)."""
     img = np.asarray(image)
     if img.ndim == 3:
         img = img[..., :3] if img.shape[2] >= 3 else img[..., 0]
-    if img.dtype == np.uint8:
-        return np.ascontiguousarray(img)
-    if img.dtype == np.uint16:
-        hi = max(int(img.max()), 1)
-        return (img.astype(np.float32) * (255.0 / hi)).round().clip(0, 255).astype(np.uint8)
-    f = img.astype(np.float32)
-    lo, hi = float(f.min()), float(f.max())
-    return ((f - lo) * (255.0 / max(hi - lo, 1e-6))).round().clip(0, 255).astype(np.uint8)
+    return np.ascontiguousarray(stretch_u8(img))
 
 
 def canny_edges(image: np.ndarray, *, scale: float = 1.0, low: float = CANNY_LOW, high: float = CANNY_HIGH

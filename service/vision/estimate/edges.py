@@ -51,6 +51,11 @@ def to_grey_u8(image: np.ndarray) -> np.ndarray:
     if img.ndim == 3:
         code = cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         img = cv2.cvtColor(img, code) if img.shape[2] in (3, 4) else img[..., 0]
+    return stretch_u8(img)
+
+
+def stretch_u8(img: np.ndarray) -> np.ndarray:
+    """Any-depth image (any channels) -> uint8, all channels stretched alike (uint8 as it is)."""
     if img.dtype == np.uint8:
         return img
     if img.dtype == np.uint16:
