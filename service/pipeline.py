@@ -137,7 +137,7 @@ POLISH_PER_INSTANCE, MAX_POLISH = 4, 40
 # dropped at the single-instance ratio, 1.5).
 INSTANCES_PEAK_ACCEPT_RATIO = 3.0
 ROI_MIN_PEAKS = 4  # level-A peaks scale with the ROI's share of the image, down to this many
-INSTANCE_IOU = 0.3  # two found instances whose silhouettes overlap more than this are one instance
+INSTANCE_IOU = 0.4  # two found instances whose silhouettes overlap more than this are one instance
 
 
 def search_params(max_instances: int) -> SearchParams:
@@ -153,7 +153,7 @@ def search_params(max_instances: int) -> SearchParams:
 def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance_mm: float | None = None,
             distance_range_mm: tuple[float, float] | None = None, params: SearchParams | None = None,
             roi_uv: np.ndarray | None = None, deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0,
-            plane: Plane | None = None):
+            plane: Plane | None = None, several: bool = False):
     """The proposal engine (the paper's method): LSD edges, their distance tensor and the coarse
     search -> (distinct candidates, lowest chamfer cost first; full-image segments; timing_ms with
     "edges" and "coarse").
@@ -166,7 +166,9 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     ``plane``: the supporting plane (camera frame): the search runs over the part's stable resting
     poses x spin about the plane's normal x position on the plane (``estimate/plane.py``) instead of
     all of 6D; ``distance_mm`` is then not used. A part without stable poses is searched in 6D. The
-    plane search is anytime too (``plane.plane_search``)."""
+    plane search is anytime too (``plane.plane_search``).
+
+    ``several``: the frame may hold several instances (``distinct_candidates``' ``by_pose``)."""
     rest = resting_rotations(bank) if plane is not None else None
     p = params or SEARCH_PARAMS
     threads.use_budget()
@@ -209,7 +211,8 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     if roi_uv is not None and cands:  # level B's local scans may have walked the centre out of the ROI
         cands = [c for c, ok in zip(cands, roi_inside(roi_uv, _centres_uv(cands, bank, intr.K)), strict=True)
                  if ok]
-    return distinct_candidates(cands, bank, intr.K), seg, {"edges": t_edges, "coarse": _ms(t1)}
+    return (distinct_candidates(cands, bank, intr.K, by_pose=several), seg,
+            {"edges": t_edges, "coarse": _ms(t1)})
 
 
 _REST = Memo(8)
@@ -268,7 +271,8 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     h, w = grey.shape
     cands, _, timing = propose(bank, grey, intr, distance_mm=distance_mm, distance_range_mm=distance_range_mm,
                                params=p, roi_uv=roi_uv, deadline=deadline,
-                               reserve_ms=SEARCH_RESERVE_CHECKS * _CHECK_MS.value, plane=plane)
+                               reserve_ms=SEARCH_RESERVE_CHECKS * _CHECK_MS.value, plane=plane,
+                               several=max_instances > 1)
     t0 = time.perf_counter()
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
     # The evidence reads pixels where the ideal camera projects the model: undistort the frame once.
@@ -419,6 +423,7 @@ REJUDGE_REASONS = ("region_mismatch", "shading_mismatch", "low_score")  # what a
 # found first to explain them. Candidates nearly found alone (at least this score, rejected for a
 # reason another part's pixels can cause) are judged with each other explaining their pixels.
 MUTUAL_MIN_SCORE = 0.85
+MUTUAL_EXPLAINER_MIN_SCORE = 0.3
 
 
 class _Instances:
@@ -474,14 +479,15 @@ class _Instances:
         changed = True
         while changed and not self.full():
             changed = False
-            near = [i for i, c in enumerate(self.rejected) if c.verdict.reason in REJUDGE_REASONS
-                    and c.verdict.score >= MUTUAL_MIN_SCORE and self.distinct(c)]
+            could = [i for i, c in enumerate(self.rejected) if c.verdict.reason in REJUDGE_REASONS
+                     and c.verdict.score >= MUTUAL_EXPLAINER_MIN_SCORE and self.distinct(c)]
+            near = [i for i in could if self.rejected[i].verdict.score >= MUTUAL_MIN_SCORE]
             near.sort(key=lambda i: -self.rejected[i].verdict.score)
             for i in near:
                 if not self.deadline.allows(EVIDENCE_MS):
                     return
                 scene_depth = self.others.copy()
-                for j in near:
+                for j in could:
                     if j != i:
                         _paint_depth(scene_depth, self.bank, self.rejected[j].refined.pose, self.intr)
                 again = self.rejudged(self.rejected[i], scene_depth)
@@ -551,17 +557,25 @@ def estimate_image(bank: TemplateBank, data: bytes, intr: Intrinsics, *, max_pix
     return estimate(bank, image, intr, started_at=started_at, **options)
 
 
-def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.ndarray) -> list[PoseCandidate]:
-    """Drop candidates whose object centre projects within a quarter diameter of a better one."""
+def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.ndarray, *,
+                        by_pose: bool = False) -> list[PoseCandidate]:
+    """Drop candidates whose object centre projects within a quarter diameter of a better one's.
+
+    ``by_pose`` (several instances): drop only those whose bounding-box corners project, on average,
+    within a quarter diameter of a better one's: a wrong placement straddling two touching copies
+    lies near the centre of the copy behind it, and must not hide it."""
+    corners = bank.centre_obj + 0.5 * np.asarray(bank.extents_mm) * np.array(
+        [[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float)
+    ref = corners if by_pose else bank.centre_obj[None]
     out: list[PoseCandidate] = []
-    centres = []
+    kept: list[np.ndarray] = []
     for c in sorted(cands, key=lambda c: c.cost):
-        x = c.pose.apply(bank.centre_obj[None])[0]
-        uv = np.array([K[0, 0] * x[0] / x[2], K[1, 1] * x[1] / x[2]])
-        r = 0.25 * K[0, 0] * bank.diameter_mm / max(x[2], 1e-6)
-        if all(np.linalg.norm(uv - o) > r for o in centres):
+        x = c.pose.apply(ref)
+        uv = np.column_stack([K[0, 0] * x[:, 0] / x[:, 2], K[1, 1] * x[:, 1] / x[:, 2]])
+        r = 0.25 * K[0, 0] * bank.diameter_mm / max(float(x[:, 2].mean()), 1e-6)
+        if all(np.linalg.norm(uv - o, axis=1).mean() > r for o in kept):
             out.append(c)
-            centres.append(uv)
+            kept.append(uv)
     return out
 
 

@@ -178,20 +178,24 @@ def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t
         n = views[m]
         acc = 0.0
         ok = True
+        r00, r01, r02 = R[m, 0, 0], R[m, 0, 1], R[m, 0, 2]
+        r10, r11, r12 = R[m, 1, 0], R[m, 1, 1], R[m, 1, 2]
+        r20, r21, r22 = R[m, 2, 0], R[m, 2, 1], R[m, 2, 2]
+        t0, t1, t2 = t[m, 0], t[m, 1], t[m, 2]
         for i in range(P):
-            q = p_mid[n, i]
-            d = d_obj[n, i]
-            X = R[m, 0, 0] * q[0] + R[m, 0, 1] * q[1] + R[m, 0, 2] * q[2] + t[m, 0]
-            Y = R[m, 1, 0] * q[0] + R[m, 1, 1] * q[1] + R[m, 1, 2] * q[2] + t[m, 1]
-            Z = max(R[m, 2, 0] * q[0] + R[m, 2, 1] * q[1] + R[m, 2, 2] * q[2] + t[m, 2], 1e-6)
+            q0, q1, q2 = p_mid[n, i, 0], p_mid[n, i, 1], p_mid[n, i, 2]
+            X = r00 * q0 + r01 * q1 + r02 * q2 + t0
+            Y = r10 * q0 + r11 * q1 + r12 * q2 + t1
+            Z = max(r20 * q0 + r21 * q1 + r22 * q2 + t2, 1e-6)
             x = int(np.floor((fx * X / Z + cx - ou + 0.5) * scale))
             y = int(np.floor((fy * Y / Z + cy - ov + 0.5) * scale))
             if x < 0 or x >= W or y < 0 or y >= H:
                 acc += tau_q
             else:
-                dX = R[m, 0, 0] * d[0] + R[m, 0, 1] * d[1] + R[m, 0, 2] * d[2]
-                dY = R[m, 1, 0] * d[0] + R[m, 1, 1] * d[1] + R[m, 1, 2] * d[2]
-                dZ = R[m, 2, 0] * d[0] + R[m, 2, 1] * d[1] + R[m, 2, 2] * d[2]
+                d0, d1, d2 = d_obj[n, i, 0], d_obj[n, i, 1], d_obj[n, i, 2]
+                dX = r00 * d0 + r01 * d1 + r02 * d2
+                dY = r10 * d0 + r11 * d1 + r12 * d2
+                dZ = r20 * d0 + r21 * d1 + r22 * d2
                 th = math.atan2(fy * (dY * Z - Y * dZ), fx * (dX * Z - X * dZ)) % math.pi
                 c = int(math.floor(th * (n_ch / math.pi) + 0.5)) % n_ch
                 acc += dt_q[y, x, c]
@@ -364,10 +368,16 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
         if not ok.any():
             continue
         c = np.full(len(R), np.inf)
-        c[ok] = score_poses(bank, R[ok], t[ok], dt_qb, tau_qb, dtt_b, intr, p.scan_points, best_only=True)
-        k = int(np.argmin(c))
-        scanned.append(PlaneHypothesis(int(s_all[k]), float(psi_all[k]), uv_all[k].copy(), R[k], t[k],
-                                       float(c[k]) / DT_QUANT / dtt_b.scale))
+        for s in s_list:  # each family's best: at a peak between two copies another family may win
+            ks = np.flatnonzero(ok & (s_all == s))
+            if len(ks) == 0:
+                continue
+            c[ks] = score_poses(bank, R[ks], t[ks], dt_qb, tau_qb, dtt_b, intr, p.scan_points, best_only=True)
+            k = int(ks[np.argmin(c[ks])])
+            if not np.isfinite(c[k]):
+                continue
+            scanned.append(PlaneHypothesis(int(s_all[k]), float(psi_all[k]), uv_all[k].copy(), R[k], t[k],
+                                           float(c[k]) / DT_QUANT / dtt_b.scale))
     if not scanned:
         return []
     scanned.sort(key=lambda x: x.cost)
