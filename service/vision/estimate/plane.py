@@ -45,6 +45,7 @@ LOCAL_STRIDE_PX = 4  # ... every this many px (the polish moves from there in 2 
 # Level B also scans round a peak the families whose best placement at that anchor cost at most this
 # ratio of the peak's (a part seen from above looks alike on some of its faces).
 FAMILY_RATIO = 1.3
+LEVEL_A_ROTATIONS_PER_CALL = 8  # rotations level A scores at every anchor per call (less per-call overhead)
 PEAK_RADIUS_DIAMETERS = 0.15  # level-A peaks closer than this many projected diameters are one peak
 MIN_RAY_COS = 0.05  # rays meeting the plane at less than ~3 deg are not searched (the far horizon)
 
@@ -174,6 +175,7 @@ def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t
     H, W = dt_q.shape[0], dt_q.shape[1]
     out = np.full(M, np.inf)
     bound = np.full(1, limit * P)
+    bins_per_rad = n_ch / math.pi
     for m in nb.prange(M):
         n = views[m]
         acc = 0.0
@@ -187,8 +189,8 @@ def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t
             X = r00 * q0 + r01 * q1 + r02 * q2 + t0
             Y = r10 * q0 + r11 * q1 + r12 * q2 + t1
             Z = max(r20 * q0 + r21 * q1 + r22 * q2 + t2, 1e-6)
-            x = int(np.floor((fx * X / Z + cx - ou + 0.5) * scale))
-            y = int(np.floor((fy * Y / Z + cy - ov + 0.5) * scale))
+            x = int(math.floor((fx * X / Z + cx - ou + 0.5) * scale))
+            y = int(math.floor((fy * Y / Z + cy - ov + 0.5) * scale))
             if x < 0 or x >= W or y < 0 or y >= H:
                 acc += tau_q
             else:
@@ -196,8 +198,12 @@ def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t
                 dX = r00 * d0 + r01 * d1 + r02 * d2
                 dY = r10 * d0 + r11 * d1 + r12 * d2
                 dZ = r20 * d0 + r21 * d1 + r22 * d2
-                th = math.atan2(fy * (dY * Z - Y * dZ), fx * (dX * Z - X * dZ)) % math.pi
-                c = int(math.floor(th * (n_ch / math.pi) + 0.5)) % n_ch
+                th = math.atan2(fy * (dY * Z - Y * dZ), fx * (dX * Z - X * dZ))
+                if th < 0.0:  # the orientation modulo pi, without float modulo's cost
+                    th += math.pi
+                c = int(th * bins_per_rad + 0.5)
+                if c >= n_ch:
+                    c -= n_ch
                 acc += dt_q[y, x, c]
             if acc >= bound[0]:
                 ok = False
@@ -313,20 +319,25 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
     A, M = len(anchors), len(hyp.R)
     if A == 0:
         return []
-    cost = np.full((A, M), np.inf)
+    limit_q = p.accept_frac * tau_qa
+    cost = np.full((M, A), np.inf)
+    order = coverage_order(hyp.s, len(R_rest_obj))
     deadline.new_loop()
-    for m in coverage_order(hyp.s, len(R_rest_obj)):
+    for i in range(0, M, LEVEL_A_ROTATIONS_PER_CALL):
         if not deadline.allows_next(LEVEL_A_RESERVE_FACTOR * reserve_ms):
             break
-        t, ok = placements(np.broadcast_to(hyp.R[m], (A, 3, 3)), np.full(A, hyp.h_mm[m]), anchors, bank, intr,
-                           plane)
+        ms = order[i:i + LEVEL_A_ROTATIONS_PER_CALL]
+        Rm = np.repeat(hyp.R[ms], A, axis=0)
+        t, ok = placements(Rm, np.repeat(hyp.h_mm[ms], A), np.tile(anchors, (len(ms), 1)), bank, intr, plane)
         if distance_range_mm is not None:
-            z = (t + hyp.R[m] @ bank.centre_obj)[:, 2]
+            z = (t + Rm @ bank.centre_obj)[:, 2]
             ok &= (z >= distance_range_mm[0]) & (z <= distance_range_mm[1])
         if ok.any():  # a template averaging over accept_frac x tau is no peak: abandoned
-            Rm = np.broadcast_to(hyp.R[m], (int(ok.sum()), 3, 3))
-            cost[ok, m] = score_poses(bank, Rm, t[ok], dt_qa, tau_qa, dtt_a, intr, p.points_per_template,
-                                      limit_q=p.accept_frac * tau_qa)
+            c = np.full(len(ms) * A, np.inf)
+            c[ok] = score_poses(bank, Rm[ok], t[ok], dt_qa, tau_qa, dtt_a, intr, p.points_per_template,
+                                limit_q=limit_q)
+            cost[ms] = c.reshape(len(ms), A)
+    cost = cost.T
     best_m = np.argmin(cost, axis=1)
     best = cost[np.arange(A), best_m]
     if not np.isfinite(best).any():
