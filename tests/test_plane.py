@@ -188,3 +188,15 @@ def test_a_found_neighbour_explains_its_pixels_in_the_evidence(bank):
     # Where the back copy covers a sliver of the front one it is left out of the shading fit, which then
     # reads the front copy's own pixels only: as alone.
     assert explained.shading_r2 == pytest.approx(alone.shading_r2, abs=0.005)
+
+
+def test_the_nearest_view_table_agrees_with_a_scan_of_every_view(bank):
+    from service.vision.bank import view_dirs_obj
+    from service.vision.estimate.plane import nearest_views
+
+    rng = np.random.default_rng(3)
+    dirs = rng.normal(size=(20000, 3))
+    z = view_dirs_obj(bank)
+    dirs = np.concatenate([dirs, z, -z, np.eye(3), -np.eye(3)])  # the views themselves, the cube's axes
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    np.testing.assert_array_equal(nearest_views(bank, dirs), np.argmax(dirs @ z.T, axis=1))

@@ -144,7 +144,7 @@ def scoring_poses(bank: TemplateBank, R: np.ndarray, t: np.ndarray
     dirs = np.einsum("mji,mj->mi", R, c / np.linalg.norm(c, axis=1, keepdims=True))  # R^T c_hat
     z = view_dirs_obj(bank)
     if bank.symmetry_axis_obj is None:
-        return _nearest_views(np.ascontiguousarray(dirs), np.ascontiguousarray(z)), R, t
+        return nearest_views(bank, dirs), R, t
     a = np.asarray(bank.symmetry_axis_obj, float)
     p_s = np.asarray(bank.symmetry_point_obj, float)
     views = np.argmin(np.abs((dirs @ a)[:, None] - (z @ a)[None, :]), axis=1)
@@ -215,16 +215,80 @@ def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t
     return out
 
 
+VIEW_TABLE_CELLS = 32  # cells along a cube face's side in the nearest-view table (~2.8 deg each)
+
+
+def nearest_views(bank: TemplateBank, dirs: np.ndarray) -> np.ndarray:
+    """(M,) the bank view nearest each unit viewing direction of ``dirs`` (M, 3), object frame (largest
+    dot product, the lowest index among equals): as a scan of every view, but each direction is
+    compared only with the views that can be nearest anywhere in its cell of a cube map."""
+    z = view_dirs_obj(bank)
+    start, cand = _VIEWS.get(bank, VIEW_TABLE_CELLS, lambda: view_table(z, VIEW_TABLE_CELLS))
+    return _nearest_in_table(np.ascontiguousarray(dirs, np.float64), np.ascontiguousarray(z, np.float64),
+                             start, cand, VIEW_TABLE_CELLS)
+
+
+_VIEWS = Memo(8)
+
+
+def view_table(z: np.ndarray, g: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per cell of a cube map with g x g cells a face (``_cell``), the views that can be nearest to some
+    direction in it, in index order (CSR: ``cand[start[c]:start[c + 1]]``). Every direction in a cell
+    lies within its corners' largest angle rho of the cell's centre direction c, so a view further than
+    angle(c, nearest view of c) + 2 rho from c is never the nearest there."""
+    cells = 6 * g * g
+    k = np.arange(cells)
+    face, i, j = k // (g * g), (k // g) % g, k % g
+    edges = np.linspace(-1.0, 1.0, g + 1)
+    corners = [_face_dirs(face, edges[i + di], edges[j + dj]) for di in (0, 1) for dj in (0, 1)]
+    centre = _face_dirs(face, 0.5 * (edges[i] + edges[i + 1]), 0.5 * (edges[j] + edges[j + 1]))
+    rho = np.max([np.arccos(np.clip(np.sum(centre * c, axis=1), -1.0, 1.0)) for c in corners], axis=0)
+    ang = np.arccos(np.clip(centre @ z.T, -1.0, 1.0))  # (cells, N)
+    keep = ang <= (ang.min(axis=1) + 2.0 * rho + 1e-9)[:, None]
+    start = np.concatenate([[0], np.cumsum(keep.sum(axis=1))]).astype(np.int64)
+    return start, np.nonzero(keep)[1].astype(np.int64)
+
+
+def _face_dirs(face: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Unit directions of the cube-map points (a, b) in [-1, 1]^2 on faces 0-5 (+x, -x, +y, -y, +z, -z)."""
+    axis, sign = face // 2, np.where(face % 2 == 0, 1.0, -1.0)
+    v = np.empty((len(face), 3))
+    for ax in range(3):
+        u_ax, w_ax = (ax + 1) % 3, (ax + 2) % 3
+        sel = axis == ax
+        v[sel, ax] = sign[sel]
+        v[sel, u_ax] = a[sel]
+        v[sel, w_ax] = b[sel]
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+@nb.njit(inline="always")
+def _cell(x, y, z, g):
+    """The cube-map cell (``_face_dirs``' layout) of the direction (x, y, z)."""
+    ax, ay, az = abs(x), abs(y), abs(z)
+    if ax >= ay and ax >= az:
+        face, m, a, b = (0 if x > 0 else 1), ax, y, z
+    elif ay >= az:
+        face, m, a, b = (2 if y > 0 else 3), ay, z, x
+    else:
+        face, m, a, b = (4 if z > 0 else 5), az, x, y
+    i = min(int((a / m + 1.0) * 0.5 * g), g - 1)
+    j = min(int((b / m + 1.0) * 0.5 * g), g - 1)
+    return (face * g + i) * g + j
+
+
 @nb.njit(parallel=True, cache=True)
-def _nearest_views(dirs, z):
-    """(M,) index of the row of z (N, 3) nearest to each row of dirs (M, 3) (largest dot product)."""
-    M, N = dirs.shape[0], z.shape[0]
+def _nearest_in_table(dirs, z, start, cand, g):
+    M = dirs.shape[0]
     out = np.empty(M, np.int64)
     for m in nb.prange(M):
+        x, y, w = dirs[m, 0], dirs[m, 1], dirs[m, 2]
+        c = _cell(x, y, w, g)
         best = -2.0
         bi = 0
-        for n in range(N):
-            d = dirs[m, 0] * z[n, 0] + dirs[m, 1] * z[n, 1] + dirs[m, 2] * z[n, 2]
+        for k in range(start[c], start[c + 1]):
+            n = cand[k]
+            d = x * z[n, 0] + y * z[n, 1] + w * z[n, 2]
             if d > best:
                 best = d
                 bi = n
