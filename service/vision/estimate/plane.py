@@ -456,11 +456,8 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
     if not scanned:
         return []
     scanned.sort(key=lambda x: x.cost)
-    out = []
-    deadline.new_loop()
-    for h in scanned[:p.n_polish]:
-        go = deadline.allows_next(reserve_ms)
-        out.append(polish(bank, R_rest_obj, h, dtt_b, intr, plane, p) if go else h)
+    out = polish(bank, R_rest_obj, scanned[:p.n_polish], dtt_b, intr, plane, p, deadline=deadline,
+                 reserve_ms=reserve_ms)
     out.sort(key=lambda x: x.cost)
     return out
 
@@ -492,30 +489,53 @@ def _farthest_first(n: int) -> np.ndarray:
     return np.array(taken, int)
 
 
-def polish(bank: TemplateBank, R_rest_obj: np.ndarray, h: PlaneHypothesis, dtt: DistanceTensor,
-           intr: Intrinsics, plane: Plane, p: SearchParams, *, min_step_px: float = 0.25,
-           max_iter: int = 60) -> PlaneHypothesis:
-    """Pattern search over (spin, u, v) on the plane from ``h``, bilinear costs (``coarse.evaluate``)."""
+def polish(bank: TemplateBank, R_rest_obj: np.ndarray, hs: list[PlaneHypothesis], dtt: DistanceTensor,
+           intr: Intrinsics, plane: Plane, p: SearchParams, *, min_step_px: float = 0.25, max_iter: int = 60,
+           deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0) -> list[PlaneHypothesis]:
+    """A pattern search over (spin, u, v) on the plane from each hypothesis, bilinear costs
+    (``coarse.evaluate``): all hypotheses step together, one scoring call a step for all of them (each
+    moves, or halves its steps, on its own six neighbours' costs alone). Anytime: a step starts only
+    while the ``deadline`` leaves it and ``reserve_ms``; each hypothesis is then where it got to."""
+    if not hs:
+        return []
 
-    def cost_of(psis, uvs):
-        R, t, ok = _poses(bank, R_rest_obj, plane, intr, np.full(len(psis), h.s), psis, uvs)
+    def cost_of(s, psis, uvs):
+        R, t, ok = _poses(bank, R_rest_obj, plane, intr, s, psis, uvs)
         views, R2, t2 = scoring_poses(bank, R, t)
         c, sc = evaluate(bank, views, R2, t2, intr.K, dtt, p.fine_points, p.score_px, p.rank_tau_px)
         return np.where(ok, c, np.inf), sc, R, t
 
-    c, sc, R, t = cost_of(np.array([h.psi_deg]), h.uv[None])
-    cur = PlaneHypothesis(h.s, h.psi_deg, h.uv, R[0], t[0], float(c[0]), float(sc[0]))
-    step_psi, step_uv = p.local_phi_step_deg / 2, 1.0 / dtt.scale
+    n = len(hs)
+    s = np.array([h.s for h in hs])
+    psi = np.array([h.psi_deg for h in hs], float)
+    uv = np.array([h.uv for h in hs], float)
+    c, sc, R, t = cost_of(s, psi, uv)
+    cost, score = c.copy(), sc.copy()
+    step_psi = np.full(n, p.local_phi_step_deg / 2)
+    step_uv = np.full(n, 1.0 / dtt.scale)
+    active = np.ones(n, bool)
+    d_psi = np.array([-1.0, 1.0, 0.0, 0.0, 0.0, 0.0])
+    d_uv = np.array([[0, 0], [0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]], float)
+    deadline.new_loop()
     for _ in range(max_iter):
-        psis = cur.psi_deg + np.array([-step_psi, step_psi, 0, 0, 0, 0])
-        uvs = cur.uv + np.array([[0, 0], [0, 0], [step_uv, 0], [-step_uv, 0], [0, step_uv], [0, -step_uv]])
-        c, sc, R, t = cost_of(psis, uvs)
-        b = int(np.argmin(c))
-        if c[b] < cur.cost - 1e-6:
-            cur = PlaneHypothesis(h.s, float(psis[b]), uvs[b], R[b], t[b], float(c[b]), float(sc[b]))
-            continue
-        if step_uv <= min_step_px:
+        if not active.any() or not deadline.allows_next(reserve_ms):
             break
-        step_psi /= 2
-        step_uv /= 2
-    return cur
+        k = np.flatnonzero(active)
+        psis = (psi[k, None] + step_psi[k, None] * d_psi).ravel()
+        uvs = (uv[k, None, :] + step_uv[k, None, None] * d_uv).reshape(-1, 2)
+        c, sc, Rn, tn = cost_of(np.repeat(s[k], 6), psis, uvs)
+        c = c.reshape(-1, 6)
+        b = np.argmin(c, axis=1)
+        better = c[np.arange(len(k)), b] < cost[k] - 1e-6
+        for j, i in enumerate(k):
+            if better[j]:
+                m = 6 * j + b[j]
+                psi[i], uv[i], cost[i], score[i] = psis[m], uvs[m], c[j, b[j]], sc[m]
+                R[i], t[i] = Rn[m], tn[m]
+            elif step_uv[i] <= min_step_px:
+                active[i] = False
+            else:
+                step_psi[i] /= 2
+                step_uv[i] /= 2
+    return [PlaneHypothesis(h.s, float(psi[i]), uv[i].copy(), R[i], t[i], float(cost[i]), float(score[i]))
+            for i, h in enumerate(hs)]
