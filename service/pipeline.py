@@ -20,7 +20,7 @@ from service.vision.bank import TemplateBank
 from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.chamfer import distance_tensor
 from service.vision.estimate.coarse import SearchParams, coarse_search, poses_of
-from service.vision.estimate.edges import detect_segments, to_grey_u8, undistort_segments
+from service.vision.estimate.edges import Segments, detect_segments, to_grey_u8, undistort_segments
 from service.vision.estimate.evidence import ColourFrame, colour_frame, evidence
 from service.vision.estimate.plane import (
     PLANE_TOLERANCE_MM,
@@ -116,6 +116,9 @@ class _Mean:
 # What checking a candidate (refine + evidence + verdict) takes in this process: the anytime search
 # keeps this much of its deadline for it. Starts at a paper render's (1280 x 960) on 2 cores.
 _CHECK_MS = _Mean(35.0)
+# What the edges (grey conversion, LSD, distance tensor) take per megapixel of frame in this process: a
+# deadline that leaves less than them and one check skips the search. Starts at a paper render's.
+_EDGES_MS_PER_MP = _Mean(12.0)
 EVIDENCE_MS = 10.0  # judging a refined pose again (its evidence only) on a 1280 x 960 frame
 # The search keeps a little more than one check for the first candidate's: its own last unit of work
 # (a polish) overruns by a part of the mean it was judged against.
@@ -161,7 +164,8 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     ``roi_uv``: (N, 2) polygon, pixels: only placements whose object centre projects inside it are
     searched (level A's anchors are restricted to it), and only the edges within the part's largest
     projected radius of its bounding box are used. ``deadline`` / ``reserve_ms``: see ``coarse_search``
-    (no search at all when the edges already used the time).
+    (no search at all when the edges already used the time, and no edges either when the deadline
+    leaves less than they usually take, ``_EDGES_MS_PER_MP``, and ``reserve_ms``).
 
     ``plane``: the supporting plane (camera frame): the search runs over the part's stable resting
     poses x spin about the plane's normal x position on the plane (``estimate/plane.py``) instead of
@@ -175,6 +179,11 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     t0 = time.perf_counter()
     grey = to_grey_u8(image)
     h, w = grey.shape
+    megapixels = h * w / 1e6
+    if not deadline.allows(_EDGES_MS_PER_MP.value * megapixels + reserve_ms):
+        # Not even the edges and one check fit: answer "deadline" now rather than late.
+        empty = np.zeros((0, 2), np.float32)
+        return [], Segments(empty, empty, np.zeros(0, np.float32), (h, w)), {"edges": 0.0, "coarse": 0.0}
     seg = detect_segments(grey)
     if intr.dist is not None:
         # Straighten the edges once; everything after works in the ideal pinhole camera intr.K.
@@ -193,6 +202,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     # Level A's coarse grid is pooled from level B's (coarse_search): one set of distance transforms.
     dtt_b = distance_tensor(seg, n_channels=p.n_channels, scale=p.fine_scale)
     t_edges = _ms(t0)
+    _EDGES_MS_PER_MP.add(t_edges / max(megapixels, 1e-3))
     t1 = time.perf_counter()
     if rest is not None and len(rest):
         # Level B's scans per peak cost little on the plane: every peak is polished.

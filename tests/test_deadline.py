@@ -84,6 +84,19 @@ def test_a_passed_deadline_answers_at_once_and_says_why(bank, image):
     assert out.timing_ms["coarse"] < out.timing_ms["edges"] + 1.0  # no search ran (ms, same clock)
 
 
+def test_a_deadline_shorter_than_the_edges_and_a_check_skips_even_the_edges(bank, image, monkeypatch):
+    # Edges are taken to cost 1 s a megapixel: a 100 ms deadline on a 0.3 MP frame cannot hold them.
+    monkeypatch.setattr(pipeline, "_EDGES_MS_PER_MP", pipeline._Mean(1000.0))
+    out = pipeline.estimate(bank, image, INTR, distance_range_mm=(300.0, 700.0), deadline_ms=100.0)
+    assert out.found is False and out.deadline_reached and out.verdict.reason == "deadline"
+    assert out.timing_ms["edges"] == 0.0 and out.candidates == []
+    # At a millisecond a megapixel (and a check) the same deadline leaves the edges their time.
+    monkeypatch.setattr(pipeline, "_EDGES_MS_PER_MP", pipeline._Mean(1.0))
+    monkeypatch.setattr(pipeline, "_CHECK_MS", pipeline._Mean(1.0))
+    out = pipeline.estimate(bank, image, INTR, distance_range_mm=(300.0, 700.0), deadline_ms=100.0)
+    assert out.timing_ms["edges"] > 0.0
+
+
 def test_a_deadline_that_never_comes_changes_nothing(bank, image):
     free = pipeline.estimate(bank, image, INTR, distance_range_mm=(300.0, 700.0))
     bounded = pipeline.estimate(bank, image, INTR, distance_range_mm=(300.0, 700.0), deadline_ms=NEVER)
