@@ -200,3 +200,16 @@ def test_the_nearest_view_table_agrees_with_a_scan_of_every_view(bank):
     dirs = np.concatenate([dirs, z, -z, np.eye(3), -np.eye(3)])  # the views themselves, the cube's axes
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     np.testing.assert_array_equal(nearest_views(bank, dirs), np.argmax(dirs @ z.T, axis=1))
+
+
+def test_the_block_floor_is_the_least_over_its_reach_and_the_channels_either_side():
+    from service.vision.estimate.chamfer import DistanceTensor
+    from service.vision.estimate.plane import block_floor
+
+    rng = np.random.default_rng(8)
+    dt_q = rng.integers(0, 40, (12, 14, 6)).astype(np.uint8)
+    dtt = DistanceTensor(np.zeros((6, 12, 14), np.float32), 0.125, (0.0, 0.0), 2.0, 0.5)
+    got = block_floor(dt_q, dtt, 16.0)  # 16 full-res px = 2 grid px
+    for y, x, c in [(0, 0, 0), (5, 7, 3), (11, 13, 5), (6, 0, 2), (3, 9, 1)]:
+        win = dt_q[max(y - 2, 0):y + 3, max(x - 2, 0):x + 3][..., [(c - 1) % 6, c, (c + 1) % 6]]
+        assert got[y, x, c] == win.min()

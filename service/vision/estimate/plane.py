@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numba as nb
 import numpy as np
 
@@ -45,6 +46,10 @@ LOCAL_STRIDE_PX = 4  # ... every this many px (the polish moves from there in 2 
 # Level B also scans round a peak the families whose best placement at that anchor cost at most this
 # ratio of the peak's (a part seen from above looks alike on some of its faces).
 FAMILY_RATIO = 1.3
+BLOCK_ANCHORS = 4  # level A first bounds each rotation on blocks of 4 x 4 anchors, placed at their centre
+# ... on a floor reaching this far (full-resolution px): the block's farthest anchor (24 px each way) and
+# what perspective moves a point more than the anchor across a block (a few px on 64 px blocks)
+BLOCK_REACH_PX = 36.0
 LEVEL_A_ROTATIONS_PER_CALL = 8  # rotations level A scores at every anchor per call (less per-call overhead)
 PEAK_RADIUS_DIAMETERS = 0.15  # level-A peaks closer than this many projected diameters are one peak
 MIN_RAY_COS = 0.05  # rays meeting the plane at less than ~3 deg are not searched (the far horizon)
@@ -384,6 +389,8 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
     if A == 0:
         return []
     limit_q = p.accept_frac * tau_qa
+    block_of, block_uv = anchor_blocks(anchors, g)
+    dt_qblock = block_floor(dt_qa, dtt_a, BLOCK_REACH_PX)
     cost = np.full((M, A), np.inf)
     order = coverage_order(hyp.s, len(R_rest_obj))
     deadline.new_loop()
@@ -391,8 +398,10 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
         if not deadline.allows_next(LEVEL_A_RESERVE_FACTOR * reserve_ms):
             break
         ms = order[i:i + LEVEL_A_ROTATIONS_PER_CALL]
+        hopeful = hopeful_blocks(bank, hyp, ms, block_uv, dt_qblock, tau_qa, dtt_a, intr, plane, p, limit_q)
         Rm = np.repeat(hyp.R[ms], A, axis=0)
         t, ok = placements(Rm, np.repeat(hyp.h_mm[ms], A), np.tile(anchors, (len(ms), 1)), bank, intr, plane)
+        ok &= hopeful[:, block_of].ravel()
         if distance_range_mm is not None:
             z = (t + Rm @ bank.centre_obj)[:, 2]
             ok &= (z >= distance_range_mm[0]) & (z <= distance_range_mm[1])
@@ -460,6 +469,45 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
                  reserve_ms=reserve_ms)
     out.sort(key=lambda x: x.cost)
     return out
+
+
+def anchor_blocks(anchors: np.ndarray, g: float) -> tuple[np.ndarray, np.ndarray]:
+    """Anchors (full-resolution uv on a grid ``g`` px apart) grouped in blocks of BLOCK_ANCHORS x
+    BLOCK_ANCHORS grid positions -> ((A,) block of each anchor, (B, 2) uv of each block's centre)."""
+    cell = np.floor(anchors / (g * BLOCK_ANCHORS)).astype(int)
+    keys, block_of = np.unique(cell, axis=0, return_inverse=True)
+    centre = (keys + 0.5) * (g * BLOCK_ANCHORS) - 0.5
+    return block_of.ravel(), centre
+
+
+def block_floor(dt_q: np.ndarray, dtt: DistanceTensor, reach_px: float) -> np.ndarray:
+    """(H, W, C) uint8: the least of ``dt_q`` over the channels either side and a square ``reach_px``
+    (full-resolution) round each pixel: a template placed at a block's centre, scored on this, costs
+    no more than at any anchor of the block whose points lie within that reach of the centre's."""
+    least = np.minimum(dt_q, np.minimum(np.roll(dt_q, 1, axis=2), np.roll(dt_q, -1, axis=2)))
+    k = 2 * int(math.ceil(reach_px * dtt.scale)) + 1
+    kernel = np.ones((k, k), np.uint8)
+    out = np.empty_like(least)
+    for c in range(least.shape[2]):
+        out[..., c] = cv2.erode(np.ascontiguousarray(least[..., c]), kernel, borderType=cv2.BORDER_REPLICATE)
+    return out
+
+
+def hopeful_blocks(bank: TemplateBank, hyp: Hypotheses, ms: np.ndarray, block_uv: np.ndarray,
+                   dt_qblock: np.ndarray, tau_q: int, dtt: DistanceTensor, intr: Intrinsics, plane: Plane,
+                   p: SearchParams, limit_q: float) -> np.ndarray:
+    """(len(ms), B) whether rotation ms[j] placed at block b's centre can score under ``limit_q`` on the
+    block floor (``block_floor``): where it cannot, no anchor of the block need be scored. A centre
+    off the plane or the image bounds nothing (hopeful)."""
+    nb_ = len(block_uv)
+    Rb = np.repeat(hyp.R[ms], nb_, axis=0)
+    t, ok = placements(Rb, np.repeat(hyp.h_mm[ms], nb_), np.tile(block_uv, (len(ms), 1)), bank, intr, plane)
+    hopeful = np.ones(len(Rb), bool)
+    if ok.any():
+        c = score_poses(bank, Rb[ok], t[ok], dt_qblock, tau_q, dtt, intr, p.points_per_template,
+                        limit_q=limit_q)
+        hopeful[ok] = np.isfinite(c)
+    return hopeful.reshape(len(ms), nb_)
 
 
 def coverage_order(family: np.ndarray, n_families: int) -> np.ndarray:
