@@ -43,6 +43,7 @@ PLANE_TOLERANCE_MM = 5.0  # default: a found part's lowest point lies within thi
 PLANE_ANCHOR_STRIDE_PX = 16  # level A: full-resolution px between the anchors
 LOCAL_RADIUS_PX = 16  # level B: full-resolution px searched round a peak (an anchor cell and a half)
 LOCAL_STRIDE_PX = 4  # ... every this many px (the polish moves from there in 2 px steps)
+LEVEL_B_FINE_STEPS = 2  # level B's second scan: this many full-grid steps round its first scan's best
 # Level B also scans round a peak the families whose best placement at that anchor cost at most this
 # ratio of the peak's (a part seen from above looks alike on some of its faces).
 FAMILY_RATIO = 1.3
@@ -429,6 +430,7 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
     du, dv = du[near], dv[near]
     dpsi = np.arange(-p.inplane_step_deg, p.inplane_step_deg + 1e-9, p.local_phi_step_deg)
     dpsi = dpsi[np.argsort(np.abs(dpsi), kind="stable")]
+    stages = _level_b_stages(du, dv, dpsi)
     scanned: list[PlaneHypothesis] = []
     deadline.new_loop()
     for a in peaks:
@@ -441,27 +443,29 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
             if cost[a, mb] <= FAMILY_RATIO * best[a]:
                 s_list.append(s)
                 psi_list.append(hyp.psi_deg[mb])
-        S_, P_, U_ = [], [], []
+        # each family's best: at a peak between two copies another family may win
         for s, psi0 in zip(s_list, psi_list, strict=True):
-            for d in dpsi:
-                S_.append(np.full(len(du), s))
-                P_.append(np.full(len(du), psi0 + d))
-                U_.append(anchors[a] + np.column_stack([du, dv]))
-        s_all, psi_all, uv_all = np.concatenate(S_), np.concatenate(P_), np.concatenate(U_)
-        R, t, ok = _poses(bank, R_rest_obj, plane, intr, s_all, psi_all, uv_all)
-        if not ok.any():
-            continue
-        c = np.full(len(R), np.inf)
-        for s in s_list:  # each family's best: at a peak between two copies another family may win
-            ks = np.flatnonzero(ok & (s_all == s))
-            if len(ks) == 0:
-                continue
-            c[ks] = score_poses(bank, R[ks], t[ks], dt_qb, tau_qb, dtt_b, intr, p.scan_points, best_only=True)
-            k = int(ks[np.argmin(c[ks])])
-            if not np.isfinite(c[k]):
-                continue
-            scanned.append(PlaneHypothesis(int(s_all[k]), float(psi_all[k]), uv_all[k].copy(), R[k], t[k],
-                                           float(c[k]) / DT_QUANT / dtt_b.scale))
+            h = None
+            for ddu, ddv, dps in stages:
+                centre_uv, centre_psi = (anchors[a], psi0) if h is None else (h.uv, h.psi_deg)
+                n = len(ddu) * len(dps)
+                psi_all = np.repeat(centre_psi + dps, len(ddu))
+                uv_all = np.tile(centre_uv + np.column_stack([ddu, ddv]), (len(dps), 1))
+                R, t, ok = _poses(bank, R_rest_obj, plane, intr, np.full(n, s), psi_all, uv_all)
+                if not ok.any():
+                    break
+                c = np.full(n, np.inf)
+                c[ok] = score_poses(bank, R[ok], t[ok], dt_qb, tau_qb, dtt_b, intr, p.scan_points,
+                                    best_only=True)
+                k = int(np.argmin(c))
+                if not np.isfinite(c[k]):
+                    break
+                cost_k = float(c[k]) / DT_QUANT / dtt_b.scale
+                if h is None or cost_k < h.cost:
+                    h = PlaneHypothesis(int(s), float(psi_all[k]), uv_all[k].copy(), R[k], t[k], cost_k)
+            if h is not None and not any(x.s == h.s and x.psi_deg == h.psi_deg and np.array_equal(x.uv, h.uv)
+                                         for x in scanned):  # two peaks' scans can end on one placement
+                scanned.append(h)
     if not scanned:
         return []
     scanned.sort(key=lambda x: x.cost)
@@ -508,6 +512,19 @@ def hopeful_blocks(bank: TemplateBank, hyp: Hypotheses, ms: np.ndarray, block_uv
                         limit_q=limit_q)
         hopeful[ok] = np.isfinite(c)
     return hopeful.reshape(len(ms), nb_)
+
+
+def _level_b_stages(du: np.ndarray, dv: np.ndarray, dpsi: np.ndarray) -> list[tuple]:
+    """Level B's two scans round a peak, as (du, dv, dpsi) offsets: every other offset and spin of the
+    full grid, then the full grid's steps within LEVEL_B_FINE_STEPS of the best of those (a fifth of the
+    placements of scanning the full grid; on bench/plane.py the same recall)."""
+    step_psi = float(np.min(np.abs(dpsi[dpsi != 0]))) if np.any(dpsi != 0) else 1.0
+    even = (np.rint(du / LOCAL_STRIDE_PX) % 2 == 0) & (np.rint(dv / LOCAL_STRIDE_PX) % 2 == 0)
+    coarse = (du[even], dv[even], dpsi[np.rint(dpsi / step_psi) % 2 == 0])
+    reach = LEVEL_B_FINE_STEPS * LOCAL_STRIDE_PX
+    near = (np.abs(du) <= reach) & (np.abs(dv) <= reach)
+    fine = (du[near], dv[near], dpsi[np.abs(dpsi) <= LEVEL_B_FINE_STEPS * step_psi + 1e-9])
+    return [coarse, fine]
 
 
 def coverage_order(family: np.ndarray, n_families: int) -> np.ndarray:
