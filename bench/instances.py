@@ -90,20 +90,22 @@ def roi_of(poses, bank, margin_px: float = 40.0) -> np.ndarray:
     return rect_polygon(lo[0], lo[1], hi[0] - lo[0], hi[1] - lo[1])
 
 
-def judge(instances, truth, pts) -> tuple[int, int]:
-    """(copies matched by some instance at MSPD < RIGHT_MSPD_PX, instances matching none)."""
-    matched = set()
-    wrong = 0
+def nearest_copies(instances, truth, pts) -> list[tuple[int, float]]:
+    """Per found instance: the copy nearest it and their MSPD (px at 640 px width)."""
     scale = 640.0 / SIZE[0]
+    out = []
     for inst in instances:
         pose = inst.refined.pose if inst.refined is not None else inst.coarse.pose
         d = [scale * mspd_px(pose.R, pose.t_mm, g.R, g.t_mm, INTR.K, pts) for g in truth]
         k = int(np.argmin(d))
-        if d[k] < RIGHT_MSPD_PX:
-            matched.add(k)
-        else:
-            wrong += 1
-    return len(matched), wrong
+        out.append((k, d[k]))
+    return out
+
+
+def judge(instances, truth, pts) -> tuple[int, int]:
+    """(copies matched by some instance at MSPD < RIGHT_MSPD_PX, instances matching none)."""
+    near = nearest_copies(instances, truth, pts)
+    return len({k for k, d in near if d < RIGHT_MSPD_PX}), sum(d >= RIGHT_MSPD_PX for _, d in near)
 
 
 def main() -> None:

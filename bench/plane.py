@@ -36,12 +36,11 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.instances import INTR, RIGHT_MSPD_PX, SIZE, part, roi_of  # noqa: E402
+from bench.instances import INTR, RIGHT_MSPD_PX, SIZE, nearest_copies, part, roi_of  # noqa: E402
 from service import pipeline  # noqa: E402
 from service.vision.estimate.plane import Plane  # noqa: E402
 from service.vision.geometry.frames import Pose, Rz  # noqa: E402
 from service.vision.geometry.render import render, render_shaded  # noqa: E402
-from service.vision.reference.metrics import mspd_px  # noqa: E402
 
 RANGE = (300.0, 700.0)
 WRONG_MSPD_PX = 20.0
@@ -136,18 +135,9 @@ def floor(rng: np.random.Generator, R_cw: np.ndarray, t_cw: np.ndarray, textured
 def judge(instances, truth, visible, pts) -> tuple[int, int, int]:
     """(targets, targets matched at MSPD < RIGHT_MSPD_PX, found instances matching no copy)."""
     targets = {k for k, f in enumerate(visible) if f >= MIN_VISIBLE}
-    matched = set()
-    wrong = 0
-    scale = 640.0 / SIZE[0]
-    for inst in instances:
-        pose = inst.refined.pose if inst.refined is not None else inst.coarse.pose
-        d = [scale * mspd_px(pose.R, pose.t_mm, g.R, g.t_mm, INTR.K, pts) for g in truth]
-        k = int(np.argmin(d))
-        if d[k] < RIGHT_MSPD_PX:
-            matched.add(k)
-        elif d[k] >= WRONG_MSPD_PX:
-            wrong += 1
-    return len(targets), len(matched & targets), wrong
+    near = nearest_copies(instances, truth, pts)
+    matched = {k for k, d in near if d < RIGHT_MSPD_PX}
+    return len(targets), len(matched & targets), sum(d >= WRONG_MSPD_PX for _, d in near)
 
 
 def main() -> None:
