@@ -16,7 +16,7 @@ import trimesh
 from service import pipeline
 from service.vision.deadline import Deadline
 from service.vision.estimate import coarse
-from service.vision.estimate.chamfer import distance_tensor
+from service.vision.estimate.chamfer import distance_tensor, pooled_distance_tensor
 from service.vision.estimate.edges import detect_segments, to_grey_u8
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Ry
@@ -97,8 +97,8 @@ def test_a_deadline_that_never_comes_changes_nothing(bank, image):
 def test_level_a_scans_the_anchors_with_most_edges_first(bank, image):
     grey = to_grey_u8(image)
     p = pipeline.SEARCH_PARAMS
-    dtt_a = coarse.pooled_distance_tensor(distance_tensor(detect_segments(grey), n_channels=p.n_channels,
-                                                          scale=p.fine_scale), p.level_scale)
+    dtt_a = pooled_distance_tensor(distance_tensor(detect_segments(grey), n_channels=p.n_channels,
+                                                   scale=p.fine_scale), p.level_scale)
     z_ref, scales = coarse.depth_scales((300.0, 700.0), p.depth_step)
     tpl = coarse.level_a_templates(bank, INTR, grey.shape, p, distance_mm=None, z_ref_mm=z_ref)
     full = coarse.scan_level_a(dtt_a, tpl, scales, grey.shape, p)

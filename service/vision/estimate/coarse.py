@@ -43,7 +43,7 @@ from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.chamfer import (
     DT_QUANT,
     DistanceTensor,
-    pooled_distance_tensor,
+    pooled_and_quantised,
     quantised,
     sample,
 )
@@ -779,7 +779,7 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
     while the ``deadline`` leaves more than ``reserve_ms`` (the caller's time to verify a result); what
     was reached by then is returned, hypotheses left unpolished with their level-B costs."""
     K = intr.K
-    dtt_a = pooled_distance_tensor(dtt_b, p.level_scale)
+    dtt_a, dt_q, tau_q = pooled_and_quantised(dtt_b, p.level_scale, p.rank_tau_px * dtt_b.scale)
     z_ref, scales = (distance_mm, np.array([1.0])) if distance_mm is not None else \
         depth_scales(distance_range_mm, p.depth_step)
     tpl = _cached_level_a(bank, intr, image_shape, p, distance_mm, z_ref)
@@ -798,7 +798,6 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
         starts.append(Hypothesis(view, phi, z, uv))
     if not starts:
         return []
-    dt_q, tau_q = quantised(dtt_b, p.rank_tau_px * dtt_b.scale)
     scanned: list[Hypothesis] = []
     best_q = np.inf
     deadline.new_loop()
