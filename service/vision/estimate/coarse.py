@@ -391,7 +391,8 @@ def _scan_blocks(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, block_star
     ``block_start[b]:block_start[b + 1]`` lie at (block_u[b], block_v[b]) + offsets whose DT3 minimum
     ``pooled`` holds (region origin (pu0, pv0)). Per template, the block's pooled sum over the first
     ``n_sentinel`` points bounds each of its anchors' own sum from below: an anchor whose partial-sum
-    or sentinel test the bound already fails skips the template without reading the tensor. Each
+    or sentinel test the bound already fails skips the template without reading the tensor (the bound's
+    own sum stops once it fails the block's loosest anchor, i.e. every anchor). Each
     anchor still sees the templates in ``_scan``'s order and keeps its own best, so the result is
     exactly ``_scan``'s."""
     A = anchors_u.shape[0]
@@ -413,12 +414,19 @@ def _scan_blocks(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, block_star
         best = np.full(na, accept * P, np.int64)
         bt = np.full(na, -1, np.int32)
         bd = np.full(na, -1, np.int32)
+        bmax = accept * P  # the block's loosest anchor: a bound failing its tests fails every anchor's
         for t in range(T):
             for d in range(D):
                 lo = 0
+                out = False
                 for i in range(n_lb):
                     lo += pooled[block_v[b] + off_v[j, d, t, i] - pv0, block_u[b] + off_u[j, d, t, i] - pu0,
                                  chan[t, i]]
+                    if lo >= bmax or (sentinel and lo * P > bmax * n_sentinel * SENTINEL_RATIO):
+                        out = True
+                        break
+                if out:
+                    continue
                 for k in range(na):
                     if lo >= best[k] or (sentinel and lo * P > best[k] * n_sentinel * SENTINEL_RATIO):
                         continue
@@ -443,6 +451,7 @@ def _scan_blocks(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, block_star
                         best[k] = acc
                         bt[k] = t
                         bd[k] = d
+                        bmax = best.max()
         for k in range(na):
             if bt[k] >= 0:
                 best_cost[a0 + k] = best[k] / P
