@@ -333,7 +333,8 @@ def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, 
                  reserve_ms: float = 0.0):
     """Level A's scan. ``anchor_mask``: (h, w) bool full-resolution, where the reference point may be
     placed (a region of interest): anchors elsewhere are not scanned at all. With a ``deadline`` the
-    anchors are scanned in chunks, those with the most edge pixels round them first, until it leaves
+    anchors are scanned in chunks of whole blocks (``_block_chunks``), the blocks with the most edge
+    pixels round one of their anchors first, until it leaves
     less than ``LEVEL_A_RESERVE_FACTOR`` x ``reserve_ms``; unscanned anchors cost inf (each anchor's
     result does not depend on the others', so a scan that finishes is the unchunked one)."""
     C, hl, wl = dtt.dt.shape
@@ -372,12 +373,13 @@ def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, 
     t = np.full(len(au), -1, np.int32)
     d = np.full(len(au), -1, np.int32)
     deadline.new_loop()
-    order = np.argsort(-count[keep], kind="stable")
-    for chunk in np.array_split(order, max(1, math.ceil(len(order) / LEVEL_A_CHUNK_ANCHORS))):
+    pooled = _level_a_pooled(dt_q, tau_q, off_u, off_v, au, av, p.anchor_stride) if len(au) else None
+    for chunk in _block_chunks(au, av, tile, count[keep], p.anchor_stride):
         if not deadline.allows_next(LEVEL_A_RESERVE_FACTOR * reserve_ms):
             break
         cost[chunk], t[chunk], d[chunk] = _scan_level_a_blocks(
-            dt_q, tau_q, off_u, off_v, tpl.chan, au[chunk], av[chunk], tile[chunk], accept, p.anchor_stride)
+            dt_q, tau_q, off_u, off_v, tpl.chan, au[chunk], av[chunk], tile[chunk], accept, p.anchor_stride,
+            pooled)
     return au, av, tile, cost / DT_QUANT, t, d
 
 
@@ -460,11 +462,12 @@ def _scan_blocks(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, block_star
     return best_cost, best_t, best_d
 
 
-def _scan_level_a_blocks(dt_q, tau_q, off_u, off_v, chan, au, av, tile, accept, stride):
+def _scan_level_a_blocks(dt_q, tau_q, off_u, off_v, chan, au, av, tile, accept, stride, pooled=None):
     """``_scan(dt_q, tau_q, off_u, off_v, chan, au, av, tile, accept, LEVEL_A_SENTINEL_POINTS, False)``
     by ``_scan_blocks``: the anchors (any subset of level A's stride grid) grouped per tile in blocks of
-    LEVEL_A_BLOCK_ANCHORS x LEVEL_A_BLOCK_ANCHORS grid positions. Level A 17 -> 9 ms a paper frame with
-    the distance given, 108 -> 48 without it; the same result."""
+    LEVEL_A_BLOCK_ANCHORS x LEVEL_A_BLOCK_ANCHORS grid positions. Level A 17 -> 6 ms a paper frame with
+    the distance given, 108 -> 37 without it; the same result. ``pooled``: ``_level_a_pooled`` of
+    anchors including these (made here when None)."""
     A = len(au)
     if A == 0:
         return np.full(0, np.inf), np.full(0, -1, np.int32), np.full(0, -1, np.int32)
@@ -477,18 +480,51 @@ def _scan_level_a_blocks(dt_q, tau_q, off_u, off_v, chan, au, av, tile, accept, 
     bt = uniq[:, 0].astype(np.int32)
     bv = (uniq[:, 1] * span).astype(np.int32)
     bu = (uniq[:, 2] * span).astype(np.int32)
-    n = min(LEVEL_A_SENTINEL_POINTS, off_u.shape[3])
-    ou, ov = off_u[..., :n], off_v[..., :n]
-    u0, u1 = int(bu.min()) + int(ou.min()), int(bu.max()) + int(ou.max()) + 1
-    v0, v1 = int(bv.min()) + int(ov.min()), int(bv.max()) + int(ov.max()) + 1
-    pooled = _pooled_region(dt_q, tau_q, u0, v0, u1, v1, stride, LEVEL_A_BLOCK_ANCHORS)
-    c, t, d = _scan_blocks(dt_q, tau_q, off_u, off_v, chan, au[order], av[order], start, bu, bv, bt, pooled,
+    region, u0, v0 = pooled if pooled is not None else _level_a_pooled(dt_q, tau_q, off_u, off_v, au, av,
+                                                                         stride)
+    c, t, d = _scan_blocks(dt_q, tau_q, off_u, off_v, chan, au[order], av[order], start, bu, bv, bt, region,
                            u0, v0, accept, LEVEL_A_SENTINEL_POINTS)
     cost = np.empty(A)
     ti = np.empty(A, np.int32)
     di = np.empty(A, np.int32)
     cost[order], ti[order], di[order] = c, t, d
     return cost, ti, di
+
+
+def _level_a_pooled(dt_q, tau_q, off_u, off_v, au, av, stride):
+    """(pooled, u0, v0): the DT3 min-pooled over a block's anchor offsets (``_pooled_region``) where the
+    first sentinel points of any template can fall from the blocks of anchors ``au``, ``av``."""
+    span = stride * LEVEL_A_BLOCK_ANCHORS
+    bu, bv = (au // span) * span, (av // span) * span
+    n = min(LEVEL_A_SENTINEL_POINTS, off_u.shape[3])
+    ou, ov = off_u[..., :n], off_v[..., :n]
+    u0, u1 = int(bu.min()) + int(ou.min()), int(bu.max()) + int(ou.max()) + 1
+    v0, v1 = int(bv.min()) + int(ov.min()), int(bv.max()) + int(ov.max()) + 1
+    return _pooled_region(dt_q, tau_q, u0, v0, u1, v1, stride, LEVEL_A_BLOCK_ANCHORS), u0, v0
+
+
+def _block_chunks(au, av, tile, count, stride) -> list[np.ndarray]:
+    """Level A's anchors (indices) in chunks of whole blocks (``_scan_level_a_blocks``'s) of at least
+    LEVEL_A_CHUNK_ANCHORS anchors, the blocks with the most edge pixels round an anchor first: chunks of
+    scattered anchors would leave the block bounds one anchor each (a 450 ms deadline made level A
+    22 -> 33 ms a paper frame that way)."""
+    if len(au) == 0:
+        return []
+    span = stride * LEVEL_A_BLOCK_ANCHORS
+    _, block = np.unique(np.stack([tile, av // span, au // span], 1), axis=0, return_inverse=True)
+    block = block.ravel()
+    top = np.zeros(int(block.max()) + 1, count.dtype)
+    np.maximum.at(top, block, count)
+    # blocks by their best anchor's count, then each block's anchors by count: the old per-anchor order
+    # within a block, and the same anchors first at block granularity
+    order = np.lexsort((-count, block, -top[block]))
+    ends = np.flatnonzero(np.diff(block[order])) + 1  # block boundaries in that order
+    chunks, start = [], 0
+    for e in [*ends.tolist(), len(order)]:
+        if e - start >= LEVEL_A_CHUNK_ANCHORS or e == len(order):
+            chunks.append(order[start:e])
+            start = e
+    return chunks
 
 
 _SCALED = Memo(4)
