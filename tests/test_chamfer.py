@@ -2,6 +2,7 @@
 
 import cv2
 import numpy as np
+import pytest
 
 from service.vision.estimate.chamfer import distance_tensor_from_edges, sample, truncated_edt
 from service.vision.reference.integral_dt import integral_dt, line_cost_idt, line_pixels, sample_nearest
@@ -96,3 +97,25 @@ def test_bilinear_sample_is_exact_at_pixel_centres_and_channel_centres():
     np.testing.assert_allclose(sample(dtt, uv, theta),
                                0.5 * (dtt.dt[0, v.ravel(), u.ravel()] + dtt.dt[1, v.ravel(), u.ravel()]),
                                atol=1e-5)
+
+
+@pytest.mark.parametrize("shape", [(16, 48, 64), (4, 50, 67)])
+def test_pooled_and_quantised_equals_the_two_passes(shape):
+    """The one-pass level tensors equal ``pooled_distance_tensor`` and ``quantised`` exactly, also when
+    the image is not a whole number of pooling cells (the leftover rows are quantised, not pooled)."""
+    from service.vision.estimate.chamfer import (
+        DistanceTensor,
+        pooled_and_quantised,
+        pooled_distance_tensor,
+        quantised,
+    )
+
+    rng = np.random.default_rng(5)
+    dtt = DistanceTensor(rng.uniform(0, 10, shape).astype(np.float32), 0.5, (0.0, 0.0), 10.0, 1.0)
+    a, q, tau_q = pooled_and_quantised(dtt, 0.125, 4.0)
+    want_a = pooled_distance_tensor(dtt, 0.125)
+    want_q, want_tau = quantised(dtt, 4.0)
+    np.testing.assert_array_equal(a.dt, want_a.dt)
+    np.testing.assert_array_equal(q, want_q)
+    assert tau_q == want_tau
+    assert (a.scale, a.tau_px, a.lambda_px) == (want_a.scale, want_a.tau_px, want_a.lambda_px)

@@ -3,6 +3,7 @@ without refinement, compare within named tolerances; blank and unrelated images 
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 
@@ -231,6 +232,92 @@ def test_scan_with_a_shared_bound_finds_the_brute_force_best():
         assert cost[a] == pytest.approx(want_cost)
         assert _brute_best(dt, tau_q, off_u[:, :, t[a]:t[a] + 1], off_v[:, :, t[a]:t[a] + 1],
                            chan[t[a]:t[a] + 1], au[a:a + 1], av[a:a + 1])[0] == pytest.approx(want_cost)
+
+
+def _window_case(seed, tau_q=32, T=40, P=24, r=12, stride=2, near_image_edge=False):
+    rng = np.random.default_rng(seed)
+    H, W, C = 60, 70, 4
+    # smooth-ish costs (a real DT3 is 1-Lipschitz) with a few cheap templates, capped at tau_q
+    yy, xx = np.mgrid[0:H, 0:W]
+    dt = np.stack([np.minimum(np.abs(np.sin(0.2 * xx + c) * np.cos(0.15 * yy - c)) * 3 * tau_q, tau_q)
+                   for c in range(C)], -1).astype(np.uint8)
+    off_u = rng.integers(-15, 16, (1, 1, T, P)).astype(np.int16)
+    off_v = rng.integers(-15, 16, (1, 1, T, P)).astype(np.int16)
+    chan = rng.integers(0, C, (T, P)).astype(np.int32)
+    g = np.arange(-r, r + 1, stride)
+    gu, gv = (x.ravel() for x in np.meshgrid(g, g))
+    order = np.argsort(gu ** 2 + gv ** 2, kind="stable")
+    gu, gv = gu[order], gv[order]
+    c0 = (3, 4) if near_image_edge else (W // 2, H // 2)
+    au, av = (c0[0] + gu).astype(np.int32), (c0[1] + gv).astype(np.int32)
+    return dt, tau_q, off_u, off_v, chan, au, av, gu, gv, stride
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("near_image_edge", [False, True])
+def test_window_block_bounds_are_lower_bounds_and_change_no_result(seed, near_image_edge):
+    """Level B's block bounds: for every anchor of a block and template, the bound is at most the
+    anchor's own sum over the first LEVEL_B_SENTINEL_POINTS points (tau_q outside the image), and the
+    bounded scan returns exactly what the unbounded one does, at any accept threshold."""
+    from service.vision.estimate.coarse import LEVEL_B_SENTINEL_POINTS, _scan, _scan_bounded, _window_bounds
+
+    dt, tau_q, off_u, off_v, chan, au, av, gu, gv, stride = _window_case(seed,
+                                                                         near_image_edge=near_image_edge)
+    lower, block = _window_bounds(dt, tau_q, off_u, off_v, chan, au, av, gu, gv, stride)
+    assert len(block) == len(au) and lower.shape[1:] == (1, off_u.shape[2])
+    H, W, _ = dt.shape
+    n = LEVEL_B_SENTINEL_POINTS
+    for a in range(len(au)):
+        y, x = av[a] + off_v[0, 0, :, :n], au[a] + off_u[0, 0, :, :n]
+        inside = (y >= 0) & (y < H) & (x >= 0) & (x < W)
+        own = np.where(inside, dt[np.clip(y, 0, H - 1), np.clip(x, 0, W - 1), chan[:, :n]], tau_q).sum(1)
+        assert np.all(lower[block[a], 0] <= own)
+    assert (lower > 8 * n * 1.2).any()  # the bounds reject some templates at accept 8
+    # One thread: with several, which anchors report inf depends on when each saw the shared bound (for
+    # the bounded and the unbounded scan alike).
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        for accept in (4, 8, 16, tau_q):
+            got = _scan_bounded(dt, tau_q, off_u, off_v, chan, au, av, np.zeros(len(au), np.int32),
+                                np.int64(accept), n, True, lower, block)
+            want = _scan(dt, tau_q, off_u, off_v, chan, au, av, np.zeros(len(au), np.int32), np.int64(accept),
+                         n, True)
+            for g_, w_ in zip(got, want, strict=True):
+                np.testing.assert_array_equal(g_, w_)
+    finally:
+        numba.set_num_threads(threads)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_level_a_block_scan_equals_the_anchor_scan(seed):
+    """Level A's blocked scan (tiles, several scales, any subset of the stride grid, anchors near and past
+    the image border) returns exactly ``_scan``'s per-anchor best."""
+    from service.vision.estimate.coarse import LEVEL_A_SENTINEL_POINTS, _scan, _scan_level_a_blocks
+
+    rng = np.random.default_rng(seed)
+    H, W, C, J, D, T, P, stride = 40, 56, 4, 2, 3, 30, 32, 2
+    tau_q = 32
+    yy, xx = np.mgrid[0:H, 0:W]
+    dt = np.stack([np.minimum(np.abs(np.sin(0.3 * xx + c) * np.cos(0.25 * yy - c)) * 3 * tau_q, tau_q)
+                   for c in range(C)], -1).astype(np.uint8)
+    off_u = rng.integers(-10, 11, (J, D, T, P)).astype(np.int16)
+    off_v = rng.integers(-10, 11, (J, D, T, P)).astype(np.int16)
+    chan = rng.integers(0, C, (T, P)).astype(np.int32)
+    grid = np.meshgrid(np.arange(0, W, stride), np.arange(0, H, stride))
+    au, av = (x.ravel().astype(np.int32) for x in grid)
+    keep = rng.random(len(au)) < 0.7
+    au, av = au[keep], av[keep]
+    tile = (au >= W // 2).astype(np.int32)
+    found = []
+    for accept in (6, 12, tau_q // 2, tau_q):
+        got = _scan_level_a_blocks(dt, tau_q, off_u, off_v, chan, au, av, tile, np.int64(accept), stride)
+        want = _scan(dt, tau_q, off_u, off_v, chan, au, av, tile, np.int64(accept), LEVEL_A_SENTINEL_POINTS,
+                     False)
+        for g_, w_ in zip(got, want, strict=True):
+            np.testing.assert_array_equal(g_, w_)
+        found.append(np.isfinite(want[0]).mean())
+    assert 0 < found[-1] <= 1 and found[0] < 1
 
 
 def test_views_within_adds_a_revolved_parts_mirror_tilt(sprayer_bank):

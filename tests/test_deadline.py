@@ -16,7 +16,7 @@ import trimesh
 from service import pipeline
 from service.vision.deadline import Deadline
 from service.vision.estimate import coarse
-from service.vision.estimate.chamfer import distance_tensor
+from service.vision.estimate.chamfer import distance_tensor, pooled_distance_tensor
 from service.vision.estimate.edges import detect_segments, to_grey_u8
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Ry
@@ -110,8 +110,8 @@ def test_a_deadline_that_never_comes_changes_nothing(bank, image):
 def test_level_a_scans_the_anchors_with_most_edges_first(bank, image):
     grey = to_grey_u8(image)
     p = pipeline.SEARCH_PARAMS
-    dtt_a = coarse.pooled_distance_tensor(distance_tensor(detect_segments(grey), n_channels=p.n_channels,
-                                                          scale=p.fine_scale), p.level_scale)
+    dtt_a = pooled_distance_tensor(distance_tensor(detect_segments(grey), n_channels=p.n_channels,
+                                                   scale=p.fine_scale), p.level_scale)
     z_ref, scales = coarse.depth_scales((300.0, 700.0), p.depth_step)
     tpl = coarse.level_a_templates(bank, INTR, grey.shape, p, distance_mm=None, z_ref_mm=z_ref)
     full = coarse.scan_level_a(dtt_a, tpl, scales, grey.shape, p)
@@ -124,20 +124,21 @@ def test_level_a_scans_the_anchors_with_most_edges_first(bank, image):
     part = coarse.scan_level_a(dtt_a, tpl, scales, grey.shape, p,
                                deadline=Deadline(45.0, clock=TickingClock(0.010)))
     np.testing.assert_array_equal(part[0], full[0])
-    # The chunks, recounted here: anchors ordered by the edge pixels round them, most first.
+    # The chunks, recounted here: whole blocks of anchors, ordered by the most edge pixels round one of
+    # their anchors, most first.
     edges = (dtt_a.dt.min(axis=0) < coarse.EDGE_PIXEL_DT_PX).astype(np.int32)
     r = max(int(tpl.extent_px * float(scales.min()) * coarse.EDGE_COUNT_EXTENT), 1)
     counts = np.array([edges[max(v - r, 0):v + r + 1, max(u - r, 0):u + r + 1].sum()
                        for u, v in zip(part[0], part[1], strict=True)])
-    chunks = np.array_split(np.argsort(-counts, kind="stable"),
-                            int(np.ceil(len(counts) / coarse.LEVEL_A_CHUNK_ANCHORS)))
-    assert len(chunks) > 1
+    chunks = coarse._block_chunks(part[0], part[1], part[2], counts, p.anchor_stride)
+    assert len(chunks) > 1 and len(chunks[0]) >= coarse.LEVEL_A_CHUNK_ANCHORS
+    assert counts[chunks[0]].max() == counts.max()
     first = chunks[0]
     rest = np.concatenate(chunks[1:])
     np.testing.assert_array_equal(part[3][first], full[3][first])
     np.testing.assert_array_equal(part[4][first], full[4][first])
     assert np.all(np.isinf(part[3][rest])) and np.all(part[4][rest] == -1)
-    assert np.isfinite(full[3][rest]).any()  # the cut-off lost something the full scan found
+    assert len(rest) > 0  # the cut-off left anchors unscanned
 
 
 def test_api_deadline_option(tmp_path, sprayer_bytes, frame):

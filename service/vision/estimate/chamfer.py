@@ -262,10 +262,47 @@ def _quantise_hwc(dt, factor, tau_q):  # numpy's transposed copy alone took 13 m
     C, H, W = dt.shape
     out = np.empty((H, W, C), np.uint8)
     for y in nb.prange(H):
-        for x in range(W):
-            for c in range(C):
+        for c in range(C):  # rows read in order, the (W, C) output row stays in cache: 5.5 -> 4 ms
+            for x in range(W):
                 out[y, x, c] = np.uint8(min(dt[c, y, x] * factor, tau_q) + np.float32(0.5))
     return out
+
+
+def pooled_and_quantised(dtt: DistanceTensor, scale: float, tau_px: float
+                         ) -> tuple[DistanceTensor, np.ndarray, int]:
+    """``pooled_distance_tensor(dtt, scale)`` and ``quantised(dtt, tau_px)`` in one pass over ``dtt``
+    (the same arrays; the level-B tensor is read once instead of twice: 7 -> 5 ms at 640 x 480 x 16)."""
+    f = int(round(dtt.scale / scale))
+    if f <= 1:
+        return dtt, *quantised(dtt, tau_px)
+    tau_q = min(int(round(min(tau_px, dtt.tau_px) * DT_QUANT)), 255)
+    pooled, q = _pool_quantise(dtt.dt, f, np.float32(DT_QUANT), np.float32(tau_q))
+    return DistanceTensor(pooled, scale, dtt.origin_uv, dtt.tau_px / f, dtt.lambda_px / f), q, tau_q
+
+
+@nb.njit(parallel=True, cache=True)
+def _pool_quantise(dt, f, factor, tau_q):
+    """``_min_pool(dt, f)`` and ``_quantise_hwc(dt, factor, tau_q)`` together, band of f rows by band."""
+    C, H, W = dt.shape
+    hh, ww = H // f, W // f
+    pooled = np.empty((C, hh, ww), np.float32)
+    out = np.empty((H, W, C), np.uint8)
+    n_bands = (H + f - 1) // f
+    for b in nb.prange(n_bands):
+        y0 = b * f
+        y1 = min(H, y0 + f)
+        for c in range(C):
+            if b < hh:
+                for xb in range(ww):
+                    m = dt[c, y0, xb * f]
+                    for i in range(f):
+                        for j in range(f):
+                            m = min(m, dt[c, y0 + i, xb * f + j])
+                    pooled[c, b, xb] = m / f
+            for y in range(y0, y1):
+                for x in range(W):
+                    out[y, x, c] = np.uint8(min(dt[c, y, x] * factor, tau_q) + np.float32(0.5))
+    return pooled, out
 
 
 # --- DT3 from segments, exact in a band -------------------------------------------------------

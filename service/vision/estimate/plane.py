@@ -33,7 +33,7 @@ import numpy as np
 
 from service.vision.bank import TemplateBank, border_triplets, spread_order, view_dirs_obj
 from service.vision.deadline import NO_DEADLINE, Deadline
-from service.vision.estimate.chamfer import DT_QUANT, DistanceTensor, pooled_distance_tensor, quantised
+from service.vision.estimate.chamfer import DT_QUANT, DistanceTensor, pooled_and_quantised, quantised
 from service.vision.estimate.coarse import LEVEL_A_RESERVE_FACTOR, SearchParams, evaluate, pick_peaks
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, R_align_axis_to_y, Rz
@@ -376,7 +376,7 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
     if len(R_rest_obj) == 0:
         return []
     # --- level A: families x spins x anchors on the pooled tensor -------------------------------------
-    dtt_a = pooled_distance_tensor(dtt_b, p.level_scale)
+    dtt_a, dt_qb, tau_qb = pooled_and_quantised(dtt_b, p.level_scale, p.rank_tau_px * dtt_b.scale)
     dt_qa, tau_qa = quantised(dtt_a, dtt_a.tau_px)
     hyp = rotations(bank, R_rest_obj, plane, p.inplane_step_deg)
     g = PLANE_ANCHOR_STRIDE_PX
@@ -423,7 +423,6 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
     radius = max(PEAK_RADIUS_DIAMETERS * bank.diameter_mm * intr.fx / max(z_mid, 1.0), g * 0.75)
     peaks = pick_peaks(anchors[:, 0], anchors[:, 1], best, p.n_peaks, radius)
     # --- level B: round each peak on the fine tensor ---------------------------------------------------
-    dt_qb, tau_qb = quantised(dtt_b, p.rank_tau_px * dtt_b.scale)
     offs = np.arange(-LOCAL_RADIUS_PX, LOCAL_RADIUS_PX + 1e-9, LOCAL_STRIDE_PX)
     du, dv = (x.ravel() for x in np.meshgrid(offs, offs))
     near = np.argsort(du**2 + dv**2, kind="stable")  # near the peak first: a tight bound early

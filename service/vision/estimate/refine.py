@@ -14,11 +14,11 @@ The paper refines with Levenberg-Marquardt on matched point pairs kept under a m
   line of the nearest LSD segment of matching orientation, matched afresh every outer iteration
   (point-to-line ICP). LSD endpoints are sub-pixel, so this is free of the DT's pixel
   quantisation; ``bench/refine_from_gt.py`` measures both;
-- ``scipy.optimize.least_squares`` (trust region) over 6 DoF: a rotation increment (3-vector in the
-  camera frame, exact SO(3) Jacobian) about the model's centre and the centre's translation in mm;
-  for a part with continuous rotational symmetry the increment is perpendicular to the axis (the
-  spin is unobservable) and the result is reported for the canonical spin; with ``distance_mm``
-  the object origin's camera z is held at that value;
+- robust least squares (``lsq.least_squares``: scipy's "trf" trust region, without its wrapper) over
+  6 DoF: a rotation increment (3-vector in the camera frame, exact SO(3) Jacobian) about the model's
+  centre and the centre's translation in mm; for a part with continuous rotational symmetry the
+  increment is perpendicular to the axis (the spin is unobservable) and the result is reported for
+  the canonical spin; with ``distance_mm`` the object origin's camera z is held at that value;
 - robust loss (``soft_l1`` default, ``huber``, ``linear``) or the paper's eq. 18 median threshold
   (``loss="median"``, for comparison);
 - the border is re-extracted when the pose has moved more than ~2 px / 1 deg from where it was
@@ -37,13 +37,13 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from service.vision import threads
 from service.vision.bank import TemplateBank
 from service.vision.estimate.chamfer import DistanceTensor, sample_with_grad, segment_distance_tensor
 from service.vision.estimate.edges import Segments, detect_segments, undistort_segments
 from service.vision.estimate.interior import unexplained_edge_ratio
+from service.vision.estimate.lsq import LsqResult, least_squares
 from service.vision.geometry.camera import Intrinsics, project_distorted
 from service.vision.geometry.frames import Pose, canonical_spin, rotation_angle_deg
 from service.vision.geometry.silhouette import Border, border_with_tangents
@@ -106,24 +106,25 @@ def border_points(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, 
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (..., 3, 3) cross-product matrices."""
-    v = np.asarray(v, float)
-    z = np.zeros(v.shape[:-1])
-    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
-                     np.stack([v[..., 2], z, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+    """(3,) -> (3, 3) cross-product matrix."""
+    x, y, z = (float(c) for c in v)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+_I3 = np.eye(3)
 
 
 def _exp_so3(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rotation exp([w]x) and the left Jacobian J_l(w) (d exp(w) v = -[exp(w) v]x J_l dw)."""
     th = float(np.linalg.norm(w))
     W = _skew(w)
+    WW = W @ W
     if th < 1e-8:
-        return np.eye(3) + W + 0.5 * W @ W, np.eye(3) + 0.5 * W + W @ W / 6.0
+        return _I3 + W + 0.5 * WW, _I3 + 0.5 * W + WW / 6.0
     a = math.sin(th) / th
     b = (1 - math.cos(th)) / th ** 2
     c = (th - math.sin(th)) / th ** 3
-    return np.eye(3) + a * W + b * W @ W, np.eye(3) + b * W + c * W @ W
+    return _I3 + a * W + b * WW, _I3 + b * W + c * WW
 
 
 class PoseParams:
@@ -361,22 +362,12 @@ def verify(border: Border, pose: Pose, intr: Intrinsics, dtt: DistanceTensor, *,
     return float(ok.mean()), cost, float(np.minimum(r, score_px).mean())
 
 
-def _solve(fun_jac, params: PoseParams, loss: str, f_scale: float, max_nfev: int, tol: float):
-    cache: dict = {}
-
-    def get(x):
-        key = x.tobytes()
-        if key not in cache:
-            cache.clear()
-            cache[key] = fun_jac(x)
-        return cache[key]
-
+def _solve(fun_jac, params: PoseParams, loss: str, f_scale: float, max_nfev: int, tol: float) -> LsqResult:
     # Parameters scaled so that a unit step moves the model by ~1 px-ish amounts alike:
     # 0.01 rad about the centre and 1 mm.
     x_scale = np.r_[np.full(params.nr, 0.01), np.ones(params.n - params.nr)]
-    return least_squares(lambda x: get(x)[0], np.zeros(params.n), jac=lambda x: get(x)[1], method="trf",
-                         loss=loss, f_scale=f_scale, max_nfev=max_nfev, x_scale=x_scale,
-                         xtol=tol, ftol=tol, gtol=1e-8)
+    return least_squares(fun_jac, np.zeros(params.n), x_scale=x_scale, loss=loss, f_scale=f_scale,
+                         max_nfev=max_nfev, xtol=tol, ftol=tol, gtol=1e-8)
 
 
 def _dt_stage(border, pose, bank, distance_mm, ideal, dtt, loss, f_scale, max_iter):
