@@ -188,19 +188,20 @@ def _camera_text(arg: str) -> str:
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:
-    from service.cell_io import check_robot_pose, estimate_result, grasps_of, resolve_camera
-    from service.schemas import Options, parse_json_object, parse_json_part
+    from service.cell_io import check_robot_pose, estimate_options, estimate_result, grasps_of, resolve_camera
+    from service.schemas import parse_json_object
     from service.store import Store
 
     settings = _settings(args)
     camera_text = _camera_text(args.camera)
     parse_json_object(camera_text, "camera")  # bad JSON fails before any file is read
-    opts = parse_json_part(args.options, Options, "options")
+    parse_json_object(args.options, "options")
     image = _existing(args.image, "image", "give a PNG, JPEG, BMP or TIFF file")
-    if args.overlay_out:
-        opts.overlay = True
     with Store(settings.store_location) as store:
         cam, camera_name = resolve_camera(camera_text, store)  # inline, or a camera registered in the cache
+        opts = estimate_options(args.options, cam, camera_name, store)  # its plane as the default
+        if args.overlay_out:
+            opts.overlay = True
         check_robot_pose(cam, opts, camera_name)
         record = _ensure_built(args, settings, store)
         bank = store.ready_bank(record)  # 409 with the reason if the build failed

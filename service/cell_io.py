@@ -25,6 +25,7 @@ from service.schemas import (
     PlacedGraspJSON,
     parse_json_object,
     parse_json_part,
+    validate_part,
 )
 from service.vision.bank import TemplateBank
 
@@ -48,6 +49,26 @@ def resolve_camera(text: str | None, store) -> tuple[CellCamera, str | None]:
                                  "intrinsics inline")
     fields = {k: v for k, v in record.items() if k in CellCamera.model_fields}
     return CellCamera.model_validate(fields), ref.name
+
+
+def estimate_options(text: str | None, cam: CellCamera, camera_name: str | None, store) -> Options:
+    """An estimate's ``options`` part -> Options, with a registered fixed camera's plane as the default
+    ``plane``: it applies when the options name neither ``plane`` (``"plane": null`` opts out) nor
+    ``distance_mm`` (which a plane excludes). An eye-in-hand camera's plane moves with the flange, so
+    it is never a default."""
+    value = parse_json_object(text, "options")
+    plane = registered_plane(cam, camera_name, store)
+    if plane is not None and "plane" not in value and value.get("distance_mm") is None:
+        value = {**value, "plane": plane}
+    return validate_part(value, Options, "options")
+
+
+def registered_plane(cam: CellCamera, camera_name: str | None, store) -> dict[str, Any] | None:
+    """The plane registered with a fixed camera (``{"normal", "d_mm"}``), else None."""
+    if camera_name is None or cam.T_flange_cam is not None:
+        return None
+    record = store.camera(camera_name)
+    return None if record is None else record.get("plane")
 
 
 def check_robot_pose(cam: CellCamera, opts: Options, name: str | None) -> None:

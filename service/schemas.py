@@ -399,8 +399,13 @@ def parse_json_object(text: str | None, what: str) -> dict[str, Any]:
 
 def parse_json_part(text: str | None, model: type[M], what: str) -> M:
     """A form part holding JSON -> the wire model; 422 with one sentence naming the first problem."""
+    return validate_part(parse_json_object(text, what), model, what)
+
+
+def validate_part(value: dict[str, Any], model: type[M], what: str) -> M:
+    """A form part's parsed JSON object -> the wire model; 422 with one sentence naming the first problem."""
     try:
-        return model.model_validate(parse_json_object(text, what))
+        return model.model_validate(value)
     except ValidationError as e:
         raise UnprocessableError(validation_sentence(e.errors(), what=what)) from e
 
@@ -489,8 +494,9 @@ class CameraSpec(CellCamera):
 
     width: int = Field(gt=0, description="image width the camera sends, pixels")
     height: int = Field(gt=0, description="image height the camera sends, pixels")
-    plane: Plane | None = Field(None, description="default supporting plane, camera frame (stored and "
-                                "returned; not used by the estimate yet)")
+    plane: Plane | None = Field(None, description="default supporting plane, camera frame: an estimate with "
+                                "this camera that sends neither options.plane nor options.distance_mm "
+                                "searches on it (a fixed camera only; not for T_flange_cam)")
 
 
 class CameraInfo(CameraSpec):

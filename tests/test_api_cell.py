@@ -172,6 +172,46 @@ def test_camera_crud_and_plane(client):
     assert r.status_code == 404 and "No camera is registered as 'tmp.cam-1'" in r.json()["detail"]
 
 
+def post_estimate(client, image: bytes, camera: dict, options: dict):
+    """An estimate with exactly these options (``estimate`` above always adds the distance)."""
+    data = {"camera": json.dumps(camera), "options": json.dumps(options)}
+    return client.post(f"/models/{client.model_id}/estimate", files={"image": ("scene.png", image)},
+                       data=data)
+
+
+def test_a_fixed_cameras_registered_plane_is_the_default_plane(client, scene):
+    """Known answer: a plane 1000 mm away (facing the camera) with the part floating at 450 mm: searched
+    on that plane, nothing rests on it, so nothing is found; opting out (``"plane": null``) or giving the
+    distance (which a plane excludes) searches freely and finds the part at its true pose."""
+    far_plane = {"normal": [0.0, 0.0, -1.0], "d_mm": -1000.0}
+    r = client.put("/cameras/table-cam", json={**INTRINSICS, "width": W, "height": H,
+                                               "T_base_cam": transform(T_BASE_CAM), "plane": far_plane})
+    assert r.status_code in (200, 201), r.text
+    cam = {"name": "table-cam"}
+    r = post_estimate(client, scene, cam, {"sort": "height"})  # 'height' needs a plane: the camera's
+    assert r.status_code == 200, r.text
+    assert r.json()["found"] is False
+    for options in ({"plane": None, "distance_range_mm": [440.0, 460.0]}, {"distance_mm": DISTANCE_MM}):
+        res = post_estimate(client, scene, cam, options).json()
+        assert res["found"] is True, (options, res["verdict"])
+        assert "plane_gap_mm" not in res["verdict"]["evidence"]
+        assert_pose_near(res["refined"], T_CAM_OBJ)
+    r = post_estimate(client, scene, INTRINSICS, {"sort": "height"})  # inline camera: no plane to sort by
+    assert r.status_code == 422 and "send options.plane" in r.json()["detail"]
+
+
+def test_an_eye_in_hand_cameras_plane_is_not_a_default(client, scene):
+    """The flange moves the camera over the surface, so a plane registered in its frame is not used."""
+    far_plane = {"normal": [0.0, 0.0, -1.0], "d_mm": -1000.0}
+    r = client.put("/cameras/wrist-plane", json={**INTRINSICS, "width": W, "height": H,
+                                                 "T_flange_cam": transform(T_FLANGE_CAM), "plane": far_plane})
+    assert r.status_code in (200, 201), r.text
+    res = post_estimate(client, scene, {"name": "wrist-plane"},
+                        {"distance_range_mm": [440.0, 460.0], "robot_pose": transform(T_BASE_FLANGE)}).json()
+    assert res["found"] is True and "plane_gap_mm" not in res["verdict"]["evidence"]
+    assert_pose_near(res["refined"], T_CAM_OBJ)
+
+
 def test_grasps_round_trip_and_duplicate_names(client):
     got = client.get(f"/models/{client.model_id}/grasps").json()
     assert [g["name"] for g in got] == [g["name"] for g in GRASPS]

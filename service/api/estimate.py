@@ -11,8 +11,8 @@ from service import monitoring
 from service.api import error_responses
 from service.api.deps import Loaded, ReadyModel, SettingsDep, StoreDep, read_upload
 from service.cell import Grasp
-from service.cell_io import check_robot_pose, estimate_result, grasps_of, resolve_camera
-from service.schemas import Camera, EstimateResult, Options, parse_json_part
+from service.cell_io import check_robot_pose, estimate_options, estimate_result, grasps_of, resolve_camera
+from service.schemas import Camera, EstimateResult, Options
 from service.settings import Settings
 
 router = APIRouter(tags=["estimate"])
@@ -44,7 +44,7 @@ async def estimate(
     """Estimate the pose ``T_cam_obj`` of the model in the image."""
     data = await read_upload(image, settings.max_image_bytes, "image file", "POSE_MAX_IMAGE_BYTES")
     cam, camera_name = resolve_camera(camera, store)
-    opts = parse_json_part(options, Options, "options")
+    opts = estimate_options(options, cam, camera_name, store)
     check_robot_pose(cam, opts, camera_name)
     grasps = grasps_of(store.grasps(model.id))
     result = await run_in_threadpool(run_estimate, model, data, cam, opts, settings, camera_name=camera_name,
