@@ -213,3 +213,26 @@ def test_the_block_floor_is_the_least_over_its_reach_and_the_channels_either_sid
     for y, x, c in [(0, 0, 0), (5, 7, 3), (11, 13, 5), (6, 0, 2), (3, 9, 1)]:
         win = dt_q[max(y - 2, 0):y + 3, max(x - 2, 0):x + 3][..., [(c - 1) % 6, c, (c + 1) % 6]]
         assert got[y, x, c] == win.min()
+
+
+@pytest.mark.parametrize("n_ch", [16, 12, 8, 1])
+def test_the_channel_by_bisection_is_the_rounded_atan2_modulo_pi(n_ch):
+    import math
+
+    from service.vision.estimate.plane import _bin_edges, _channel
+
+    def rounded(x, y):
+        th = math.atan2(y, x)
+        return int((th + math.pi if th < 0.0 else th) * n_ch / math.pi + 0.5) % n_ch
+
+    rng = np.random.default_rng(n_ch)
+    xy = rng.normal(size=(20000, 2)) * 10.0 ** rng.uniform(-3, 3, (20000, 1))
+    axes = [(1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0), (-1.0, -0.0), (1.0, -0.0), (0.0, 0.0)]
+    cos_b, sin_b = _bin_edges(n_ch)
+    for x, y in [*xy, *axes]:
+        assert _channel(x, y, cos_b, sin_b) == rounded(x, y), (x, y)
+    # on a channel edge itself (to rounding) either side is the rounded atan2
+    for k in range(n_ch):
+        for s in (1.0, -1.0):
+            got = _channel(s * cos_b[k], s * sin_b[k], cos_b, sin_b)
+            assert got in ((k + 1) % n_ch, k), (k, s)

@@ -165,6 +165,30 @@ def scoring_poses(bank: TemplateBank, R: np.ndarray, t: np.ndarray
     return views, R2, t + R @ p_s - R2 @ p_s
 
 
+@nb.njit(cache=True)
+def _bin_edges(n_ch):
+    """cos and sin of the orientation channels' upper edges (k + 1/2) pi / n_ch, k = 0 .. n_ch - 1."""
+    b = (np.arange(n_ch) + 0.5) * (math.pi / n_ch)
+    return np.cos(b), np.sin(b)
+
+
+@nb.njit(inline="always")
+def _channel(x, y, cos_b, sin_b):
+    """The orientation channel of the direction (x, y): int(th n / pi + 1/2) mod n for th its angle
+    modulo pi (atan2), as the number of channel edges at or below th, found by bisection on the sign
+    of y cos(b) - x sin(b) (th >= b for th, b in [0, pi]) instead of an atan2."""
+    if y < 0.0:
+        x, y = -x, -y
+    lo, hi = 0, cos_b.shape[0]  # edges [0, lo) are at or below th, [hi, n) above it
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if y * cos_b[mid] - x * sin_b[mid] >= 0.0:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo if lo < cos_b.shape[0] else 0
+
+
 @nb.njit(parallel=True, cache=True)
 def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t, n_ch, limit, shared):
     """Mean quantised DT3 (1/DT_QUANT grid px, nearest pixel) of M posed templates: view ``views[m]``'s
@@ -181,7 +205,7 @@ def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t
     H, W = dt_q.shape[0], dt_q.shape[1]
     out = np.full(M, np.inf)
     bound = np.full(1, limit * P)
-    bins_per_rad = n_ch / math.pi
+    cos_b, sin_b = _bin_edges(n_ch)
     for m in nb.prange(M):
         n = views[m]
         acc = 0.0
@@ -204,12 +228,7 @@ def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t
                 dX = r00 * d0 + r01 * d1 + r02 * d2
                 dY = r10 * d0 + r11 * d1 + r12 * d2
                 dZ = r20 * d0 + r21 * d1 + r22 * d2
-                th = math.atan2(fy * (dY * Z - Y * dZ), fx * (dX * Z - X * dZ))
-                if th < 0.0:  # the orientation modulo pi, without float modulo's cost
-                    th += math.pi
-                c = int(th * bins_per_rad + 0.5)
-                if c >= n_ch:
-                    c -= n_ch
+                c = _channel(fx * (dX * Z - X * dZ), fy * (dY * Z - Y * dZ), cos_b, sin_b)
                 acc += dt_q[y, x, c]
             if acc >= bound[0]:
                 ok = False
