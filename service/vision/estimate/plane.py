@@ -43,6 +43,7 @@ PLANE_TOLERANCE_MM = 5.0  # default: a found part's lowest point lies within thi
 PLANE_ANCHOR_STRIDE_PX = 16  # level A: full-resolution px between the anchors
 LOCAL_RADIUS_PX = 16  # level B: full-resolution px searched round a peak (an anchor cell and a half)
 LOCAL_STRIDE_PX = 4  # ... every this many px (the polish moves from there in 2 px steps)
+LEVEL_B_PEAKS_PER_CALL = 8  # level B scores the scans round this many peaks in one call (a deadline unit)
 LEVEL_B_FINE_STEPS = 2  # level B's second scan: this many full-grid steps round its first scan's best
 # Level B also scans round a peak the families whose best placement at that anchor cost at most this
 # ratio of the peak's (a part seen from above looks alike on some of its faces).
@@ -190,7 +191,8 @@ def _channel(x, y, cos_b, sin_b):
 
 
 @nb.njit(parallel=True, cache=True)
-def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t, n_ch, limit, shared):
+def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t, n_ch, limit, shared, group,
+           n_groups):
     """Mean quantised DT3 (1/DT_QUANT grid px, nearest pixel) of M posed templates: view ``views[m]``'s
     points (N, P, 3) posed by ``R[m]``, ``t[m]``, each with the direction ``d_obj`` (N, P, 3) of the
     border through it (successor minus predecessor): its projected orientation is the derivative of
@@ -199,15 +201,18 @@ def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t
 
     A template is abandoned (inf) once its partial sum reaches ``limit`` x P (all terms are >= 0); with
     ``shared`` the limit drops to the best total reached so far (only the best matters: threads read it
-    unsynchronised, and a stale, higher limit only prunes less)."""
+    unsynchronised, and a stale, higher limit only prunes less). ``group`` (M,) int64 in [0, n_groups) (or
+    empty: one group): each group has its own best, as if scored by a call of its own."""
     M = views.shape[0]
     P = p_mid.shape[1]
     H, W = dt_q.shape[0], dt_q.shape[1]
     out = np.full(M, np.inf)
-    bound = np.full(1, limit * P)
+    bound = np.full(max(n_groups, 1), limit * P)
+    grouped = group.shape[0] > 0
     cos_b, sin_b = _bin_edges(n_ch)
     for m in nb.prange(M):
         n = views[m]
+        gi = group[m] if grouped else 0
         acc = 0.0
         ok = True
         r00, r01, r02 = R[m, 0, 0], R[m, 0, 1], R[m, 0, 2]
@@ -230,13 +235,13 @@ def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t
                 dZ = r20 * d0 + r21 * d1 + r22 * d2
                 c = _channel(fx * (dX * Z - X * dZ), fy * (dY * Z - Y * dZ), cos_b, sin_b)
                 acc += dt_q[y, x, c]
-            if acc >= bound[0]:
+            if acc >= bound[gi]:
                 ok = False
                 break
         if ok:
             out[m] = acc / P
-            if shared and acc < bound[0]:
-                bound[0] = acc
+            if shared and acc < bound[gi]:
+                bound[gi] = acc
     return out
 
 
@@ -341,16 +346,22 @@ _POINTS = Memo(8)
 
 def score_poses(bank: TemplateBank, R: np.ndarray, t: np.ndarray, dt_q: np.ndarray, tau_q: int,
                 dtt: DistanceTensor, intr: Intrinsics, n_points: int, *, limit_q: float = np.inf,
-                best_only: bool = False) -> np.ndarray:
+                best_only: bool = False, group: np.ndarray | None = None) -> np.ndarray:
     """(M,) mean directional chamfer cost of M poses, px of ``dtt``'s grid x DT_QUANT (nearest pixel);
-    inf where it reaches ``limit_q`` (and, with ``best_only``, where it cannot beat the best)."""
+    inf where it reaches ``limit_q`` (and, with ``best_only``, where it cannot beat the best; of its
+    ``group`` (M,) int >= 0, if given)."""
     if len(R) == 0:
         return np.zeros(0)
     views, R2, t2 = scoring_poses(bank, R, t)
     mid, direction = _points(bank, n_points)
     return _score(dt_q, tau_q, dtt.scale, dtt.origin_uv[0], dtt.origin_uv[1], intr.fx, intr.fy, intr.cx,
                   intr.cy, mid, direction, views.astype(np.int64), np.ascontiguousarray(R2),
-                  np.ascontiguousarray(t2), dtt.n_channels, float(limit_q), best_only)
+                  np.ascontiguousarray(t2), dtt.n_channels, float(limit_q), best_only,
+                  _NO_GROUP if group is None else np.ascontiguousarray(group, np.int64),
+                  0 if group is None or len(group) == 0 else int(np.max(group)) + 1)
+
+
+_NO_GROUP = np.zeros(0, np.int64)
 
 
 @dataclass
@@ -451,36 +462,19 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
     stages = _level_b_stages(du, dv, dpsi)
     scanned: list[PlaneHypothesis] = []
     deadline.new_loop()
-    for a in peaks:
+    for i in range(0, len(peaks), LEVEL_B_PEAKS_PER_CALL):
         if not deadline.allows_next(reserve_ms):
             break
-        s_list, psi_list = [], []
-        for s in range(len(R_rest_obj)):
-            ms = np.flatnonzero(hyp.s == s)
-            mb = ms[np.argmin(cost[a, ms])]
-            if cost[a, mb] <= FAMILY_RATIO * best[a]:
-                s_list.append(s)
-                psi_list.append(hyp.psi_deg[mb])
-        # each family's best: at a peak between two copies another family may win
-        for s, psi0 in zip(s_list, psi_list, strict=True):
-            h = None
-            for ddu, ddv, dps in stages:
-                centre_uv, centre_psi = (anchors[a], psi0) if h is None else (h.uv, h.psi_deg)
-                n = len(ddu) * len(dps)
-                psi_all = np.repeat(centre_psi + dps, len(ddu))
-                uv_all = np.tile(centre_uv + np.column_stack([ddu, ddv]), (len(dps), 1))
-                R, t, ok = _poses(bank, R_rest_obj, plane, intr, np.full(n, s), psi_all, uv_all)
-                if not ok.any():
-                    break
-                c = np.full(n, np.inf)
-                c[ok] = score_poses(bank, R[ok], t[ok], dt_qb, tau_qb, dtt_b, intr, p.scan_points,
-                                    best_only=True)
-                k = int(np.argmin(c))
-                if not np.isfinite(c[k]):
-                    break
-                cost_k = float(c[k]) / DT_QUANT / dtt_b.scale
-                if h is None or cost_k < h.cost:
-                    h = PlaneHypothesis(int(s), float(psi_all[k]), uv_all[k].copy(), R[k], t[k], cost_k)
+        # each peak's families: each family's best at a peak between two copies may win there
+        groups = []  # (peak, family, spin) in the order of the peaks, then of the families
+        for a in peaks[i:i + LEVEL_B_PEAKS_PER_CALL]:
+            for s in range(len(R_rest_obj)):
+                ms = np.flatnonzero(hyp.s == s)
+                mb = ms[np.argmin(cost[a, ms])]
+                if cost[a, mb] <= FAMILY_RATIO * best[a]:
+                    groups.append((a, s, hyp.psi_deg[mb]))
+        for h in _scan_round(bank, R_rest_obj, plane, intr, groups, anchors, stages, dt_qb, tau_qb, dtt_b,
+                             p.scan_points):
             if h is not None and not any(x.s == h.s and x.psi_deg == h.psi_deg and np.array_equal(x.uv, h.uv)
                                          for x in scanned):  # two peaks' scans can end on one placement
                 scanned.append(h)
@@ -530,6 +524,49 @@ def hopeful_blocks(bank: TemplateBank, hyp: Hypotheses, ms: np.ndarray, block_uv
                         limit_q=limit_q)
         hopeful[ok] = np.isfinite(c)
     return hopeful.reshape(len(ms), nb_)
+
+
+def _scan_round(bank: TemplateBank, R_rest_obj: np.ndarray, plane: Plane, intr: Intrinsics, groups: list,
+                anchors: np.ndarray, stages: list[tuple], dt_q: np.ndarray, tau_q: int, dtt: DistanceTensor,
+                n_points: int) -> list[PlaneHypothesis | None]:
+    """Level B's scans round peaks, one per (peak anchor, family, spin) of ``groups``: each stage of
+    ``stages`` (``_level_b_stages``) scans its offsets round the scan's best so far (at first the peak's
+    anchor and spin), all scans in one scoring call, each with its own running best (``_score``'s
+    groups: the same placements as a call per scan). A scan ends where a stage finds nothing (no
+    placement on the plane, or none finite) -> per group its best placement, or None."""
+    out: list[PlaneHypothesis | None] = [None] * len(groups)
+    if not groups:
+        return out
+    fam = np.array([g[1] for g in groups], int)
+    centre_uv = anchors[[g[0] for g in groups]].astype(float)
+    centre_psi = np.array([g[2] for g in groups], float)
+    alive = np.ones(len(groups), bool)
+    for ddu, ddv, dps in stages:
+        live = np.flatnonzero(alive)
+        if len(live) == 0:
+            break
+        n = len(ddu) * len(dps)
+        off = np.column_stack([ddu, ddv])
+        psi_all = np.concatenate([np.repeat(centre_psi[j] + dps, len(ddu)) for j in live])
+        uv_all = np.concatenate([np.tile(centre_uv[j] + off, (len(dps), 1)) for j in live])
+        R, t, ok = _poses(bank, R_rest_obj, plane, intr, np.repeat(fam[live], n), psi_all, uv_all)
+        c = np.full(len(live) * n, np.inf)
+        if ok.any():
+            c[ok] = score_poses(bank, R[ok], t[ok], dt_q, tau_q, dtt, intr, n_points, best_only=True,
+                                group=np.repeat(np.arange(len(live)), n)[ok])
+        c = c.reshape(len(live), n)
+        for r, j in enumerate(live):
+            k = int(np.argmin(c[r]))
+            if not np.isfinite(c[r, k]):  # nothing on the plane, or nothing finite: the scan ends
+                alive[j] = False
+                continue
+            cost_k = float(c[r, k]) / DT_QUANT / dtt.scale
+            h = out[j]
+            if h is None or cost_k < h.cost:
+                m = r * n + k
+                out[j] = PlaneHypothesis(int(fam[j]), float(psi_all[m]), uv_all[m].copy(), R[m], t[m], cost_k)
+                centre_uv[j], centre_psi[j] = uv_all[m], psi_all[m]
+    return out
 
 
 def _level_b_stages(du: np.ndarray, dv: np.ndarray, dpsi: np.ndarray) -> list[tuple]:
