@@ -236,3 +236,24 @@ def test_the_channel_by_bisection_is_the_rounded_atan2_modulo_pi(n_ch):
         for s in (1.0, -1.0):
             got = _channel(s * cos_b[k], s * sin_b[k], cos_b, sin_b)
             assert got in ((k + 1) % n_ch, k), (k, s)
+
+
+def test_the_compiled_polish_cost_is_coarse_evaluate(bank):
+    from service.vision.estimate.chamfer import distance_tensor
+    from service.vision.estimate.coarse import evaluate
+    from service.vision.estimate.edges import detect_segments, to_grey_u8
+    from service.vision.estimate.plane import evaluate_poses, scoring_poses
+
+    img = scene(bank, [resting(bank, 0, 25.0, 10.0, -20.0), resting(bank, 1, 100.0, -60.0, 30.0)])
+    dtt = distance_tensor(detect_segments(to_grey_u8(img)), n_channels=16, scale=0.5)
+    rng = np.random.default_rng(4)
+    n = 200  # round the copies, and some partly or wholly off the image
+    s = rng.integers(0, len(bank.R_rest_obj), n)
+    uv = np.column_stack([rng.uniform(-100, SIZE[0] + 100, n), rng.uniform(-100, SIZE[1] + 100, n)])
+    R, t, ok = _poses(bank, bank.R_rest_obj, PLANE, INTR, s, rng.uniform(0, 360, n), uv)
+    views, R2, t2 = scoring_poses(bank, R[ok], t[ok])
+    want = evaluate(bank, views, R2, t2, INTR.K, dtt, 160, 3.0, 8.0)
+    got = evaluate_poses(bank, views, R2, t2, INTR, dtt, 160, 3.0, 8.0)
+    assert np.isfinite(want[0]).all() and (want[0] < 8.0).any()
+    np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(got[1], want[1])

@@ -34,7 +34,7 @@ import numpy as np
 from service.vision.bank import TemplateBank, border_triplets, spread_order, view_dirs_obj
 from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.chamfer import DT_QUANT, DistanceTensor, pooled_and_quantised, quantised
-from service.vision.estimate.coarse import LEVEL_A_RESERVE_FACTOR, SearchParams, evaluate, pick_peaks
+from service.vision.estimate.coarse import LEVEL_A_RESERVE_FACTOR, SearchParams, pick_peaks
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, R_align_axis_to_y, Rz
 from service.vision.memo import Memo
@@ -326,6 +326,76 @@ def _nearest_in_table(dirs, z, start, cand, g):
     return out
 
 
+@nb.njit(inline="always")
+def _project_point(p_obj, k, R, t, m, fx, fy, cx, cy):
+    """Pixel (u, v) of model point ``p_obj[k]`` at pose m (``camera.project`` of ``p @ R.T + t``)."""
+    q0, q1, q2 = float(p_obj[k, 0]), float(p_obj[k, 1]), float(p_obj[k, 2])
+    X = q0 * R[m, 0, 0] + q1 * R[m, 0, 1] + q2 * R[m, 0, 2] + t[m, 0]
+    Y = q0 * R[m, 1, 0] + q1 * R[m, 1, 1] + q2 * R[m, 1, 2] + t[m, 1]
+    Z = q0 * R[m, 2, 0] + q1 * R[m, 2, 1] + q2 * R[m, 2, 2] + t[m, 2]
+    return fx * X / Z + cx, fy * Y / Z + cy
+
+
+@nb.njit(parallel=True, cache=True)
+def _evaluate(p_obj, idx, prv, nxt, views, R, t, fx, fy, cx, cy, dt, ou, ov, scale, dt_tau_px, tau_px,
+              score_px):
+    """``coarse.evaluate`` compiled (its arithmetic, one pose per thread): mean directional chamfer cost
+    (full-resolution px, each point's truncated at ``tau_px``) and support score of M posed templates,
+    bilinear in space and linear across channels (``chamfer.sample``) on ``dt`` (C, H, W) float32 whose
+    pixel (0, 0) lies at full-resolution ``(ou, ov)`` (``DistanceTensor.to_grid``); ``dt_tau_px``
+    outside it (the tensor's own tau)."""
+    M = views.shape[0]
+    P = idx.shape[1]
+    C, H, W = dt.shape
+    cost = np.empty(M)
+    score = np.empty(M)
+    for m in nb.prange(M):
+        n = views[m]
+        acc = 0.0
+        hits = 0
+        for i in range(P):
+            u_p, v_p = _project_point(p_obj, idx[n, i], R, t, m, fx, fy, cx, cy)
+            u_n, v_n = _project_point(p_obj, nxt[n, i], R, t, m, fx, fy, cx, cy)
+            u_b, v_b = _project_point(p_obj, prv[n, i], R, t, m, fx, fy, cx, cy)
+            th = math.atan2(v_n - v_b, u_n - u_b) % math.pi
+            u = (u_p - ou + 0.5) * scale - 0.5
+            v = (v_p - ov + 0.5) * scale - 0.5
+            if u >= 0 and u <= W - 1 and v >= 0 and v <= H - 1:
+                uc = min(max(u, 0.0), W - 1.0001)
+                vc = min(max(v, 0.0), H - 1.0001)
+                u0 = int(math.floor(uc))
+                v0 = int(math.floor(vc))
+                fu, fv = uc - u0, vc - v0
+                cf = (th * (C / math.pi)) % C
+                c0 = int(math.floor(cf)) % C
+                c1 = (c0 + 1) % C
+                fc = cf - math.floor(cf)
+                b0 = ((1 - fv) * ((1 - fu) * dt[c0, v0, u0] + fu * dt[c0, v0, u0 + 1])
+                      + fv * ((1 - fu) * dt[c0, v0 + 1, u0] + fu * dt[c0, v0 + 1, u0 + 1]))
+                b1 = ((1 - fv) * ((1 - fu) * dt[c1, v0, u0] + fu * dt[c1, v0, u0 + 1])
+                      + fv * ((1 - fu) * dt[c1, v0 + 1, u0] + fu * dt[c1, v0 + 1, u0 + 1]))
+                val = ((1 - fc) * b0 + fc * b1) / scale
+            else:
+                val = dt_tau_px / scale
+            acc += min(val, tau_px)
+            if val <= score_px:
+                hits += 1
+        cost[m] = acc / P
+        score[m] = hits / P
+    return cost, score
+
+
+def evaluate_poses(bank: TemplateBank, views: np.ndarray, R: np.ndarray, t: np.ndarray, intr: Intrinsics,
+                   dtt: DistanceTensor, n_points: int, score_px: float, tau_px: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """``coarse.evaluate(bank, views, R, t, intr.K, dtt, n_points, score_px, tau_px)`` by ``_evaluate``."""
+    idx, prv, nxt = border_triplets(bank, n_points)
+    ou, ov = (float(x) for x in dtt.origin_uv)
+    return _evaluate(np.asarray(bank.p_obj), idx, prv, nxt, np.asarray(views, np.int64),
+                     np.ascontiguousarray(R), np.ascontiguousarray(t), intr.fx, intr.fy, intr.cx, intr.cy,
+                     dtt.dt, ou, ov, float(dtt.scale), float(dtt.tau_px), float(tau_px), float(score_px))
+
+
 def _points(bank: TemplateBank, count: int) -> tuple[np.ndarray, np.ndarray]:
     """(N, count, 3) border points of every view in ``spread_order`` (early ones spread round the
     border: a fair sample for the early abandon), and the border's direction through each (its
@@ -613,7 +683,7 @@ def polish(bank: TemplateBank, R_rest_obj: np.ndarray, hs: list[PlaneHypothesis]
            intr: Intrinsics, plane: Plane, p: SearchParams, *, min_step_px: float = 0.25, max_iter: int = 60,
            deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0) -> list[PlaneHypothesis]:
     """A pattern search over (spin, u, v) on the plane from each hypothesis, bilinear costs
-    (``coarse.evaluate``): all hypotheses step together, one scoring call a step for all of them (each
+    (``evaluate_poses``): all hypotheses step together, one scoring call a step for all of them (each
     moves, or halves its steps, on its own six neighbours' costs alone). Anytime: a step starts only
     while the ``deadline`` leaves it and ``reserve_ms``; each hypothesis is then where it got to."""
     if not hs:
@@ -622,7 +692,7 @@ def polish(bank: TemplateBank, R_rest_obj: np.ndarray, hs: list[PlaneHypothesis]
     def cost_of(s, psis, uvs):
         R, t, ok = _poses(bank, R_rest_obj, plane, intr, s, psis, uvs)
         views, R2, t2 = scoring_poses(bank, R, t)
-        c, sc = evaluate(bank, views, R2, t2, intr.K, dtt, p.fine_points, p.score_px, p.rank_tau_px)
+        c, sc = evaluate_poses(bank, views, R2, t2, intr, dtt, p.fine_points, p.score_px, p.rank_tau_px)
         return np.where(ok, c, np.inf), sc, R, t
 
     n = len(hs)
