@@ -500,16 +500,17 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
             break
         ms = order[i:i + LEVEL_A_ROTATIONS_PER_CALL]
         hopeful = hopeful_blocks(bank, hyp, ms, block_uv, dt_qblock, tau_qa, dtt_a, intr, plane, p, limit_q)
-        Rm = np.repeat(hyp.R[ms], A, axis=0)
-        t, ok = placements(Rm, np.repeat(hyp.h_mm[ms], A), np.tile(anchors, (len(ms), 1)), bank, intr, plane)
-        ok &= hopeful[:, block_of].ravel()
+        # only the (rotation, anchor) pairs of hopeful blocks are placed, rotation-major
+        sel = np.flatnonzero(hopeful[:, block_of].ravel())
+        Rm = hyp.R[ms[sel // A]]
+        t, ok = placements(Rm, hyp.h_mm[ms[sel // A]], anchors[sel % A], bank, intr, plane)
         if distance_range_mm is not None:
             z = (t + Rm @ bank.centre_obj)[:, 2]
             ok &= (z >= distance_range_mm[0]) & (z <= distance_range_mm[1])
         if ok.any():  # a template averaging over accept_frac x tau is no peak: abandoned
             c = np.full(len(ms) * A, np.inf)
-            c[ok] = score_poses(bank, Rm[ok], t[ok], dt_qa, tau_qa, dtt_a, intr, p.points_per_template,
-                                limit_q=limit_q)
+            c[sel[ok]] = score_poses(bank, Rm[ok], t[ok], dt_qa, tau_qa, dtt_a, intr, p.points_per_template,
+                                     limit_q=limit_q)
             cost[ms] = c.reshape(len(ms), A)
     cost = cost.T
     best_m = np.argmin(cost, axis=1)
