@@ -532,6 +532,7 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
     dpsi = dpsi[np.argsort(np.abs(dpsi), kind="stable")]
     stages = _level_b_stages(du, dv, dpsi)
     scanned: list[PlaneHypothesis] = []
+    family_rotations = [np.flatnonzero(hyp.s == s) for s in range(len(R_rest_obj))]
     deadline.new_loop()
     for i in range(0, len(peaks), LEVEL_B_PEAKS_PER_CALL):
         if not deadline.allows_next(reserve_ms):
@@ -539,8 +540,7 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
         # each peak's families: each family's best at a peak between two copies may win there
         groups = []  # (peak, family, spin) in the order of the peaks, then of the families
         for a in peaks[i:i + LEVEL_B_PEAKS_PER_CALL]:
-            for s in range(len(R_rest_obj)):
-                ms = np.flatnonzero(hyp.s == s)
+            for s, ms in enumerate(family_rotations):
                 mb = ms[np.argmin(cost[a, ms])]
                 if cost[a, mb] <= FAMILY_RATIO * best[a]:
                     groups.append((a, s, hyp.psi_deg[mb]))
