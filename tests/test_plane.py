@@ -257,3 +257,27 @@ def test_the_compiled_polish_cost_is_coarse_evaluate(bank):
     assert np.isfinite(want[0]).all() and (want[0] < 8.0).any()
     np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-9)
     np.testing.assert_array_equal(got[1], want[1])
+
+
+def test_the_scoring_kernel_picks_the_views_scoring_poses_would(bank):
+    from service.vision.estimate.chamfer import distance_tensor, quantised
+    from service.vision.estimate.edges import detect_segments, to_grey_u8
+    from service.vision.estimate.plane import _points, _score, score_poses, scoring_poses
+
+    img = scene(bank, [resting(bank, 0, 25.0, 10.0, -20.0)])
+    dtt = distance_tensor(detect_segments(to_grey_u8(img)), n_channels=16, scale=0.5)
+    dt_q, tau_q = quantised(dtt, dtt.tau_px)
+    rng = np.random.default_rng(6)
+    n = 3000
+    s = rng.integers(0, len(bank.R_rest_obj), n)
+    uv = np.column_stack([rng.uniform(0, SIZE[0], n), rng.uniform(0, SIZE[1], n)])
+    R, t, ok = _poses(bank, bank.R_rest_obj, PLANE, INTR, s, rng.uniform(0, 360, n), uv)
+    R, t = R[ok], t[ok]
+    views, R2, t2 = scoring_poses(bank, R, t)
+    assert len(np.unique(views)) > 20
+    mid, direction = _points(bank, 32)
+    none = np.zeros(0, np.int64)
+    want = _score(dt_q, tau_q, dtt.scale, dtt.origin_uv[0], dtt.origin_uv[1], INTR.fx, INTR.fy, INTR.cx,
+                  INTR.cy, mid, direction, views.astype(np.int64), R2, t2, 16, np.inf, False, none, 0,
+                  np.zeros(3), np.zeros((1, 3)), none, none, 1)
+    np.testing.assert_array_equal(score_poses(bank, R, t, dt_q, tau_q, dtt, INTR, 32), want)

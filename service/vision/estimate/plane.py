@@ -192,7 +192,7 @@ def _channel(x, y, cos_b, sin_b):
 
 @nb.njit(parallel=True, cache=True)
 def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t, n_ch, limit, shared, group,
-           n_groups):
+           n_groups, centre, vz, vstart, vcand, vg):
     """Mean quantised DT3 (1/DT_QUANT grid px, nearest pixel) of M posed templates: view ``views[m]``'s
     points (N, P, 3) posed by ``R[m]``, ``t[m]``, each with the direction ``d_obj`` (N, P, 3) of the
     border through it (successor minus predecessor): its projected orientation is the derivative of
@@ -202,8 +202,13 @@ def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t
     A template is abandoned (inf) once its partial sum reaches ``limit`` x P (all terms are >= 0); with
     ``shared`` the limit drops to the best total reached so far (only the best matters: threads read it
     unsynchronised, and a stale, higher limit only prunes less). ``group`` (M,) int64 in [0, n_groups) (or
-    empty: one group): each group has its own best, as if scored by a call of its own."""
-    M = views.shape[0]
+    empty: one group): each group has its own best, as if scored by a call of its own.
+
+    ``views`` empty: each pose's view is the one nearest the direction it sees ``centre`` (3,) from
+    (``nearest_views`` with its table ``vz``, ``vstart``, ``vcand``, ``vg``; ``scoring_poses`` for a
+    part without symmetry, the same arithmetic)."""
+    M = R.shape[0]
+    pick = views.shape[0] == 0
     P = p_mid.shape[1]
     H, W = dt_q.shape[0], dt_q.shape[1]
     out = np.full(M, np.inf)
@@ -211,7 +216,17 @@ def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t
     grouped = group.shape[0] > 0
     cos_b, sin_b = _bin_edges(n_ch)
     for m in nb.prange(M):
-        n = views[m]
+        if pick:
+            c0 = R[m, 0, 0] * centre[0] + R[m, 0, 1] * centre[1] + R[m, 0, 2] * centre[2] + t[m, 0]
+            c1 = R[m, 1, 0] * centre[0] + R[m, 1, 1] * centre[1] + R[m, 1, 2] * centre[2] + t[m, 1]
+            c2 = R[m, 2, 0] * centre[0] + R[m, 2, 1] * centre[1] + R[m, 2, 2] * centre[2] + t[m, 2]
+            nc = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+            c0, c1, c2 = c0 / nc, c1 / nc, c2 / nc
+            n = _nearest_view(R[m, 0, 0] * c0 + R[m, 1, 0] * c1 + R[m, 2, 0] * c2,
+                              R[m, 0, 1] * c0 + R[m, 1, 1] * c1 + R[m, 2, 1] * c2,
+                              R[m, 0, 2] * c0 + R[m, 1, 2] * c1 + R[m, 2, 2] * c2, vz, vstart, vcand, vg)
+        else:
+            n = views[m]
         gi = group[m] if grouped else 0
         acc = 0.0
         ok = True
@@ -307,22 +322,27 @@ def _cell(x, y, z, g):
     return (face * g + i) * g + j
 
 
+@nb.njit(inline="always")
+def _nearest_view(x, y, w, z, start, cand, g):
+    """The view of ``z`` nearest the unit direction (x, y, w) by ``view_table``'s candidates."""
+    c = _cell(x, y, w, g)
+    best = -2.0
+    bi = 0
+    for k in range(start[c], start[c + 1]):
+        n = cand[k]
+        d = x * z[n, 0] + y * z[n, 1] + w * z[n, 2]
+        if d > best:
+            best = d
+            bi = n
+    return bi
+
+
 @nb.njit(parallel=True, cache=True)
 def _nearest_in_table(dirs, z, start, cand, g):
     M = dirs.shape[0]
     out = np.empty(M, np.int64)
     for m in nb.prange(M):
-        x, y, w = dirs[m, 0], dirs[m, 1], dirs[m, 2]
-        c = _cell(x, y, w, g)
-        best = -2.0
-        bi = 0
-        for k in range(start[c], start[c + 1]):
-            n = cand[k]
-            d = x * z[n, 0] + y * z[n, 1] + w * z[n, 2]
-            if d > best:
-                best = d
-                bi = n
-        out[m] = bi
+        out[m] = _nearest_view(dirs[m, 0], dirs[m, 1], dirs[m, 2], z, start, cand, g)
     return out
 
 
@@ -422,13 +442,20 @@ def score_poses(bank: TemplateBank, R: np.ndarray, t: np.ndarray, dt_q: np.ndarr
     ``group`` (M,) int >= 0, if given)."""
     if len(R) == 0:
         return np.zeros(0)
-    views, R2, t2 = scoring_poses(bank, R, t)
+    z = view_dirs_obj(bank)
+    start, cand = _VIEWS.get(bank, VIEW_TABLE_CELLS, lambda: view_table(z, VIEW_TABLE_CELLS))
+    if bank.symmetry_axis_obj is None:  # the kernel picks each pose's view, as scoring_poses would
+        views, R2, t2 = _NO_GROUP, R, t
+    else:
+        views, R2, t2 = scoring_poses(bank, R, t)
     mid, direction = _points(bank, n_points)
     return _score(dt_q, tau_q, dtt.scale, dtt.origin_uv[0], dtt.origin_uv[1], intr.fx, intr.fy, intr.cx,
-                  intr.cy, mid, direction, views.astype(np.int64), np.ascontiguousarray(R2),
-                  np.ascontiguousarray(t2), dtt.n_channels, float(limit_q), best_only,
+                  intr.cy, mid, direction, views.astype(np.int64), np.ascontiguousarray(R2, np.float64),
+                  np.ascontiguousarray(t2, np.float64), dtt.n_channels, float(limit_q), best_only,
                   _NO_GROUP if group is None else np.ascontiguousarray(group, np.int64),
-                  0 if group is None or len(group) == 0 else int(np.max(group)) + 1)
+                  0 if group is None or len(group) == 0 else int(np.max(group)) + 1,
+                  np.asarray(bank.centre_obj, np.float64), np.ascontiguousarray(z, np.float64), start, cand,
+                  VIEW_TABLE_CELLS)
 
 
 _NO_GROUP = np.zeros(0, np.int64)
