@@ -403,8 +403,8 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
     for cand in cands:
         if scene.full():
             break
-        if any(silhouette_iou(bank, cand.pose, f.refined.pose, intr, size) > INSTANCE_IOU
-               for f in scene.found):
+        if any(silhouette_iou(bank, cand.pose, f.refined.pose, intr, size, memo=scene.silhouettes)
+               > INSTANCE_IOU for f in scene.found):
             continue
         if not deadline.allows(_CHECK_MS.value):
             break
@@ -448,13 +448,14 @@ class _Instances:
         self.rejected: list[Checked] = []
         self.others = np.full(frame.shape, np.inf, np.float32)
         self.size = (frame.shape[1], frame.shape[0])
+        self.silhouettes: dict = {}  # silhouette_iou's memo: each pose rasterised once
 
     def full(self) -> bool:
         return len(self.found) >= self.max_instances
 
     def distinct(self, c: Checked) -> bool:
-        return all(silhouette_iou(self.bank, c.refined.pose, f.refined.pose, self.intr, self.size)
-                   <= INSTANCE_IOU for f in self.found)
+        return all(silhouette_iou(self.bank, c.refined.pose, f.refined.pose, self.intr, self.size,
+                                  memo=self.silhouettes) <= INSTANCE_IOU for f in self.found)
 
     def add(self, c: Checked) -> None:
         self.found.append(c)
@@ -528,22 +529,35 @@ def sort_instances(found: list[Checked], bank: TemplateBank, sort: str, plane: P
 
 
 def silhouette_iou(bank: TemplateBank, a: Pose, b: Pose, intr: Intrinsics,
-                   image_size: tuple[int, int]) -> float:
+                   image_size: tuple[int, int], *, memo: dict | None = None) -> float:
     """Intersection over union of the silhouettes of the model at poses ``a`` and ``b`` in the image
-    (``image_size`` = (w, h); the project's rasteriser, pixel centres)."""
-    da, fa, (ua, va) = rasterise_roi(bank.vertices_mm, bank.faces, a, intr.K, image_size)
-    db, fb, (ub, vb) = rasterise_roi(bank.vertices_mm, bank.faces, b, intr.K, image_size)
-    na, nb = int((fa >= 0).sum()), int((fb >= 0).sum())
+    (``image_size`` = (w, h); the project's rasteriser, pixel centres). ``memo``: a dict kept for one
+    frame's poses, each rasterised only the first time it is asked about."""
+    ma, na, (ua, va) = _silhouette(bank, a, intr, image_size, memo)
+    mb, nb, (ub, vb) = _silhouette(bank, b, intr, image_size, memo)
     if na == 0 or nb == 0:
         return 0.0
     u0, v0 = max(ua, ub), max(va, vb)
-    u1, v1 = min(ua + fa.shape[1], ub + fb.shape[1]), min(va + fa.shape[0], vb + fb.shape[0])
+    u1, v1 = min(ua + ma.shape[1], ub + mb.shape[1]), min(va + ma.shape[0], vb + mb.shape[0])
     if u1 <= u0 or v1 <= v0:
         return 0.0
-    ma = fa[v0 - va:v1 - va, u0 - ua:u1 - ua] >= 0
-    mb = fb[v0 - vb:v1 - vb, u0 - ub:u1 - ub] >= 0
-    inter = int((ma & mb).sum())
+    inter = int((ma[v0 - va:v1 - va, u0 - ua:u1 - ua] & mb[v0 - vb:v1 - vb, u0 - ub:u1 - ub]).sum())
     return inter / float(na + nb - inter)
+
+
+def _silhouette(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size: tuple[int, int],
+                memo: dict | None) -> tuple[np.ndarray, int, tuple[int, int]]:
+    """(mask of the silhouette's window, its pixel count, the window's (u0, v0)) of the model at
+    ``pose`` (``rasterise_roi``), from ``memo`` (keyed by the pose object, which it keeps) if there."""
+    hit = memo.get(id(pose)) if memo is not None else None
+    if hit is not None and hit[0] is pose:
+        return hit[1]
+    _, face, uv0 = rasterise_roi(bank.vertices_mm, bank.faces, pose, intr.K, image_size)
+    mask = face >= 0
+    out = (mask, int(mask.sum()), uv0)
+    if memo is not None:
+        memo[id(pose)] = (pose, out)
+    return out
 
 
 def _centres_uv(cands: list[PoseCandidate], bank: TemplateBank, K: np.ndarray) -> np.ndarray:

@@ -213,3 +213,71 @@ def test_the_block_floor_is_the_least_over_its_reach_and_the_channels_either_sid
     for y, x, c in [(0, 0, 0), (5, 7, 3), (11, 13, 5), (6, 0, 2), (3, 9, 1)]:
         win = dt_q[max(y - 2, 0):y + 3, max(x - 2, 0):x + 3][..., [(c - 1) % 6, c, (c + 1) % 6]]
         assert got[y, x, c] == win.min()
+
+
+@pytest.mark.parametrize("n_ch", [16, 12, 8, 1])
+def test_the_channel_by_bisection_is_the_rounded_atan2_modulo_pi(n_ch):
+    import math
+
+    from service.vision.estimate.plane import _bin_edges, _channel
+
+    def rounded(x, y):
+        th = math.atan2(y, x)
+        return int((th + math.pi if th < 0.0 else th) * n_ch / math.pi + 0.5) % n_ch
+
+    rng = np.random.default_rng(n_ch)
+    xy = rng.normal(size=(20000, 2)) * 10.0 ** rng.uniform(-3, 3, (20000, 1))
+    axes = [(1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0), (-1.0, -0.0), (1.0, -0.0), (0.0, 0.0)]
+    cos_b, sin_b = _bin_edges(n_ch)
+    for x, y in [*xy, *axes]:
+        assert _channel(x, y, cos_b, sin_b) == rounded(x, y), (x, y)
+    # on a channel edge itself (to rounding) either side is the rounded atan2
+    for k in range(n_ch):
+        for s in (1.0, -1.0):
+            got = _channel(s * cos_b[k], s * sin_b[k], cos_b, sin_b)
+            assert got in ((k + 1) % n_ch, k), (k, s)
+
+
+def test_the_compiled_polish_cost_is_coarse_evaluate(bank):
+    from service.vision.estimate.chamfer import distance_tensor
+    from service.vision.estimate.coarse import evaluate
+    from service.vision.estimate.edges import detect_segments, to_grey_u8
+    from service.vision.estimate.plane import evaluate_poses, scoring_poses
+
+    img = scene(bank, [resting(bank, 0, 25.0, 10.0, -20.0), resting(bank, 1, 100.0, -60.0, 30.0)])
+    dtt = distance_tensor(detect_segments(to_grey_u8(img)), n_channels=16, scale=0.5)
+    rng = np.random.default_rng(4)
+    n = 200  # round the copies, and some partly or wholly off the image
+    s = rng.integers(0, len(bank.R_rest_obj), n)
+    uv = np.column_stack([rng.uniform(-100, SIZE[0] + 100, n), rng.uniform(-100, SIZE[1] + 100, n)])
+    R, t, ok = _poses(bank, bank.R_rest_obj, PLANE, INTR, s, rng.uniform(0, 360, n), uv)
+    views, R2, t2 = scoring_poses(bank, R[ok], t[ok])
+    want = evaluate(bank, views, R2, t2, INTR.K, dtt, 160, 3.0, 8.0)
+    got = evaluate_poses(bank, views, R2, t2, INTR, dtt, 160, 3.0, 8.0)
+    assert np.isfinite(want[0]).all() and (want[0] < 8.0).any()
+    np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(got[1], want[1])
+
+
+def test_the_scoring_kernel_picks_the_views_scoring_poses_would(bank):
+    from service.vision.estimate.chamfer import distance_tensor, quantised
+    from service.vision.estimate.edges import detect_segments, to_grey_u8
+    from service.vision.estimate.plane import _points, _score, score_poses, scoring_poses
+
+    img = scene(bank, [resting(bank, 0, 25.0, 10.0, -20.0)])
+    dtt = distance_tensor(detect_segments(to_grey_u8(img)), n_channels=16, scale=0.5)
+    dt_q, tau_q = quantised(dtt, dtt.tau_px)
+    rng = np.random.default_rng(6)
+    n = 3000
+    s = rng.integers(0, len(bank.R_rest_obj), n)
+    uv = np.column_stack([rng.uniform(0, SIZE[0], n), rng.uniform(0, SIZE[1], n)])
+    R, t, ok = _poses(bank, bank.R_rest_obj, PLANE, INTR, s, rng.uniform(0, 360, n), uv)
+    R, t = R[ok], t[ok]
+    views, R2, t2 = scoring_poses(bank, R, t)
+    assert len(np.unique(views)) > 20
+    mid, direction = _points(bank, 32)
+    none = np.zeros(0, np.int64)
+    want = _score(dt_q, tau_q, dtt.scale, dtt.origin_uv[0], dtt.origin_uv[1], INTR.fx, INTR.fy, INTR.cx,
+                  INTR.cy, mid, direction, views.astype(np.int64), R2, t2, 16, np.inf, False, none, 0,
+                  np.zeros(3), np.zeros((1, 3)), none, none, 1)
+    np.testing.assert_array_equal(score_poses(bank, R, t, dt_q, tau_q, dtt, INTR, 32), want)

@@ -34,7 +34,7 @@ import numpy as np
 from service.vision.bank import TemplateBank, border_triplets, spread_order, view_dirs_obj
 from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.chamfer import DT_QUANT, DistanceTensor, pooled_and_quantised, quantised
-from service.vision.estimate.coarse import LEVEL_A_RESERVE_FACTOR, SearchParams, evaluate, pick_peaks
+from service.vision.estimate.coarse import LEVEL_A_RESERVE_FACTOR, SearchParams, pick_peaks
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, R_align_axis_to_y, Rz
 from service.vision.memo import Memo
@@ -43,6 +43,7 @@ PLANE_TOLERANCE_MM = 5.0  # default: a found part's lowest point lies within thi
 PLANE_ANCHOR_STRIDE_PX = 16  # level A: full-resolution px between the anchors
 LOCAL_RADIUS_PX = 16  # level B: full-resolution px searched round a peak (an anchor cell and a half)
 LOCAL_STRIDE_PX = 4  # ... every this many px (the polish moves from there in 2 px steps)
+LEVEL_B_PEAKS_PER_CALL = 8  # level B scores the scans round this many peaks in one call (a deadline unit)
 LEVEL_B_FINE_STEPS = 2  # level B's second scan: this many full-grid steps round its first scan's best
 # Level B also scans round a peak the families whose best placement at that anchor cost at most this
 # ratio of the peak's (a part seen from above looks alike on some of its faces).
@@ -165,8 +166,33 @@ def scoring_poses(bank: TemplateBank, R: np.ndarray, t: np.ndarray
     return views, R2, t + R @ p_s - R2 @ p_s
 
 
+@nb.njit(cache=True)
+def _bin_edges(n_ch):
+    """cos and sin of the orientation channels' upper edges (k + 1/2) pi / n_ch, k = 0 .. n_ch - 1."""
+    b = (np.arange(n_ch) + 0.5) * (math.pi / n_ch)
+    return np.cos(b), np.sin(b)
+
+
+@nb.njit(inline="always")
+def _channel(x, y, cos_b, sin_b):
+    """The orientation channel of the direction (x, y): int(th n / pi + 1/2) mod n for th its angle
+    modulo pi (atan2), as the number of channel edges at or below th, found by bisection on the sign
+    of y cos(b) - x sin(b) (th >= b for th, b in [0, pi]) instead of an atan2."""
+    if y < 0.0:
+        x, y = -x, -y
+    lo, hi = 0, cos_b.shape[0]  # edges [0, lo) are at or below th, [hi, n) above it
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if y * cos_b[mid] - x * sin_b[mid] >= 0.0:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo if lo < cos_b.shape[0] else 0
+
+
 @nb.njit(parallel=True, cache=True)
-def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t, n_ch, limit, shared):
+def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t, n_ch, limit, shared, group,
+           n_groups, centre, vz, vstart, vcand, vg):
     """Mean quantised DT3 (1/DT_QUANT grid px, nearest pixel) of M posed templates: view ``views[m]``'s
     points (N, P, 3) posed by ``R[m]``, ``t[m]``, each with the direction ``d_obj`` (N, P, 3) of the
     border through it (successor minus predecessor): its projected orientation is the derivative of
@@ -175,15 +201,33 @@ def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t
 
     A template is abandoned (inf) once its partial sum reaches ``limit`` x P (all terms are >= 0); with
     ``shared`` the limit drops to the best total reached so far (only the best matters: threads read it
-    unsynchronised, and a stale, higher limit only prunes less)."""
-    M = views.shape[0]
+    unsynchronised, and a stale, higher limit only prunes less). ``group`` (M,) int64 in [0, n_groups) (or
+    empty: one group): each group has its own best, as if scored by a call of its own.
+
+    ``views`` empty: each pose's view is the one nearest the direction it sees ``centre`` (3,) from
+    (``nearest_views`` with its table ``vz``, ``vstart``, ``vcand``, ``vg``; ``scoring_poses`` for a
+    part without symmetry, the same arithmetic)."""
+    M = R.shape[0]
+    pick = views.shape[0] == 0
     P = p_mid.shape[1]
     H, W = dt_q.shape[0], dt_q.shape[1]
     out = np.full(M, np.inf)
-    bound = np.full(1, limit * P)
-    bins_per_rad = n_ch / math.pi
+    bound = np.full(max(n_groups, 1), limit * P)
+    grouped = group.shape[0] > 0
+    cos_b, sin_b = _bin_edges(n_ch)
     for m in nb.prange(M):
-        n = views[m]
+        if pick:
+            c0 = R[m, 0, 0] * centre[0] + R[m, 0, 1] * centre[1] + R[m, 0, 2] * centre[2] + t[m, 0]
+            c1 = R[m, 1, 0] * centre[0] + R[m, 1, 1] * centre[1] + R[m, 1, 2] * centre[2] + t[m, 1]
+            c2 = R[m, 2, 0] * centre[0] + R[m, 2, 1] * centre[1] + R[m, 2, 2] * centre[2] + t[m, 2]
+            nc = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+            c0, c1, c2 = c0 / nc, c1 / nc, c2 / nc
+            n = _nearest_view(R[m, 0, 0] * c0 + R[m, 1, 0] * c1 + R[m, 2, 0] * c2,
+                              R[m, 0, 1] * c0 + R[m, 1, 1] * c1 + R[m, 2, 1] * c2,
+                              R[m, 0, 2] * c0 + R[m, 1, 2] * c1 + R[m, 2, 2] * c2, vz, vstart, vcand, vg)
+        else:
+            n = views[m]
+        gi = group[m] if grouped else 0
         acc = 0.0
         ok = True
         r00, r01, r02 = R[m, 0, 0], R[m, 0, 1], R[m, 0, 2]
@@ -204,20 +248,15 @@ def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t
                 dX = r00 * d0 + r01 * d1 + r02 * d2
                 dY = r10 * d0 + r11 * d1 + r12 * d2
                 dZ = r20 * d0 + r21 * d1 + r22 * d2
-                th = math.atan2(fy * (dY * Z - Y * dZ), fx * (dX * Z - X * dZ))
-                if th < 0.0:  # the orientation modulo pi, without float modulo's cost
-                    th += math.pi
-                c = int(th * bins_per_rad + 0.5)
-                if c >= n_ch:
-                    c -= n_ch
+                c = _channel(fx * (dX * Z - X * dZ), fy * (dY * Z - Y * dZ), cos_b, sin_b)
                 acc += dt_q[y, x, c]
-            if acc >= bound[0]:
+            if acc >= bound[gi]:
                 ok = False
                 break
         if ok:
             out[m] = acc / P
-            if shared and acc < bound[0]:
-                bound[0] = acc
+            if shared and acc < bound[gi]:
+                bound[gi] = acc
     return out
 
 
@@ -283,23 +322,98 @@ def _cell(x, y, z, g):
     return (face * g + i) * g + j
 
 
+@nb.njit(inline="always")
+def _nearest_view(x, y, w, z, start, cand, g):
+    """The view of ``z`` nearest the unit direction (x, y, w) by ``view_table``'s candidates."""
+    c = _cell(x, y, w, g)
+    best = -2.0
+    bi = 0
+    for k in range(start[c], start[c + 1]):
+        n = cand[k]
+        d = x * z[n, 0] + y * z[n, 1] + w * z[n, 2]
+        if d > best:
+            best = d
+            bi = n
+    return bi
+
+
 @nb.njit(parallel=True, cache=True)
 def _nearest_in_table(dirs, z, start, cand, g):
     M = dirs.shape[0]
     out = np.empty(M, np.int64)
     for m in nb.prange(M):
-        x, y, w = dirs[m, 0], dirs[m, 1], dirs[m, 2]
-        c = _cell(x, y, w, g)
-        best = -2.0
-        bi = 0
-        for k in range(start[c], start[c + 1]):
-            n = cand[k]
-            d = x * z[n, 0] + y * z[n, 1] + w * z[n, 2]
-            if d > best:
-                best = d
-                bi = n
-        out[m] = bi
+        out[m] = _nearest_view(dirs[m, 0], dirs[m, 1], dirs[m, 2], z, start, cand, g)
     return out
+
+
+@nb.njit(inline="always")
+def _project_point(p_obj, k, R, t, m, fx, fy, cx, cy):
+    """Pixel (u, v) of model point ``p_obj[k]`` at pose m (``camera.project`` of ``p @ R.T + t``)."""
+    q0, q1, q2 = float(p_obj[k, 0]), float(p_obj[k, 1]), float(p_obj[k, 2])
+    X = q0 * R[m, 0, 0] + q1 * R[m, 0, 1] + q2 * R[m, 0, 2] + t[m, 0]
+    Y = q0 * R[m, 1, 0] + q1 * R[m, 1, 1] + q2 * R[m, 1, 2] + t[m, 1]
+    Z = q0 * R[m, 2, 0] + q1 * R[m, 2, 1] + q2 * R[m, 2, 2] + t[m, 2]
+    return fx * X / Z + cx, fy * Y / Z + cy
+
+
+@nb.njit(parallel=True, cache=True)
+def _evaluate(p_obj, idx, prv, nxt, views, R, t, fx, fy, cx, cy, dt, ou, ov, scale, dt_tau_px, tau_px,
+              score_px):
+    """``coarse.evaluate`` compiled (its arithmetic, one pose per thread): mean directional chamfer cost
+    (full-resolution px, each point's truncated at ``tau_px``) and support score of M posed templates,
+    bilinear in space and linear across channels (``chamfer.sample``) on ``dt`` (C, H, W) float32 whose
+    pixel (0, 0) lies at full-resolution ``(ou, ov)`` (``DistanceTensor.to_grid``); ``dt_tau_px``
+    outside it (the tensor's own tau)."""
+    M = views.shape[0]
+    P = idx.shape[1]
+    C, H, W = dt.shape
+    cost = np.empty(M)
+    score = np.empty(M)
+    for m in nb.prange(M):
+        n = views[m]
+        acc = 0.0
+        hits = 0
+        for i in range(P):
+            u_p, v_p = _project_point(p_obj, idx[n, i], R, t, m, fx, fy, cx, cy)
+            u_n, v_n = _project_point(p_obj, nxt[n, i], R, t, m, fx, fy, cx, cy)
+            u_b, v_b = _project_point(p_obj, prv[n, i], R, t, m, fx, fy, cx, cy)
+            th = math.atan2(v_n - v_b, u_n - u_b) % math.pi
+            u = (u_p - ou + 0.5) * scale - 0.5
+            v = (v_p - ov + 0.5) * scale - 0.5
+            if u >= 0 and u <= W - 1 and v >= 0 and v <= H - 1:
+                uc = min(max(u, 0.0), W - 1.0001)
+                vc = min(max(v, 0.0), H - 1.0001)
+                u0 = int(math.floor(uc))
+                v0 = int(math.floor(vc))
+                fu, fv = uc - u0, vc - v0
+                cf = (th * (C / math.pi)) % C
+                c0 = int(math.floor(cf)) % C
+                c1 = (c0 + 1) % C
+                fc = cf - math.floor(cf)
+                b0 = ((1 - fv) * ((1 - fu) * dt[c0, v0, u0] + fu * dt[c0, v0, u0 + 1])
+                      + fv * ((1 - fu) * dt[c0, v0 + 1, u0] + fu * dt[c0, v0 + 1, u0 + 1]))
+                b1 = ((1 - fv) * ((1 - fu) * dt[c1, v0, u0] + fu * dt[c1, v0, u0 + 1])
+                      + fv * ((1 - fu) * dt[c1, v0 + 1, u0] + fu * dt[c1, v0 + 1, u0 + 1]))
+                val = ((1 - fc) * b0 + fc * b1) / scale
+            else:
+                val = dt_tau_px / scale
+            acc += min(val, tau_px)
+            if val <= score_px:
+                hits += 1
+        cost[m] = acc / P
+        score[m] = hits / P
+    return cost, score
+
+
+def evaluate_poses(bank: TemplateBank, views: np.ndarray, R: np.ndarray, t: np.ndarray, intr: Intrinsics,
+                   dtt: DistanceTensor, n_points: int, score_px: float, tau_px: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """``coarse.evaluate(bank, views, R, t, intr.K, dtt, n_points, score_px, tau_px)`` by ``_evaluate``."""
+    idx, prv, nxt = border_triplets(bank, n_points)
+    ou, ov = (float(x) for x in dtt.origin_uv)
+    return _evaluate(np.asarray(bank.p_obj), idx, prv, nxt, np.asarray(views, np.int64),
+                     np.ascontiguousarray(R), np.ascontiguousarray(t), intr.fx, intr.fy, intr.cx, intr.cy,
+                     dtt.dt, ou, ov, float(dtt.scale), float(dtt.tau_px), float(tau_px), float(score_px))
 
 
 def _points(bank: TemplateBank, count: int) -> tuple[np.ndarray, np.ndarray]:
@@ -322,16 +436,29 @@ _POINTS = Memo(8)
 
 def score_poses(bank: TemplateBank, R: np.ndarray, t: np.ndarray, dt_q: np.ndarray, tau_q: int,
                 dtt: DistanceTensor, intr: Intrinsics, n_points: int, *, limit_q: float = np.inf,
-                best_only: bool = False) -> np.ndarray:
+                best_only: bool = False, group: np.ndarray | None = None) -> np.ndarray:
     """(M,) mean directional chamfer cost of M poses, px of ``dtt``'s grid x DT_QUANT (nearest pixel);
-    inf where it reaches ``limit_q`` (and, with ``best_only``, where it cannot beat the best)."""
+    inf where it reaches ``limit_q`` (and, with ``best_only``, where it cannot beat the best; of its
+    ``group`` (M,) int >= 0, if given)."""
     if len(R) == 0:
         return np.zeros(0)
-    views, R2, t2 = scoring_poses(bank, R, t)
+    z = view_dirs_obj(bank)
+    start, cand = _VIEWS.get(bank, VIEW_TABLE_CELLS, lambda: view_table(z, VIEW_TABLE_CELLS))
+    if bank.symmetry_axis_obj is None:  # the kernel picks each pose's view, as scoring_poses would
+        views, R2, t2 = _NO_GROUP, R, t
+    else:
+        views, R2, t2 = scoring_poses(bank, R, t)
     mid, direction = _points(bank, n_points)
     return _score(dt_q, tau_q, dtt.scale, dtt.origin_uv[0], dtt.origin_uv[1], intr.fx, intr.fy, intr.cx,
-                  intr.cy, mid, direction, views.astype(np.int64), np.ascontiguousarray(R2),
-                  np.ascontiguousarray(t2), dtt.n_channels, float(limit_q), best_only)
+                  intr.cy, mid, direction, views.astype(np.int64), np.ascontiguousarray(R2, np.float64),
+                  np.ascontiguousarray(t2, np.float64), dtt.n_channels, float(limit_q), best_only,
+                  _NO_GROUP if group is None else np.ascontiguousarray(group, np.int64),
+                  0 if group is None or len(group) == 0 else int(np.max(group)) + 1,
+                  np.asarray(bank.centre_obj, np.float64), np.ascontiguousarray(z, np.float64), start, cand,
+                  VIEW_TABLE_CELLS)
+
+
+_NO_GROUP = np.zeros(0, np.int64)
 
 
 @dataclass
@@ -400,16 +527,17 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
             break
         ms = order[i:i + LEVEL_A_ROTATIONS_PER_CALL]
         hopeful = hopeful_blocks(bank, hyp, ms, block_uv, dt_qblock, tau_qa, dtt_a, intr, plane, p, limit_q)
-        Rm = np.repeat(hyp.R[ms], A, axis=0)
-        t, ok = placements(Rm, np.repeat(hyp.h_mm[ms], A), np.tile(anchors, (len(ms), 1)), bank, intr, plane)
-        ok &= hopeful[:, block_of].ravel()
+        # only the (rotation, anchor) pairs of hopeful blocks are placed, rotation-major
+        sel = np.flatnonzero(hopeful[:, block_of].ravel())
+        Rm = hyp.R[ms[sel // A]]
+        t, ok = placements(Rm, hyp.h_mm[ms[sel // A]], anchors[sel % A], bank, intr, plane)
         if distance_range_mm is not None:
             z = (t + Rm @ bank.centre_obj)[:, 2]
             ok &= (z >= distance_range_mm[0]) & (z <= distance_range_mm[1])
         if ok.any():  # a template averaging over accept_frac x tau is no peak: abandoned
             c = np.full(len(ms) * A, np.inf)
-            c[ok] = score_poses(bank, Rm[ok], t[ok], dt_qa, tau_qa, dtt_a, intr, p.points_per_template,
-                                limit_q=limit_q)
+            c[sel[ok]] = score_poses(bank, Rm[ok], t[ok], dt_qa, tau_qa, dtt_a, intr, p.points_per_template,
+                                     limit_q=limit_q)
             cost[ms] = c.reshape(len(ms), A)
     cost = cost.T
     best_m = np.argmin(cost, axis=1)
@@ -431,37 +559,20 @@ def plane_search(bank: TemplateBank, R_rest_obj: np.ndarray, dtt_b: DistanceTens
     dpsi = dpsi[np.argsort(np.abs(dpsi), kind="stable")]
     stages = _level_b_stages(du, dv, dpsi)
     scanned: list[PlaneHypothesis] = []
+    family_rotations = [np.flatnonzero(hyp.s == s) for s in range(len(R_rest_obj))]
     deadline.new_loop()
-    for a in peaks:
+    for i in range(0, len(peaks), LEVEL_B_PEAKS_PER_CALL):
         if not deadline.allows_next(reserve_ms):
             break
-        s_list, psi_list = [], []
-        for s in range(len(R_rest_obj)):
-            ms = np.flatnonzero(hyp.s == s)
-            mb = ms[np.argmin(cost[a, ms])]
-            if cost[a, mb] <= FAMILY_RATIO * best[a]:
-                s_list.append(s)
-                psi_list.append(hyp.psi_deg[mb])
-        # each family's best: at a peak between two copies another family may win
-        for s, psi0 in zip(s_list, psi_list, strict=True):
-            h = None
-            for ddu, ddv, dps in stages:
-                centre_uv, centre_psi = (anchors[a], psi0) if h is None else (h.uv, h.psi_deg)
-                n = len(ddu) * len(dps)
-                psi_all = np.repeat(centre_psi + dps, len(ddu))
-                uv_all = np.tile(centre_uv + np.column_stack([ddu, ddv]), (len(dps), 1))
-                R, t, ok = _poses(bank, R_rest_obj, plane, intr, np.full(n, s), psi_all, uv_all)
-                if not ok.any():
-                    break
-                c = np.full(n, np.inf)
-                c[ok] = score_poses(bank, R[ok], t[ok], dt_qb, tau_qb, dtt_b, intr, p.scan_points,
-                                    best_only=True)
-                k = int(np.argmin(c))
-                if not np.isfinite(c[k]):
-                    break
-                cost_k = float(c[k]) / DT_QUANT / dtt_b.scale
-                if h is None or cost_k < h.cost:
-                    h = PlaneHypothesis(int(s), float(psi_all[k]), uv_all[k].copy(), R[k], t[k], cost_k)
+        # each peak's families: each family's best at a peak between two copies may win there
+        groups = []  # (peak, family, spin) in the order of the peaks, then of the families
+        for a in peaks[i:i + LEVEL_B_PEAKS_PER_CALL]:
+            for s, ms in enumerate(family_rotations):
+                mb = ms[np.argmin(cost[a, ms])]
+                if cost[a, mb] <= FAMILY_RATIO * best[a]:
+                    groups.append((a, s, hyp.psi_deg[mb]))
+        for h in _scan_round(bank, R_rest_obj, plane, intr, groups, anchors, stages, dt_qb, tau_qb, dtt_b,
+                             p.scan_points):
             if h is not None and not any(x.s == h.s and x.psi_deg == h.psi_deg and np.array_equal(x.uv, h.uv)
                                          for x in scanned):  # two peaks' scans can end on one placement
                 scanned.append(h)
@@ -513,6 +624,49 @@ def hopeful_blocks(bank: TemplateBank, hyp: Hypotheses, ms: np.ndarray, block_uv
     return hopeful.reshape(len(ms), nb_)
 
 
+def _scan_round(bank: TemplateBank, R_rest_obj: np.ndarray, plane: Plane, intr: Intrinsics, groups: list,
+                anchors: np.ndarray, stages: list[tuple], dt_q: np.ndarray, tau_q: int, dtt: DistanceTensor,
+                n_points: int) -> list[PlaneHypothesis | None]:
+    """Level B's scans round peaks, one per (peak anchor, family, spin) of ``groups``: each stage of
+    ``stages`` (``_level_b_stages``) scans its offsets round the scan's best so far (at first the peak's
+    anchor and spin), all scans in one scoring call, each with its own running best (``_score``'s
+    groups: the same placements as a call per scan). A scan ends where a stage finds nothing (no
+    placement on the plane, or none finite) -> per group its best placement, or None."""
+    out: list[PlaneHypothesis | None] = [None] * len(groups)
+    if not groups:
+        return out
+    fam = np.array([g[1] for g in groups], int)
+    centre_uv = anchors[[g[0] for g in groups]].astype(float)
+    centre_psi = np.array([g[2] for g in groups], float)
+    alive = np.ones(len(groups), bool)
+    for ddu, ddv, dps in stages:
+        live = np.flatnonzero(alive)
+        if len(live) == 0:
+            break
+        n = len(ddu) * len(dps)
+        off = np.column_stack([ddu, ddv])
+        psi_all = np.concatenate([np.repeat(centre_psi[j] + dps, len(ddu)) for j in live])
+        uv_all = np.concatenate([np.tile(centre_uv[j] + off, (len(dps), 1)) for j in live])
+        R, t, ok = _poses(bank, R_rest_obj, plane, intr, np.repeat(fam[live], n), psi_all, uv_all)
+        c = np.full(len(live) * n, np.inf)
+        if ok.any():
+            c[ok] = score_poses(bank, R[ok], t[ok], dt_q, tau_q, dtt, intr, n_points, best_only=True,
+                                group=np.repeat(np.arange(len(live)), n)[ok])
+        c = c.reshape(len(live), n)
+        for r, j in enumerate(live):
+            k = int(np.argmin(c[r]))
+            if not np.isfinite(c[r, k]):  # nothing on the plane, or nothing finite: the scan ends
+                alive[j] = False
+                continue
+            cost_k = float(c[r, k]) / DT_QUANT / dtt.scale
+            h = out[j]
+            if h is None or cost_k < h.cost:
+                m = r * n + k
+                out[j] = PlaneHypothesis(int(fam[j]), float(psi_all[m]), uv_all[m].copy(), R[m], t[m], cost_k)
+                centre_uv[j], centre_psi[j] = uv_all[m], psi_all[m]
+    return out
+
+
 def _level_b_stages(du: np.ndarray, dv: np.ndarray, dpsi: np.ndarray) -> list[tuple]:
     """Level B's two scans round a peak, as (du, dv, dpsi) offsets: every other offset and spin of the
     full grid, then the full grid's steps within LEVEL_B_FINE_STEPS of the best of those (a fifth of the
@@ -557,7 +711,7 @@ def polish(bank: TemplateBank, R_rest_obj: np.ndarray, hs: list[PlaneHypothesis]
            intr: Intrinsics, plane: Plane, p: SearchParams, *, min_step_px: float = 0.25, max_iter: int = 60,
            deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0) -> list[PlaneHypothesis]:
     """A pattern search over (spin, u, v) on the plane from each hypothesis, bilinear costs
-    (``coarse.evaluate``): all hypotheses step together, one scoring call a step for all of them (each
+    (``evaluate_poses``): all hypotheses step together, one scoring call a step for all of them (each
     moves, or halves its steps, on its own six neighbours' costs alone). Anytime: a step starts only
     while the ``deadline`` leaves it and ``reserve_ms``; each hypothesis is then where it got to."""
     if not hs:
@@ -566,7 +720,7 @@ def polish(bank: TemplateBank, R_rest_obj: np.ndarray, hs: list[PlaneHypothesis]
     def cost_of(s, psis, uvs):
         R, t, ok = _poses(bank, R_rest_obj, plane, intr, s, psis, uvs)
         views, R2, t2 = scoring_poses(bank, R, t)
-        c, sc = evaluate(bank, views, R2, t2, intr.K, dtt, p.fine_points, p.score_px, p.rank_tau_px)
+        c, sc = evaluate_poses(bank, views, R2, t2, intr, dtt, p.fine_points, p.score_px, p.rank_tau_px)
         return np.where(ok, c, np.inf), sc, R, t
 
     n = len(hs)
