@@ -569,7 +569,9 @@ def estimate_image(bank: TemplateBank, data: bytes, intr: Intrinsics, *, max_pix
 
 def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.ndarray, *,
                         by_pose: bool = False) -> list[PoseCandidate]:
-    """Drop candidates whose object centre projects within a quarter diameter of a better one's.
+    """Drop candidates whose object centre projects within a quarter diameter of a better one's: one
+    earlier in ``cands``, which come best first as the search ranks them (by chamfer cost, or by cost
+    over its background with ``SearchParams.bg_norm``).
 
     ``by_pose`` (several instances): drop only those whose bounding-box corners project, on average,
     within a quarter diameter of a better one's: a wrong placement straddling two touching copies
@@ -579,7 +581,7 @@ def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.nd
     ref = corners if by_pose else bank.centre_obj[None]
     out: list[PoseCandidate] = []
     kept: list[np.ndarray] = []
-    for c in sorted(cands, key=lambda c: c.cost):
+    for c in cands:
         x = c.pose.apply(ref)
         uv = np.column_stack([K[0, 0] * x[:, 0] / x[:, 2], K[1, 1] * x[:, 1] / x[:, 2]])
         r = 0.25 * K[0, 0] * bank.diameter_mm / max(float(x[:, 2].mean()), 1e-6)

@@ -3,6 +3,8 @@ without refinement, compare within named tolerances; blank and unrelated images 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numba
 import numpy as np
 import pytest
@@ -403,3 +405,80 @@ def test_scaled_offsets_are_the_rounded_products_and_are_made_once():
     np.testing.assert_array_equal(u, np.rint(off_u[:, None] * scales[None, :, None, None]).astype(np.int16))
     np.testing.assert_array_equal(v, np.rint(off_v[:, None] * scales[None, :, None, None]).astype(np.int16))
     assert scaled_offsets(tpl, scales)[0] is u  # the next frame reuses them
+
+
+def test_background_normalised_cost_ranks_a_partial_outline_above_dense_texture():
+    """Known answer (issue #14): a square template on dense random texture (every orientation nearby)
+    costs less than on its own outline with one of its four sides missing (occluded), so ranking by
+    cost picks the texture; over the local background cost (``background_cost``: what any template
+    costs there) the outline, standing out of plain ground, ranks first."""
+    from service.vision.estimate.chamfer import distance_tensor_from_edges, quantised
+    from service.vision.estimate.coarse import _scan, background_cost, pick_peaks
+
+    C, H, W, half = 8, 64, 160, 8
+    rng = np.random.default_rng(3)
+    edges = np.zeros((C, H, W), np.uint8)
+    tex = rng.random((H, W // 2)) < 0.35  # the left half: dense texture of random orientations
+    ch = rng.integers(0, C, (H, W // 2))
+    for c in range(C):
+        edges[c, :, :W // 2] = tex & (ch == c)
+    cu, cv = 120, 32  # the right half: the square's outline less its bottom side (channel 0: horizontal)
+    edges[0, cv - half, cu - half:cu + half + 1] = 1
+    edges[C // 2, cv - half:cv + half + 1, cu - half] = 1
+    edges[C // 2, cv - half:cv + half + 1, cu + half] = 1
+    dtt = distance_tensor_from_edges(edges, tau_px=10.0)
+    s = np.arange(-half, half + 1)
+    pts = np.concatenate([np.stack([s, np.full_like(s, -half)], 1), np.stack([s, np.full_like(s, half)], 1),
+                          np.stack([np.full_like(s, -half), s], 1), np.stack([np.full_like(s, half), s], 1)])
+    chan = np.array([0] * (2 * len(s)) + [C // 2] * (2 * len(s)), np.int32)[None]
+    off_u = pts[:, 0].astype(np.int16)[None, None, None]
+    off_v = pts[:, 1].astype(np.int16)[None, None, None]
+    dt_q, tau_q = quantised(dtt, dtt.tau_px)
+    gu, gv = np.meshgrid(np.arange(half, W - half, 2), np.arange(half, H - half, 2))
+    au, av = gu.ravel().astype(np.int32), gv.ravel().astype(np.int32)
+    cost, _, _ = _scan(dt_q, tau_q, off_u, off_v, chan, au, av, np.zeros(len(au), np.int32),
+                       np.int64(tau_q * off_u.shape[-1]), 0, False)
+    outline = int(np.flatnonzero((au == cu) & (av == cv))[0])
+    on_texture = au < W // 2 - half
+    assert cost[on_texture].min() < cost[outline]  # raw chamfer cost: the texture wins
+    bg = background_cost(dtt, half)
+    rank = cost / bg[av, au]
+    assert rank[outline] < rank[on_texture].min()  # over the background: the outline wins
+    assert pick_peaks(au, av, rank, 1, 4.0) == [outline]
+
+
+def test_second_distinct_template_at_a_peak_is_proposed(l_block_bank):
+    """Level A keeps an anchor's single best template. Here that one is a decoy: the part's outline at
+    another rotation (118 deg away) drawn as two parallel contours 5 px either side of it, which
+    level A's 1/8 min-pooled grid cannot tell from the outline itself, at the very place of the part
+    (drawn 4 deg off level A's in-plane grid). Level B finds the decoy 5 px off everywhere, but from
+    the decoy's template it cannot turn to the part. With one peak, only ``templates_per_peak`` > 1
+    starts level B from the part's template too (the second distinct one there) and proposes it."""
+    import cv2
+
+    from service.vision.estimate import coarse
+    from service.vision.estimate.coarse import Hypothesis, poses_of
+
+    bank, dist = l_block_bank, 500.0
+    p = replace(pipeline.SEARCH_PARAMS, n_peaks=1, bg_norm=False, templates_per_peak=1)
+    tpl = coarse._cached_level_a(bank, INTR, (H, W), p, dist, dist)
+    uv = np.array([8 * 80 + 3.5, 8 * 60 + 3.5])  # a level-A anchor's pixel
+    decoy = Hypothesis(int(tpl.views[0]), 0.0, dist, uv)
+    part = Hypothesis(int(tpl.views[20]), 94.0, dist, uv + 3)
+    (R_decoy, R_part), (t_decoy, t_part) = poses_of(bank, [decoy, part], INTR.K, dist)
+    assert rotation_angle_deg(R_decoy, R_part) > 100
+    img = render_shaded(bank.vertices_mm, bank.faces, Pose(R_part, t_part), INTR.K, (W, H))
+    mask = render(bank.vertices_mm, bank.faces, Pose(R_decoy, t_decoy), INTR.K, (W, H)).mask.astype(np.uint8)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (11, 11))
+    for m in (cv2.dilate(mask, disc), cv2.erode(mask, disc)):
+        contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        cv2.drawContours(img, contours, -1, 255, 1)
+
+    def right(cands) -> bool:
+        return any(rotation_angle_deg(c.pose.R, R_part) <= COARSE_ROT_DEG_NONSYM
+                   and np.linalg.norm(c.pose.t_mm - t_part) <= COARSE_T_MM_NONSYM for c in cands)
+
+    single = pipeline.propose(bank, img, INTR, distance_mm=dist, params=p)[0]
+    assert single and not right(single)  # the case is real: the single best template leads elsewhere
+    several = pipeline.propose(bank, img, INTR, distance_mm=dist, params=replace(p, templates_per_peak=3))[0]
+    assert right(several)
