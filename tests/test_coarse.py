@@ -482,3 +482,59 @@ def test_second_distinct_template_at_a_peak_is_proposed(l_block_bank):
     assert single and not right(single)  # the case is real: the single best template leads elsewhere
     several = pipeline.propose(bank, img, INTR, distance_mm=dist, params=replace(p, templates_per_peak=3))[0]
     assert right(several)
+
+
+def test_background_norm_and_templates_per_peak_together_propose_the_part_beside_texture(l_block_bank):
+    """Known answer for the two mechanisms together (issue #14). The part sits at one place with a
+    decoy outline (its outline at another rotation, 118 deg away, drawn as two contours 5 px either
+    side) on it, as in ``test_second_distinct_template_at_a_peak_is_proposed``; the left 480 px of the
+    frame are dense texture (random short segments of every orientation). With one peak: by chamfer
+    cost level A picks the texture, with or without extra templates; over the background it picks the
+    part's anchor, but there its single best template is the decoy's; only both together start level B
+    from the part's own rotation there and propose it."""
+    import cv2
+
+    from service.vision.estimate import coarse
+    from service.vision.estimate.chamfer import distance_tensor
+    from service.vision.estimate.coarse import Hypothesis, poses_of
+    from service.vision.estimate.edges import Segments, detect_segments
+
+    bank, dist = l_block_bank, 500.0
+    p = replace(pipeline.SEARCH_PARAMS, n_peaks=1, bg_norm=False, templates_per_peak=1)
+    tpl = coarse._cached_level_a(bank, INTR, (H, W), p, dist, dist)
+    uv = np.array([8 * 100 + 3.5, 8 * 60 + 3.5])  # a level-A anchor's pixel, right of the texture
+    decoy = Hypothesis(int(tpl.views[0]), 0.0, dist, uv)
+    part = Hypothesis(int(tpl.views[20]), 94.0, dist, uv + 3)
+    (R_decoy, R_part), (t_decoy, t_part) = poses_of(bank, [decoy, part], INTR.K, dist)
+    img = render_shaded(bank.vertices_mm, bank.faces, Pose(R_part, t_part), INTR.K, (W, H))
+    mask = render(bank.vertices_mm, bank.faces, Pose(R_decoy, t_decoy), INTR.K, (W, H)).mask.astype(np.uint8)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (11, 11))
+    for m in (cv2.dilate(mask, disc), cv2.erode(mask, disc)):
+        contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        cv2.drawContours(img, contours, -1, 255, 1)
+    seg = detect_segments(img)
+    rng = np.random.default_rng(5)
+    n = 6000
+    c = np.column_stack([rng.uniform(0, 480, n), rng.uniform(0, H, n)])
+    th = rng.uniform(0, np.pi, n)
+    d = np.column_stack([np.cos(th), np.sin(th)]) * rng.uniform(8, 20, n)[:, None] / 2
+    seg = Segments(np.concatenate([seg.uv0, c - d]).astype(np.float32),
+                   np.concatenate([seg.uv1, c + d]).astype(np.float32),
+                   np.concatenate([seg.theta_rad, th]).astype(np.float32), (H, W))
+    dtt = distance_tensor(seg, n_channels=p.n_channels, scale=p.fine_scale)
+
+    def search(**kw):
+        hs = coarse.coarse_search(bank, dtt, INTR, (H, W), replace(p, **kw), distance_mm=dist,
+                                  distance_range_mm=(300.0, 1200.0))
+        Rs, ts = poses_of(bank, hs, INTR.K, dist)
+        return hs, [rotation_angle_deg(R, R_part) <= COARSE_ROT_DEG_NONSYM
+                    and np.linalg.norm(t - t_part) <= COARSE_T_MM_NONSYM for R, t in zip(Rs, ts, strict=True)]
+
+    hs, right = search()
+    assert hs and hs[0].uv[0] < 480 and not any(right)  # by cost: the texture
+    hs, right = search(templates_per_peak=3)
+    assert hs and hs[0].uv[0] < 480 and not any(right)  # ... extra templates there do not help
+    hs, right = search(bg_norm=True)
+    assert hs and hs[0].uv[0] > 480 and not any(right)  # over the background: the place, not the rotation
+    hs, right = search(bg_norm=True, templates_per_peak=3)
+    assert right[0]  # both: the part, first
