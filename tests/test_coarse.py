@@ -447,41 +447,80 @@ def test_background_normalised_cost_ranks_a_partial_outline_above_dense_texture(
     assert pick_peaks(au, av, rank, 1, 4.0) == [outline]
 
 
-def test_second_distinct_template_at_a_peak_is_proposed(l_block_bank):
-    """Level A keeps an anchor's single best template. Here that one is a decoy: the part's outline at
-    another rotation (118 deg away) drawn as two parallel contours 5 px either side of it, which
-    level A's 1/8 min-pooled grid cannot tell from the outline itself, at the very place of the part
-    (drawn 4 deg off level A's in-plane grid). Level B finds the decoy 5 px off everywhere, but from
-    the decoy's template it cannot turn to the part. With one peak, only ``templates_per_peak`` > 1
-    starts level B from the part's template too (the second distinct one there) and proposes it."""
+def _decoy_scene(bank, dist: float, uv: np.ndarray, *, decoy: bool = True, phi_deg: float = 94.0):
+    """The part (the L block) rendered at ``uv`` (3 px off a level-A anchor's pixel ``uv - 3``, 4 deg off
+    level A's in-plane grid) and, with ``decoy``, its outline at another rotation (118 deg away) drawn
+    as two parallel contours 5 px either side of it, which level A's 1/8 min-pooled grid cannot tell
+    from an outline itself -> (grey image, R_part, t_part)."""
     import cv2
 
     from service.vision.estimate import coarse
     from service.vision.estimate.coarse import Hypothesis, poses_of
 
-    bank, dist = l_block_bank, 500.0
-    p = replace(pipeline.SEARCH_PARAMS, n_peaks=1, bg_norm=False, templates_per_peak=1)
-    tpl = coarse._cached_level_a(bank, INTR, (H, W), p, dist, dist)
-    uv = np.array([8 * 80 + 3.5, 8 * 60 + 3.5])  # a level-A anchor's pixel
-    decoy = Hypothesis(int(tpl.views[0]), 0.0, dist, uv)
-    part = Hypothesis(int(tpl.views[20]), 94.0, dist, uv + 3)
-    (R_decoy, R_part), (t_decoy, t_part) = poses_of(bank, [decoy, part], INTR.K, dist)
+    tpl = coarse._cached_level_a(bank, INTR, (H, W), pipeline.SEARCH_PARAMS, dist, dist)
+    h_decoy = Hypothesis(int(tpl.views[0]), 0.0, dist, uv - 3)
+    h_part = Hypothesis(int(tpl.views[20]), phi_deg, dist, uv)
+    (R_decoy, R_part), (t_decoy, t_part) = poses_of(bank, [h_decoy, h_part], INTR.K, dist)
     assert rotation_angle_deg(R_decoy, R_part) > 100
     img = render_shaded(bank.vertices_mm, bank.faces, Pose(R_part, t_part), INTR.K, (W, H))
-    mask = render(bank.vertices_mm, bank.faces, Pose(R_decoy, t_decoy), INTR.K, (W, H)).mask.astype(np.uint8)
-    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (11, 11))
-    for m in (cv2.dilate(mask, disc), cv2.erode(mask, disc)):
-        contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-        cv2.drawContours(img, contours, -1, 255, 1)
+    if decoy:
+        mask = render(bank.vertices_mm, bank.faces, Pose(R_decoy, t_decoy), INTR.K, (W, H)).mask
+        mask = mask.astype(np.uint8)
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (11, 11))
+        for m in (cv2.dilate(mask, disc), cv2.erode(mask, disc)):
+            contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+            cv2.drawContours(img, contours, -1, 255, 1)
+    return img, R_part, t_part
 
-    def right(cands) -> bool:
-        return any(rotation_angle_deg(c.pose.R, R_part) <= COARSE_ROT_DEG_NONSYM
-                   and np.linalg.norm(c.pose.t_mm - t_part) <= COARSE_T_MM_NONSYM for c in cands)
 
+def _is_pose(R_part, t_part):
+    def right(pose) -> bool:
+        return (rotation_angle_deg(pose.R, R_part) <= COARSE_ROT_DEG_NONSYM
+                and np.linalg.norm(pose.t_mm - t_part) <= COARSE_T_MM_NONSYM)
+    return right
+
+
+def test_second_distinct_template_at_a_peak_is_proposed(l_block_bank):
+    """Level A keeps an anchor's single best template. Here that one is a decoy's (``_decoy_scene``) at
+    the very place of the part. Level B finds the decoy 5 px off everywhere, but from the decoy's
+    template it cannot turn to the part. With one peak, only ``templates_per_peak`` > 1 starts level B
+    from the part's template too (the second distinct one there, the search's deferred second pass)
+    and proposes it."""
+    bank, dist = l_block_bank, 500.0
+    p = replace(pipeline.SEARCH_PARAMS, n_peaks=1, bg_norm=False, templates_per_peak=1)
+    img, R_part, t_part = _decoy_scene(bank, dist, np.array([8 * 80 + 6.5, 8 * 60 + 6.5]))
+    right = _is_pose(R_part, t_part)
     single = pipeline.propose(bank, img, INTR, distance_mm=dist, params=p)[0]
-    assert single and not right(single)  # the case is real: the single best template leads elsewhere
-    several = pipeline.propose(bank, img, INTR, distance_mm=dist, params=replace(p, templates_per_peak=3))[0]
-    assert right(several)
+    assert single and not any(right(c.pose) for c in single)  # the single best template leads elsewhere
+    later: list = []
+    first = pipeline.propose(bank, img, INTR, distance_mm=dist, params=replace(p, templates_per_peak=3),
+                             deferred=later)[0]
+    assert not any(right(c.pose) for c in first) and len(later) == 1  # the first pass: as with one ...
+    assert any(right(c.pose) for c in later[0]())  # ... the second, the peak's other templates: the part
+
+
+def test_estimate_runs_the_second_pass_only_when_the_first_candidates_fail(l_block_bank, monkeypatch):
+    """The search's second pass (the peaks' other templates) costs level-B scans: ``estimate`` runs it
+    only when none of the first pass's candidates is found. On a clean render of the part (on level
+    A's in-plane grid) it is found at once and the pass never runs; with the decoy on it
+    (``_decoy_scene``) the first candidate is the decoy's rotation, rejected, and the second pass runs
+    and proposes the part."""
+    from service.vision.estimate import coarse
+
+    calls: list[int] = []
+    peak_starts = coarse.peak_starts
+    monkeypatch.setattr(coarse, "peak_starts", lambda *a, **k: calls.append(1) or peak_starts(*a, **k))
+    bank, dist = l_block_bank, 500.0
+    p = replace(pipeline.SEARCH_PARAMS, n_peaks=1, templates_per_peak=3)
+    uv = np.array([8 * 80 + 6.5, 8 * 60 + 6.5])
+    img, R_part, t_part = _decoy_scene(bank, dist, uv, decoy=False, phi_deg=90.0)
+    out = pipeline.estimate(bank, img, INTR, distance_mm=dist, params=p)
+    assert out.found and _is_pose(R_part, t_part)(out.refined.pose) and not calls
+    img, R_part, t_part = _decoy_scene(bank, dist, uv)
+    right = _is_pose(R_part, t_part)
+    out = pipeline.estimate(bank, img, INTR, distance_mm=dist, params=p)
+    assert not right(out.candidates[0].pose) and calls == [1]
+    assert any(right(c.pose) for c in out.candidates[1:])
 
 
 def test_background_norm_and_templates_per_peak_together_propose_the_part_beside_texture(l_block_bank):

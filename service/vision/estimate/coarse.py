@@ -24,6 +24,7 @@ corners too.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numba as nb
@@ -978,10 +979,18 @@ def depth_scales(distance_range_mm: tuple[float, float], depth_step: float) -> t
 def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
                   image_shape: tuple[int, int], p: SearchParams, *, distance_mm: float | None,
                   distance_range_mm: tuple[float, float], anchor_mask: np.ndarray | None = None,
-                  deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0) -> list[Hypothesis]:
+                  deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0,
+                  deferred: list[Callable[[], list[Hypothesis]]] | None = None) -> list[Hypothesis]:
     """Ranked, polished, mutually distinct hypotheses (best first). ``dtt_b`` is the DT3 at
     ``fine_scale``; level A's grid is min-pooled from it. ``anchor_mask`` (full-resolution (h, w)
     bool): level A places the reference point only there (``scan_level_a``).
+
+    Two passes: level B from each level-A peak's own template, then (``templates_per_peak`` > 1) from
+    its other distinct templates (``peak_starts``), each pass polishing its best ``n_polish``. With a
+    ``deferred`` list the second pass is not run here: a callable running it (and returning its
+    hypotheses, ranked) is appended to the list, for a caller that needs it only when the first
+    pass's hypotheses all fail verification (``pipeline.estimate``); without, both passes' hypotheses
+    are returned together, ranked.
 
     Anytime: each unit of work (a chunk of level-A anchors, a peak's local scan, a polish) starts only
     while the ``deadline`` leaves more than ``reserve_ms`` (the caller's time to verify a result); what
@@ -1009,49 +1018,78 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
         starts.append(Hypothesis(view, phi, z, uv))
     if not starts:
         return []
-    # Each peak's level-A template first, then each one's second distinct template, ...: the deadline
-    # and the accept ratio treat the peaks' own templates as without the extra starts.
-    extra = peak_starts(bank, tpl, scales, dtt_a, au, av, cost, t, peaks, image_shape, p)
-    for rank in range(p.templates_per_peak - 1):
-        starts += [s[rank] for s in extra if len(s) > rank]
-    scanned: list[Hypothesis] = []
-    best_q = np.inf  # the best cost so far (over its background with bg_norm)
+    state = _LevelB(bank, dtt_b, dt_q, tau_q, K, p, distance_mm, bg, deadline, reserve_ms)
+    out = state.run(starts)
+    if p.templates_per_peak <= 1:
+        return out
 
-    def bg_of(hs: list[Hypothesis]) -> np.ndarray:
-        return _bg_at(bg, np.array([x.uv for x in hs]), p.level_scale) if bg is not None else np.ones(len(hs))
+    def second() -> list[Hypothesis]:
+        # Each peak's second distinct template first, then each one's third, ...: the deadline reaches
+        # every peak's best alternative before any peak's next.
+        extra = peak_starts(bank, tpl, scales, dtt_a, au, av, cost, t, peaks, image_shape, p)
+        more: list[Hypothesis] = []
+        for rank in range(p.templates_per_peak - 1):
+            more += [s[rank] for s in extra if len(s) > rank]
+        return state.run(more)
 
-    deadline.new_loop()
-    for h in starts:
-        if not deadline.allows_next(reserve_ms):
-            break
-        # A peak whose neighbourhood cannot come near the best so far would never be reported first.
-        accept = int(min(tau_q, p.peak_accept_ratio * best_q * float(bg_of([h])[0])))
-        hyp, q = local_scan(bank, h, dt_q, tau_q, dtt_b, K, p, distance_mm=distance_mm, accept_q=accept)
-        if hyp is not None:
-            scanned.append(hyp)
-            best_q = min(best_q, q / float(bg_of([hyp])[0]))
-    if not scanned:
-        return []
-    Rs, ts = poses_of(bank, scanned, K, distance_mm)
-    cost_b, score_b = evaluate(bank, np.array([h.view for h in scanned]), Rs, ts, K, dtt_b, p.fine_points,
-                               p.score_px, p.rank_tau_px)
-    order = np.argsort(cost_b / bg_of(scanned))[:p.n_polish]
-    neighbours = view_neighbours(bank)
-    out = []
-    deadline.new_loop()
-    for i in order:
-        if deadline.allows_next(reserve_ms):
-            out.append(polish(bank, scanned[i], dtt_b, K, p, distance_mm=distance_mm, neighbours=neighbours,
-                              step_phi_deg=p.local_phi_step_deg / 2, step_uv_px=1.0 / dtt_b.scale,
-                              step_z=p.depth_step / 4))
-        else:
-            h = scanned[i]
-            h.cost, h.score = float(cost_b[i]), float(score_b[i])
-            out.append(h)
-    for h, b in zip(out, bg_of(out), strict=True):
-        h.rank_cost = h.cost / float(b)
-    out.sort(key=lambda h: h.rank_cost)
-    return out
+    if deferred is not None:
+        deferred.append(second)
+        return out
+    return sorted(out + second(), key=lambda h: h.rank_cost)
+
+
+class _LevelB:
+    """Level B of one frame's search, run on batches of starts (``coarse_search``'s passes): each
+    start's local scan, accepted within ``peak_accept_ratio`` of the best so far over all batches
+    (over its background with ``bg_norm``), then the batch's best ``n_polish`` polished."""
+
+    def __init__(self, bank, dtt_b, dt_q, tau_q, K, p: SearchParams, distance_mm, bg, deadline: Deadline,
+                 reserve_ms: float):
+        self.bank, self.dtt_b, self.dt_q, self.tau_q, self.K, self.p = bank, dtt_b, dt_q, tau_q, K, p
+        self.distance_mm, self.bg, self.deadline, self.reserve_ms = distance_mm, bg, deadline, reserve_ms
+        self.best_q = np.inf  # the best cost so far (over its background with bg_norm)
+
+    def bg_of(self, hs: list[Hypothesis]) -> np.ndarray:
+        if self.bg is None or not hs:
+            return np.ones(len(hs))
+        return _bg_at(self.bg, np.array([x.uv for x in hs]), self.p.level_scale)
+
+    def run(self, starts: list[Hypothesis]) -> list[Hypothesis]:
+        p, bank, K, dtt_b, deadline = self.p, self.bank, self.K, self.dtt_b, self.deadline
+        scanned: list[Hypothesis] = []
+        deadline.new_loop()
+        for h in starts:
+            if not deadline.allows_next(self.reserve_ms):
+                break
+            # A peak whose neighbourhood cannot come near the best so far would never be reported first.
+            accept = int(min(self.tau_q, p.peak_accept_ratio * self.best_q * float(self.bg_of([h])[0])))
+            hyp, q = local_scan(bank, h, self.dt_q, self.tau_q, dtt_b, K, p, distance_mm=self.distance_mm,
+                                accept_q=accept)
+            if hyp is not None:
+                scanned.append(hyp)
+                self.best_q = min(self.best_q, q / float(self.bg_of([hyp])[0]))
+        if not scanned:
+            return []
+        Rs, ts = poses_of(bank, scanned, K, self.distance_mm)
+        cost_b, score_b = evaluate(bank, np.array([h.view for h in scanned]), Rs, ts, K, dtt_b, p.fine_points,
+                                   p.score_px, p.rank_tau_px)
+        order = np.argsort(cost_b / self.bg_of(scanned))[:p.n_polish]
+        neighbours = view_neighbours(bank)
+        out = []
+        deadline.new_loop()
+        for i in order:
+            if deadline.allows_next(self.reserve_ms):
+                out.append(polish(bank, scanned[i], dtt_b, K, p, distance_mm=self.distance_mm,
+                                  neighbours=neighbours, step_phi_deg=p.local_phi_step_deg / 2,
+                                  step_uv_px=1.0 / dtt_b.scale, step_z=p.depth_step / 4))
+            else:
+                h = scanned[i]
+                h.cost, h.score = float(cost_b[i]), float(score_b[i])
+                out.append(h)
+        for h, b in zip(out, self.bg_of(out), strict=True):
+            h.rank_cost = h.cost / float(b)
+        out.sort(key=lambda h: h.rank_cost)
+        return out
 
 
 _LEVEL_A = Memo(8)
