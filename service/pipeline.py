@@ -396,8 +396,8 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
                       n_channels: int, deadline: Deadline = NO_DEADLINE, plane: Plane | None = None,
                       plane_tolerance_mm: float = PLANE_TOLERANCE_MM) -> list[Checked]:
     """Refine and verify the best ``N_VERIFY`` candidates, best verification first. Stops at the first
-    found one: the search ranks by chamfer cost, and on a clean frame the first is the truth; and
-    before a check the ``deadline`` leaves no time for."""
+    found one: the search ranks by chamfer cost (over the local background's), and on a clean frame
+    the first is the truth; and before a check the ``deadline`` leaves no time for."""
     out: list[Checked] = []
     for cand in cands[:N_VERIFY]:
         if not deadline.allows(_CHECK_MS.value):
