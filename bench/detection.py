@@ -51,10 +51,15 @@ def set_dir_of(name: str) -> Path:
     return p if p.is_dir() else DATA_DIR / name
 
 
-def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: float | None) -> list[dict]:
+def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: float | None,
+            every_image: int = 1) -> list[dict]:
     set_dir = set_dir_of(name)
     meta = read_meta(set_dir)
-    gts = read_gt(set_dir)[:limit] if limit else read_gt(set_dir)
+    gts = read_gt(set_dir)
+    if every_image > 1:  # every n-th image (all its gt lines: lmo_dev has several per image)
+        images = sorted({g["image"] for g in gts})[::every_image]
+        gts = [g for g in gts if g["image"] in set(images)]
+    gts = gts[:limit] if limit else gts
     minfo: dict = {}
     recs = []
     for g in gts:
@@ -102,12 +107,14 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--distance-given", action="store_true")
     ap.add_argument("--min-score", type=float, default=None)
+    ap.add_argument("--every-image", type=int, default=1, help="every n-th image of each set (a first look)")
     a = ap.parse_args(argv)
     rows = []
     dump = {}
     for name in a.sets.split(","):
         runs = [summarise(recs) for recs in
-                [run_set(name, limit=a.limit, distance_given=a.distance_given, min_score=a.min_score)
+                [run_set(name, limit=a.limit, distance_given=a.distance_given, min_score=a.min_score,
+                         every_image=a.every_image)
                  for _ in range(a.repeat)]]
         dump[name] = runs
         col = {k: [r[k] for r in runs] for k in runs[0]}

@@ -36,7 +36,7 @@ from bench.hypotheses import read_colour  # noqa: E402
 from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, SEARCH_PARAMS  # noqa: E402
 from service.vision.bank import view_dirs_obj  # noqa: E402
 from service.vision.estimate import coarse  # noqa: E402
-from service.vision.estimate.chamfer import distance_tensor  # noqa: E402
+from service.vision.estimate.chamfer import distance_tensor, pooled_distance_tensor  # noqa: E402
 from service.vision.estimate.edges import detect_segments, to_grey_u8  # noqa: E402
 from service.vision.estimate.refine import border_points, verify  # noqa: E402
 from service.vision.geometry.camera import Intrinsics, project, ray_rotation  # noqa: E402
@@ -106,7 +106,9 @@ def run(a) -> None:
     gts = [g for g in read_gt(set_dir) if not g.get("absent") and g.get("visible_fraction", 1) >= 0.5]
     gts = gts[a.start::a.every][:a.limit]
     p = replace(SEARCH_PARAMS, fine_scale=a.fine_scale, level_scale=a.level_scale, n_peaks=a.n_peaks,
-                n_polish=a.n_polish, peak_accept_ratio=a.accept_ratio)
+                n_polish=a.n_polish, peak_accept_ratio=a.accept_ratio,
+                bg_norm=SEARCH_PARAMS.bg_norm if a.bg_norm is None else a.bg_norm == "on",
+                templates_per_peak=a.templates_per_peak or SEARCH_PARAMS.templates_per_peak)
     tot = {"n": 0, "peak": 0, "inB": 0, "inP": 0, "inP1": 0, "inP5": 0, "cheap": 0, "oracleB": 0}
     cov_all, search_ms = [], []
     print("q image model size vis cov | A rank/n peak | B in rank | P in rank")
@@ -149,7 +151,16 @@ def run(a) -> None:
         v_gt = int(np.argmax(view_dirs_obj(bank) @ (gt.R.T @ (gt.apply(bank.centre_obj[None])[0]))))
         tc = float(coarse.evaluate(bank, np.array([v_gt]), gt.R[None], gt.t_mm[None], K, dtt, p.fine_points,
                                    p.score_px, p.rank_tau_px)[0][0])
-        beat = sum(h.cost < tc for h in hyps)
+        if p.bg_norm:  # the truth's cost over its background, as the search ranks
+            z_ref, sc = (dist, np.array([1.0])) if dist is not None else \
+                coarse.depth_scales(DEFAULT_DISTANCE_RANGE_MM, p.depth_step)
+            lv = coarse._cached_level_a(bank, intr, grey.shape, p, dist, z_ref)
+            r_bg = int(coarse.BG_WINDOW_EXTENT * lv.extent_px * float(np.median(sc)))
+            bgm = coarse.background_cost(pooled_distance_tensor(dtt, p.level_scale), r_bg)
+            tc_rank = tc / float(coarse._bg_at(bgm, c_uv, p.level_scale)[0])
+        else:
+            tc_rank = tc
+        beat = sum(h.rank_cost < tc_rank for h in hyps)
         # Oracle: level B started from the truth's own level-A cell (nearest level-A view, in-plane angle
         # on level A's 10-degree grid, the anchor nearest the truth's reference point, true depth).
         _, R_ray = ray_rotation(c_uv, K)
@@ -185,7 +196,8 @@ def run(a) -> None:
               flush=True)
     n = tot["n"]
     print(f"\n{a.set} {a.edges} {a.lsd_scale} fine {a.fine_scale} level {a.level_scale} peaks {a.n_peaks} "
-          f"polish {a.n_polish} dist {'given' if a.distance_given else 'not given'}: n={n} "
+          f"polish {a.n_polish} bg_norm {p.bg_norm} templates/peak {p.templates_per_peak} "
+          f"dist {'given' if a.distance_given else 'not given'}: n={n} "
           f"cov mean {np.mean(cov_all):.2f} | peak near truth {tot['peak']} | "
           f"truth after level B {tot['inB']} | "
           f"in proposals {tot['inP']} (first {tot['inP1']}, top5 {tot['inP5']}) | "
@@ -208,6 +220,10 @@ def main(argv=None) -> int:
     ap.add_argument("--n-peaks", type=int, default=30)
     ap.add_argument("--n-polish", type=int, default=12)
     ap.add_argument("--accept-ratio", type=float, default=3.0)
+    ap.add_argument("--bg-norm", choices=["on", "off"], default=None,
+                    help="SearchParams.bg_norm (default: the service's)")
+    ap.add_argument("--templates-per-peak", type=int, default=None,
+                    help="SearchParams.templates_per_peak (default: the service's)")
     run(ap.parse_args(argv))
     return 0
 

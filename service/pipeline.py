@@ -19,7 +19,7 @@ from service.vision import threads
 from service.vision.bank import TemplateBank
 from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.chamfer import distance_tensor
-from service.vision.estimate.coarse import SearchParams, coarse_search, poses_of
+from service.vision.estimate.coarse import Hypothesis, SearchParams, coarse_search, poses_of
 from service.vision.estimate.edges import Segments, detect_segments, to_grey_u8, undistort_segments
 from service.vision.estimate.evidence import ColourFrame, colour_frame, evidence
 from service.vision.estimate.plane import (
@@ -156,7 +156,8 @@ def search_params(max_instances: int) -> SearchParams:
 def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance_mm: float | None = None,
             distance_range_mm: tuple[float, float] | None = None, params: SearchParams | None = None,
             roi_uv: np.ndarray | None = None, deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0,
-            plane: Plane | None = None, several: bool = False):
+            plane: Plane | None = None, several: bool = False,
+            deferred: list[Callable[[], list[PoseCandidate]]] | None = None):
     """The proposal engine (the paper's method): LSD edges, their distance tensor and the coarse
     search -> (distinct candidates, lowest chamfer cost first; full-image segments; timing_ms with
     "edges" and "coarse").
@@ -172,7 +173,12 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     all of 6D; ``distance_mm`` is then not used. A part without stable poses is searched in 6D. The
     plane search is anytime too (``plane.plane_search``).
 
-    ``several``: the frame may hold several instances (``distinct_candidates``' ``by_pose``)."""
+    ``several``: the frame may hold several instances (``distinct_candidates``' ``by_pose``).
+
+    ``deferred``: a list to which the 6D search's second pass (``coarse_search``: the level-A peaks'
+    other templates, ``SearchParams.templates_per_peak``) is appended as a callable returning its
+    distinct candidates (none is appended when there is no second pass). Without it there is no
+    second pass: only the single-instance ``estimate`` runs it, when the first one's candidates fail."""
     rest = resting_rotations(bank) if plane is not None else None
     p = params or SEARCH_PARAMS
     threads.use_budget()
@@ -211,18 +217,32 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
                           reserve_ms=reserve_ms) if deadline.allows(reserve_ms) else []
         cands = [_candidate(bank, Pose(x.R, x.t), x.cost, x.score) for x in ph]
     else:
+        later: list[Callable[[], list[Hypothesis]]] = []
         hyps = coarse_search(bank, dtt_b, intr, (h, w), p, distance_mm=distance_mm, distance_range_mm=rng,
-                             anchor_mask=anchor_mask, deadline=deadline, reserve_ms=reserve_ms) \
-            if deadline.allows(reserve_ms) else []
-        Rs, ts = poses_of(bank, hyps, intr.K, distance_mm) if hyps else (np.zeros((0, 3, 3)),
-                                                                         np.zeros((0, 3)))
-        cands = [_candidate(bank, Pose(R, t), hy.cost, hy.score)
-                 for R, t, hy in zip(Rs, ts, hyps, strict=True)]
-    if roi_uv is not None and cands:  # level B's local scans may have walked the centre out of the ROI
+                             anchor_mask=anchor_mask, deadline=deadline, reserve_ms=reserve_ms,
+                             deferred=later) if deadline.allows(reserve_ms) else []
+
+        def to_candidates(hs: list[Hypothesis]) -> list[PoseCandidate]:
+            if not hs:
+                return []
+            Rs, ts = poses_of(bank, hs, intr.K, distance_mm)
+            return [_candidate(bank, Pose(R, t), hy.cost, hy.score)
+                    for R, t, hy in zip(Rs, ts, hs, strict=True)]
+
+        cands = to_candidates(hyps)
+        if deferred is not None and later:
+            deferred.append(lambda: _distinct_in_roi(to_candidates(later[0]()), bank, intr, roi_uv, several))
+    return (_distinct_in_roi(cands, bank, intr, roi_uv, several), seg, {"edges": t_edges, "coarse": _ms(t1)})
+
+
+def _distinct_in_roi(cands: list[PoseCandidate], bank: TemplateBank, intr: Intrinsics,
+                     roi_uv: np.ndarray | None, several: bool) -> list[PoseCandidate]:
+    """``distinct_candidates`` of those whose centre lies in ``roi_uv`` (level B's local scans may have
+    walked it out)."""
+    if roi_uv is not None and cands:
         cands = [c for c, ok in zip(cands, roi_inside(roi_uv, _centres_uv(cands, bank, intr.K)), strict=True)
                  if ok]
-    return (distinct_candidates(cands, bank, intr.K, by_pose=several), seg,
-            {"edges": t_edges, "coarse": _ms(t1)})
+    return distinct_candidates(cands, bank, intr.K, by_pose=several)
 
 
 _REST = Memo(8)
@@ -279,11 +299,14 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     deadline = Deadline(deadline_ms, start=t_start)
     grey = to_grey_u8(image)
     h, w = grey.shape
+    # One instance: the search's second pass runs only when its first pass's candidates all fail.
+    second: list[Callable[[], list[PoseCandidate]]] = []
     cands, _, timing = propose(bank, grey, intr, distance_mm=distance_mm, distance_range_mm=distance_range_mm,
                                params=p, roi_uv=roi_uv, deadline=deadline,
                                reserve_ms=SEARCH_RESERVE_CHECKS * _CHECK_MS.value, plane=plane,
-                               several=max_instances > 1)
+                               several=max_instances > 1, deferred=second if max_instances <= 1 else None)
     t0 = time.perf_counter()
+    t_second = 0.0
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
     # The evidence reads pixels where the ideal camera projects the model: undistort the frame once.
     frame = colour_frame(undistort_image(image, intr))
@@ -291,6 +314,14 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
               deadline=deadline, plane=plane, plane_tolerance_mm=plane_tolerance_mm)
     if max_instances <= 1:
         checked = verify_candidates(bank, cands, grey, frame, intr, **kw)
+        if second and not (checked and checked[0].verdict.found) and deadline.allows(_CHECK_MS.value):
+            # None of the first pass's candidates holds: the peaks' other templates (coarse_search).
+            t2 = time.perf_counter()
+            more = second[0]()
+            timing["coarse"] += (t_second := _ms(t2))
+            checked = sorted(checked + verify_candidates(bank, more, grey, frame, intr, **kw),
+                             key=lambda c: (c.verdict.found, c.verdict.score), reverse=True)
+            cands = cands + more
         best = checked[0] if checked else None
         found_list = [best] if best is not None and best.verdict.found else []
     else:
@@ -305,7 +336,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     found = verdict.found
     coarse = best.candidate if found else None
     refined = best.refined if found and refine else None
-    timing["refine"] = _ms(t0)
+    timing["refine"] = _ms(t0) - t_second
     png = None
     if overlay:
         from service.vision.overlay import draw_overlay, encode_png
@@ -365,8 +396,8 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
                       n_channels: int, deadline: Deadline = NO_DEADLINE, plane: Plane | None = None,
                       plane_tolerance_mm: float = PLANE_TOLERANCE_MM) -> list[Checked]:
     """Refine and verify the best ``N_VERIFY`` candidates, best verification first. Stops at the first
-    found one: the search ranks by chamfer cost, and on a clean frame the first is the truth; and
-    before a check the ``deadline`` leaves no time for."""
+    found one: the search ranks by chamfer cost (over the local background's), and on a clean frame
+    the first is the truth; and before a check the ``deadline`` leaves no time for."""
     out: list[Checked] = []
     for cand in cands[:N_VERIFY]:
         if not deadline.allows(_CHECK_MS.value):
@@ -583,7 +614,9 @@ def estimate_image(bank: TemplateBank, data: bytes, intr: Intrinsics, *, max_pix
 
 def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.ndarray, *,
                         by_pose: bool = False) -> list[PoseCandidate]:
-    """Drop candidates whose object centre projects within a quarter diameter of a better one's.
+    """Drop candidates whose object centre projects within a quarter diameter of a better one's: one
+    earlier in ``cands``, which come best first as the search ranks them (by chamfer cost, or by cost
+    over its background with ``SearchParams.bg_norm``).
 
     ``by_pose`` (several instances): drop only those whose bounding-box corners project, on average,
     within a quarter diameter of a better one's: a wrong placement straddling two touching copies
@@ -593,7 +626,7 @@ def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.nd
     ref = corners if by_pose else bank.centre_obj[None]
     out: list[PoseCandidate] = []
     kept: list[np.ndarray] = []
-    for c in sorted(cands, key=lambda c: c.cost):
+    for c in cands:
         x = c.pose.apply(ref)
         uv = np.column_stack([K[0, 0] * x[:, 0] / x[:, 2], K[1, 1] * x[:, 1] / x[:, 2]])
         r = 0.25 * K[0, 0] * bank.diameter_mm / max(float(x[:, 2].mean()), 1e-6)

@@ -3,6 +3,8 @@ without refinement, compare within named tolerances; blank and unrelated images 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numba
 import numpy as np
 import pytest
@@ -403,3 +405,175 @@ def test_scaled_offsets_are_the_rounded_products_and_are_made_once():
     np.testing.assert_array_equal(u, np.rint(off_u[:, None] * scales[None, :, None, None]).astype(np.int16))
     np.testing.assert_array_equal(v, np.rint(off_v[:, None] * scales[None, :, None, None]).astype(np.int16))
     assert scaled_offsets(tpl, scales)[0] is u  # the next frame reuses them
+
+
+def test_background_normalised_cost_ranks_a_partial_outline_above_dense_texture():
+    """Known answer (issue #14): a square template on dense random texture (every orientation nearby)
+    costs less than on its own outline with one of its four sides missing (occluded), so ranking by
+    cost picks the texture; over the local background cost (``background_cost``: what any template
+    costs there) the outline, standing out of plain ground, ranks first."""
+    from service.vision.estimate.chamfer import distance_tensor_from_edges, quantised
+    from service.vision.estimate.coarse import _scan, background_cost, pick_peaks
+
+    C, H, W, half = 8, 64, 160, 8
+    rng = np.random.default_rng(3)
+    edges = np.zeros((C, H, W), np.uint8)
+    tex = rng.random((H, W // 2)) < 0.35  # the left half: dense texture of random orientations
+    ch = rng.integers(0, C, (H, W // 2))
+    for c in range(C):
+        edges[c, :, :W // 2] = tex & (ch == c)
+    cu, cv = 120, 32  # the right half: the square's outline less its bottom side (channel 0: horizontal)
+    edges[0, cv - half, cu - half:cu + half + 1] = 1
+    edges[C // 2, cv - half:cv + half + 1, cu - half] = 1
+    edges[C // 2, cv - half:cv + half + 1, cu + half] = 1
+    dtt = distance_tensor_from_edges(edges, tau_px=10.0)
+    s = np.arange(-half, half + 1)
+    pts = np.concatenate([np.stack([s, np.full_like(s, -half)], 1), np.stack([s, np.full_like(s, half)], 1),
+                          np.stack([np.full_like(s, -half), s], 1), np.stack([np.full_like(s, half), s], 1)])
+    chan = np.array([0] * (2 * len(s)) + [C // 2] * (2 * len(s)), np.int32)[None]
+    off_u = pts[:, 0].astype(np.int16)[None, None, None]
+    off_v = pts[:, 1].astype(np.int16)[None, None, None]
+    dt_q, tau_q = quantised(dtt, dtt.tau_px)
+    gu, gv = np.meshgrid(np.arange(half, W - half, 2), np.arange(half, H - half, 2))
+    au, av = gu.ravel().astype(np.int32), gv.ravel().astype(np.int32)
+    cost, _, _ = _scan(dt_q, tau_q, off_u, off_v, chan, au, av, np.zeros(len(au), np.int32),
+                       np.int64(tau_q * off_u.shape[-1]), 0, False)
+    outline = int(np.flatnonzero((au == cu) & (av == cv))[0])
+    on_texture = au < W // 2 - half
+    assert cost[on_texture].min() < cost[outline]  # raw chamfer cost: the texture wins
+    bg = background_cost(dtt, half)
+    rank = cost / bg[av, au]
+    assert rank[outline] < rank[on_texture].min()  # over the background: the outline wins
+    assert pick_peaks(au, av, rank, 1, 4.0) == [outline]
+
+
+def _decoy_scene(bank, dist: float, uv: np.ndarray, *, decoy: bool = True, phi_deg: float = 94.0):
+    """The part (the L block) rendered at ``uv`` (3 px off a level-A anchor's pixel ``uv - 3``, 4 deg off
+    level A's in-plane grid) and, with ``decoy``, its outline at another rotation (118 deg away) drawn
+    as two parallel contours 5 px either side of it, which level A's 1/8 min-pooled grid cannot tell
+    from an outline itself -> (grey image, R_part, t_part)."""
+    import cv2
+
+    from service.vision.estimate import coarse
+    from service.vision.estimate.coarse import Hypothesis, poses_of
+
+    tpl = coarse._cached_level_a(bank, INTR, (H, W), pipeline.SEARCH_PARAMS, dist, dist)
+    h_decoy = Hypothesis(int(tpl.views[0]), 0.0, dist, uv - 3)
+    h_part = Hypothesis(int(tpl.views[20]), phi_deg, dist, uv)
+    (R_decoy, R_part), (t_decoy, t_part) = poses_of(bank, [h_decoy, h_part], INTR.K, dist)
+    assert rotation_angle_deg(R_decoy, R_part) > 100
+    img = render_shaded(bank.vertices_mm, bank.faces, Pose(R_part, t_part), INTR.K, (W, H))
+    if decoy:
+        mask = render(bank.vertices_mm, bank.faces, Pose(R_decoy, t_decoy), INTR.K, (W, H)).mask
+        mask = mask.astype(np.uint8)
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (11, 11))
+        for m in (cv2.dilate(mask, disc), cv2.erode(mask, disc)):
+            contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+            cv2.drawContours(img, contours, -1, 255, 1)
+    return img, R_part, t_part
+
+
+def _is_pose(R_part, t_part):
+    def right(pose) -> bool:
+        return (rotation_angle_deg(pose.R, R_part) <= COARSE_ROT_DEG_NONSYM
+                and np.linalg.norm(pose.t_mm - t_part) <= COARSE_T_MM_NONSYM)
+    return right
+
+
+def test_second_distinct_template_at_a_peak_is_proposed(l_block_bank):
+    """Level A keeps an anchor's single best template. Here that one is a decoy's (``_decoy_scene``) at
+    the very place of the part. Level B finds the decoy 5 px off everywhere, but from the decoy's
+    template it cannot turn to the part. With one peak, only ``templates_per_peak`` > 1 starts level B
+    from the part's template too (the second distinct one there, the search's deferred second pass)
+    and proposes it."""
+    bank, dist = l_block_bank, 500.0
+    p = replace(pipeline.SEARCH_PARAMS, n_peaks=1, bg_norm=False, templates_per_peak=1)
+    img, R_part, t_part = _decoy_scene(bank, dist, np.array([8 * 80 + 6.5, 8 * 60 + 6.5]))
+    right = _is_pose(R_part, t_part)
+    single = pipeline.propose(bank, img, INTR, distance_mm=dist, params=p)[0]
+    assert single and not any(right(c.pose) for c in single)  # the single best template leads elsewhere
+    later: list = []
+    first = pipeline.propose(bank, img, INTR, distance_mm=dist, params=replace(p, templates_per_peak=3),
+                             deferred=later)[0]
+    assert not any(right(c.pose) for c in first) and len(later) == 1  # the first pass: as with one ...
+    assert any(right(c.pose) for c in later[0]())  # ... the second, the peak's other templates: the part
+
+
+def test_estimate_runs_the_second_pass_only_when_the_first_candidates_fail(l_block_bank, monkeypatch):
+    """The search's second pass (the peaks' other templates) costs level-B scans: ``estimate`` runs it
+    only when none of the first pass's candidates is found. On a clean render of the part (on level
+    A's in-plane grid) it is found at once and the pass never runs; with the decoy on it
+    (``_decoy_scene``) the first candidate is the decoy's rotation, rejected, and the second pass runs
+    and proposes the part."""
+    from service.vision.estimate import coarse
+
+    calls: list[int] = []
+    peak_starts = coarse.peak_starts
+    monkeypatch.setattr(coarse, "peak_starts", lambda *a, **k: calls.append(1) or peak_starts(*a, **k))
+    bank, dist = l_block_bank, 500.0
+    p = replace(pipeline.SEARCH_PARAMS, n_peaks=1, templates_per_peak=3)
+    uv = np.array([8 * 80 + 6.5, 8 * 60 + 6.5])
+    img, R_part, t_part = _decoy_scene(bank, dist, uv, decoy=False, phi_deg=90.0)
+    out = pipeline.estimate(bank, img, INTR, distance_mm=dist, params=p)
+    assert out.found and _is_pose(R_part, t_part)(out.refined.pose) and not calls
+    img, R_part, t_part = _decoy_scene(bank, dist, uv)
+    right = _is_pose(R_part, t_part)
+    out = pipeline.estimate(bank, img, INTR, distance_mm=dist, params=p)
+    assert not right(out.candidates[0].pose) and calls == [1]
+    assert any(right(c.pose) for c in out.candidates[1:])
+
+
+def test_background_norm_and_templates_per_peak_together_propose_the_part_beside_texture(l_block_bank):
+    """Known answer for the two mechanisms together (issue #14). The part sits at one place with a
+    decoy outline (its outline at another rotation, 118 deg away, drawn as two contours 5 px either
+    side) on it, as in ``test_second_distinct_template_at_a_peak_is_proposed``; the left 480 px of the
+    frame are dense texture (random short segments of every orientation). With one peak: by chamfer
+    cost level A picks the texture, with or without extra templates; over the background it picks the
+    part's anchor, but there its single best template is the decoy's; only both together start level B
+    from the part's own rotation there and propose it."""
+    import cv2
+
+    from service.vision.estimate import coarse
+    from service.vision.estimate.chamfer import distance_tensor
+    from service.vision.estimate.coarse import Hypothesis, poses_of
+    from service.vision.estimate.edges import Segments, detect_segments
+
+    bank, dist = l_block_bank, 500.0
+    p = replace(pipeline.SEARCH_PARAMS, n_peaks=1, bg_norm=False, templates_per_peak=1)
+    tpl = coarse._cached_level_a(bank, INTR, (H, W), p, dist, dist)
+    uv = np.array([8 * 100 + 3.5, 8 * 60 + 3.5])  # a level-A anchor's pixel, right of the texture
+    decoy = Hypothesis(int(tpl.views[0]), 0.0, dist, uv)
+    part = Hypothesis(int(tpl.views[20]), 94.0, dist, uv + 3)
+    (R_decoy, R_part), (t_decoy, t_part) = poses_of(bank, [decoy, part], INTR.K, dist)
+    img = render_shaded(bank.vertices_mm, bank.faces, Pose(R_part, t_part), INTR.K, (W, H))
+    mask = render(bank.vertices_mm, bank.faces, Pose(R_decoy, t_decoy), INTR.K, (W, H)).mask.astype(np.uint8)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (11, 11))
+    for m in (cv2.dilate(mask, disc), cv2.erode(mask, disc)):
+        contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        cv2.drawContours(img, contours, -1, 255, 1)
+    seg = detect_segments(img)
+    rng = np.random.default_rng(5)
+    n = 6000
+    c = np.column_stack([rng.uniform(0, 480, n), rng.uniform(0, H, n)])
+    th = rng.uniform(0, np.pi, n)
+    d = np.column_stack([np.cos(th), np.sin(th)]) * rng.uniform(8, 20, n)[:, None] / 2
+    seg = Segments(np.concatenate([seg.uv0, c - d]).astype(np.float32),
+                   np.concatenate([seg.uv1, c + d]).astype(np.float32),
+                   np.concatenate([seg.theta_rad, th]).astype(np.float32), (H, W))
+    dtt = distance_tensor(seg, n_channels=p.n_channels, scale=p.fine_scale)
+
+    def search(**kw):
+        hs = coarse.coarse_search(bank, dtt, INTR, (H, W), replace(p, **kw), distance_mm=dist,
+                                  distance_range_mm=(300.0, 1200.0))
+        Rs, ts = poses_of(bank, hs, INTR.K, dist)
+        return hs, [rotation_angle_deg(R, R_part) <= COARSE_ROT_DEG_NONSYM
+                    and np.linalg.norm(t - t_part) <= COARSE_T_MM_NONSYM for R, t in zip(Rs, ts, strict=True)]
+
+    hs, right = search()
+    assert hs and hs[0].uv[0] < 480 and not any(right)  # by cost: the texture
+    hs, right = search(templates_per_peak=3)
+    assert hs and hs[0].uv[0] < 480 and not any(right)  # ... extra templates there do not help
+    hs, right = search(bg_norm=True)
+    assert hs and hs[0].uv[0] > 480 and not any(right)  # over the background: the place, not the rotation
+    hs, right = search(bg_norm=True, templates_per_peak=3)
+    assert right[0]  # both: the part, first

@@ -15,6 +15,13 @@ Search, coarse to fine:
    polished sub-pixel by a pattern search over (view, in-plane angle, distance, position) with exact
    perspective projection of the templates' 3D border points.
 
+Peaks, level-B placements and polished hypotheses are ranked by cost over the local background's
+(``bg_norm``, ``background_cost``): on texture every template is cheap, and an outline standing out
+of plainer ground should outrank it. Level A keeps one template per anchor, and at a clutter peak near
+the truth that one is often another rotation level B cannot turn back from: a second pass starts
+level B from the first peaks' other distinct templates too (``templates_per_peak``, ``peak_starts``),
+deferred by the pipeline until the first pass's candidates have all failed verification.
+
 A hypothesis becomes a 6D pose without assuming the object sits on the optical axis: with the
 reference point seen at pixel ``uv`` (viewing ray ``r``), ``R = R_between(e_z, r) @ Rz(phi) @ R_view``
 and the reference point lies on ``r`` at depth ``z``, so the coarse rotation is right at the image
@@ -24,6 +31,7 @@ corners too.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numba as nb
@@ -63,6 +71,11 @@ EDGE_PIXEL_DT_PX = 0.75
 EDGE_COUNT_EXTENT = 0.8  # ... counted within this fraction of the templates' extent round an anchor
 PEAK_RADIUS_EXTENT = 0.25  # level-A peaks closer than this fraction of the template extent are one peak
 MIN_PEAK_RADIUS_PX = 2.0  # ... and never closer than this (level px)
+# Background normalisation (``SearchParams.bg_norm``): a placement's cost is divided by the mean over
+# channels and pixels of the DT3 (truncated at tau) in a box of this fraction of the templates' extent
+# round it -- what a template costs there by chance: textured floors and distractors, where every
+# template is cheap, then rank below an outline standing out of a plainer neighbourhood.
+BG_WINDOW_EXTENT = 0.5
 # Level B's first block is re-centred (at most MAX_WALKS times) while its best lies on the block's
 # edge: a view turned more than this fraction of local_view_deg, the first or last angle, the border.
 WALK_VIEW_EDGE = 0.6
@@ -77,6 +90,9 @@ LEVEL_A_CHUNK_ANCHORS = 64
 # ... and level A leaves this many times the caller's reserve: one for level B and the polish of the
 # best peaks, one for verifying a candidate.
 LEVEL_A_RESERVE_FACTOR = 2.0
+# With several templates per peak (``peak_starts``), only templates costing less than the peak's level-A
+# best plus this fraction of the truncation distance (and under ``accept_frac``) are ranked.
+TEMPLATE_BOUND_MARGIN = 0.2
 
 
 @dataclass(frozen=True)
@@ -106,6 +122,20 @@ class SearchParams:
     rank_tau_px: float = 8.0
     # Level B: a later peak's scan only accepts placements within this ratio of the best cost so far.
     peak_accept_ratio: float = 1.5
+    # Rank level-A peaks, level-B scans and the polished hypotheses by cost over the local background
+    # cost (``background_cost``) instead of by cost alone (issue #14: clutter).
+    bg_norm: bool = True
+    # Level B starts per level-A peak: its own level-A template (the first pass), then (a second pass,
+    # ``coarse_search``) its best others, mutually distinct (rotations more than
+    # ``distinct_template_deg`` apart), each the best over the peak's anchor and its neighbours within
+    # ``template_anchor_reach`` anchor strides (1: the first pass only) ...
+    templates_per_peak: int = 3
+    distinct_template_deg: float = 30.0
+    template_anchor_reach: int = 1
+    # ... at the first this many peaks only: the second pass runs on every frame where nothing is found
+    # (lmo_dev, every 16th query, whole estimate p50: 1407 ms without it, 1907 with all 12 peaks', 1581
+    # with the first 4; the clutter2 part it finds came from the second peak)
+    template_peaks: int = 4
 
 
 @dataclass
@@ -116,6 +146,7 @@ class Hypothesis:
     uv: np.ndarray  # (2,) full-resolution pixel of the reference point
     cost: float = np.inf  # mean directional chamfer distance, full-resolution px
     score: float = 0.0
+    rank_cost: float = np.inf  # what the search ranks by: ``cost``, or cost / background (bg_norm)
 
 
 # --- geometry of a hypothesis ----------------------------------------------------------------------
@@ -552,6 +583,30 @@ def _scale_offsets(off, scales):
     return out
 
 
+def background_cost(dtt_a: DistanceTensor, radius_lvl: int) -> np.ndarray:
+    """(h, w) float64, level px: the mean over channels and over the (2 radius + 1)^2 box round each
+    level-A pixel (clipped at the image border) of the DT3 truncated at its tau: the expected cost of a
+    template point placed there at random, in any orientation. Low on texture, high on plain ground."""
+    m = np.minimum(dtt_a.dt, dtt_a.tau_px).mean(axis=0, dtype=np.float64)
+    hl, wl = m.shape
+    ii = np.pad(m.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+    r = max(int(radius_lvl), 1)
+    v, u = np.arange(hl), np.arange(wl)
+    v0, v1 = np.clip(v - r, 0, hl)[:, None], np.clip(v + r + 1, 0, hl)[:, None]
+    u0, u1 = np.clip(u - r, 0, wl)[None], np.clip(u + r + 1, 0, wl)[None]
+    box = ii[v1, u1] - ii[v0, u1] - ii[v1, u0] + ii[v0, u0]
+    # never zero: a box inside a dense edge field still divides sensibly
+    return np.maximum(box / ((v1 - v0) * (u1 - u0)), 1.0 / DT_QUANT)
+
+
+def _bg_at(bg: np.ndarray, uv: np.ndarray, level_scale: float) -> np.ndarray:
+    """``background_cost`` at full-resolution pixels ``uv`` (M, 2) (nearest level pixel)."""
+    uv = np.atleast_2d(np.asarray(uv, float))
+    u = np.clip(np.rint((uv[:, 0] + 0.5) * level_scale - 0.5).astype(np.int64), 0, bg.shape[1] - 1)
+    v = np.clip(np.rint((uv[:, 1] + 0.5) * level_scale - 0.5).astype(np.int64), 0, bg.shape[0] - 1)
+    return bg[v, u]
+
+
 def pick_peaks(au, av, cost, n_peaks: int, radius_lvl: float) -> list[int]:
     """Indices of the lowest-cost anchors, greedily suppressing neighbours within ``radius_lvl``."""
     order = np.argsort(cost)
@@ -563,6 +618,127 @@ def pick_peaks(au, av, cost, n_peaks: int, radius_lvl: float) -> list[int]:
         if all((au[a] - au[b]) ** 2 + (av[a] - av[b]) ** 2 > radius_lvl ** 2 for b in chosen):
             chosen.append(int(a))
     return chosen
+
+
+@nb.njit(parallel=True, cache=True)
+def _scan_templates(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, anchor_tile, bound_q):
+    """Every template's cost at each anchor, not only the best one's (``_scan``'s arguments).
+
+    Returns (A, T) the mean cost (1/DT_QUANT level px) of each template at its best scale and (A, T)
+    int32 that scale's index; inf and -1 where no scale's total is under ``bound_q[a]`` (a template
+    is abandoned once its partial sum reaches the bound or its own best total at an earlier scale)."""
+    A = anchors_u.shape[0]
+    H = dt.shape[0]
+    W = dt.shape[1]
+    D = off_u.shape[1]
+    T = off_u.shape[2]
+    P = off_u.shape[3]
+    cost = np.full((A, T), np.inf, np.float64)
+    best_d = np.full((A, T), -1, np.int32)
+    for a in nb.prange(A):
+        ua = anchors_u[a]
+        va = anchors_v[a]
+        j = anchor_tile[a]
+        for t in range(T):
+            best = bound_q[a]
+            for d in range(D):
+                acc = 0
+                ok = True
+                for i in range(P):
+                    y = va + off_v[j, d, t, i]
+                    x = ua + off_u[j, d, t, i]
+                    if y >= 0 and y < H and x >= 0 and x < W:
+                        acc += dt[y, x, chan[t, i]]
+                    else:
+                        acc += tau_q
+                    if acc >= best:
+                        ok = False
+                        break
+                if ok:
+                    best = acc
+                    cost[a, t] = acc / P
+                    best_d[a, t] = d
+    return cost, best_d
+
+
+def template_axes(bank: TemplateBank, tpl: LevelATemplates) -> np.ndarray:
+    """(T, 3, 3) rotation of each level-A template about its own viewing ray (``Rz(phi) @ R_view``,
+    view-major like the templates); for a revolved part (T, 1, 3): only where its axis points."""
+    Rp = np.stack([Rz(f) for f in tpl.phis_deg])
+    Rv = (Rp[None] @ bank.R_tpl_obj[tpl.views][:, None]).reshape(-1, 3, 3)  # (Tv * Tp, 3, 3)
+    if bank.symmetry_axis_obj is not None:
+        return (Rv @ np.asarray(bank.symmetry_axis_obj, float))[:, None, :]
+    return Rv
+
+
+def distinct_templates(order: np.ndarray, axes: np.ndarray, k: int, min_deg: float,
+                       taken: tuple[int, ...] = ()) -> list[int]:
+    """The first ``k`` of the templates ``order`` (best first) whose rotations (``template_axes``) are
+    more than ``min_deg`` from every one taken before (greedy), ``taken`` counting as taken already."""
+    cos_min = math.cos(math.radians(min_deg))
+    chosen: list[int] = [int(t) for t in taken]
+    for t in order:
+        if len(chosen) >= k + len(taken):
+            break
+        if axes.shape[1] == 1:  # a revolved part: the angle between the axes
+            near = any(float(axes[t, 0] @ axes[c, 0]) > cos_min for c in chosen)
+        else:  # the rotation angle of R_t R_c^T: trace = 1 + 2 cos(angle)
+            near = any((float(np.sum(axes[t] * axes[c])) - 1) / 2 > cos_min for c in chosen)
+        if not near:
+            chosen.append(int(t))
+    return chosen[len(taken):]
+
+
+def peak_starts(bank: TemplateBank, tpl: LevelATemplates, scales: np.ndarray, dtt_a: DistanceTensor,
+                au: np.ndarray, av: np.ndarray, cost_a: np.ndarray, t_a: np.ndarray, peaks: list[int],
+                image_shape, p: SearchParams) -> list[list[Hypothesis]]:
+    """Per level-A peak, level B's extra starts: its best ``templates_per_peak - 1`` templates distinct
+    from each other and from the peak's own level-A template ``t_a[peak]`` (``distinct_templates``),
+    each scored at the peak's anchor and the anchors within ``template_anchor_reach`` strides of it and
+    placed at the one where it costs least. Level A keeps each anchor's single best template only, and
+    at a clutter peak near the truth that one is often another rotation (a view 60-160 degrees off)
+    that level B's local scan cannot turn back from."""
+    if not peaks or p.templates_per_peak <= 1:
+        return [[] for _ in peaks]
+    C, hl, wl = dtt_a.dt.shape
+    dt_q, tau_q = quantised(dtt_a, dtt_a.tau_px)
+    off_u, off_v = scaled_offsets(tpl, scales)
+    r = p.template_anchor_reach * p.anchor_stride
+    g = np.arange(-r, r + 1, p.anchor_stride)
+    du, dv = (x.ravel() for x in np.meshgrid(g, g))
+    nu = np.concatenate([np.clip(au[a] + du, 0, wl - 1) for a in peaks]).astype(np.int32)
+    nv = np.concatenate([np.clip(av[a] + dv, 0, hl - 1) for a in peaks]).astype(np.int32)
+    h, w = image_shape
+    nj_u, nj_v = p.tiles
+    uf = (nu + 0.5) / p.level_scale - 0.5
+    vf = (nv + 0.5) / p.level_scale - 0.5
+    tile = (np.minimum((vf / h * nj_v).astype(np.int32), nj_v - 1) * nj_u
+            + np.minimum((uf / w * nj_u).astype(np.int32), nj_u - 1)).astype(np.int32)
+    P = off_u.shape[3]
+    # A template costing more than the peak's best + TEMPLATE_BOUND_MARGIN x tau is not ranked.
+    bound = np.minimum(p.accept_frac * tau_q * P,
+                       np.repeat([(cost_a[a] * DT_QUANT + TEMPLATE_BOUND_MARGIN * tau_q) * P for a in peaks],
+                                 len(du)))
+    cost, dk = _scan_templates(dt_q, tau_q, off_u, off_v, tpl.chan, nu, nv, tile, bound.astype(np.int64))
+    axes = template_axes(bank, tpl)
+    n_phi = len(tpl.phis_deg)
+    out = []
+    m = len(du)
+    for i, pk in enumerate(peaks):
+        c = cost[i * m:(i + 1) * m]  # (m, T)
+        best_a = np.argmin(c, axis=0)
+        c_t = c[best_a, np.arange(c.shape[1])]
+        order = np.argsort(c_t, kind="stable")
+        order = order[np.isfinite(c_t[order])]
+        starts = []
+        for ti in distinct_templates(order, axes, p.templates_per_peak - 1, p.distinct_template_deg,
+                                     (int(t_a[pk]),)):
+            a = i * m + int(best_a[ti])
+            uv = np.array([uf[a], vf[a]])
+            z = float(tpl.z_ref_mm[tile[a], ti] / scales[dk[a, ti]])
+            starts.append(Hypothesis(int(tpl.views[ti // n_phi]), float(tpl.phis_deg[ti % n_phi]), z, uv))
+        out.append(starts)
+    return out
 
 
 # --- level B: local scans around the peaks, then a sub-pixel polish --------------------------------
@@ -815,10 +991,18 @@ def depth_scales(distance_range_mm: tuple[float, float], depth_step: float) -> t
 def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
                   image_shape: tuple[int, int], p: SearchParams, *, distance_mm: float | None,
                   distance_range_mm: tuple[float, float], anchor_mask: np.ndarray | None = None,
-                  deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0) -> list[Hypothesis]:
+                  deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0,
+                  deferred: list[Callable[[], list[Hypothesis]]] | None = None) -> list[Hypothesis]:
     """Ranked, polished, mutually distinct hypotheses (best first). ``dtt_b`` is the DT3 at
     ``fine_scale``; level A's grid is min-pooled from it. ``anchor_mask`` (full-resolution (h, w)
     bool): level A places the reference point only there (``scan_level_a``).
+
+    Two passes: level B from each level-A peak's own template, then (``templates_per_peak`` > 1) from
+    its other distinct templates (``peak_starts``), each pass polishing its best ``n_polish``. With a
+    ``deferred`` list the second pass is not run here: a callable running it (and returning its
+    hypotheses, ranked) is appended to the list, for a caller that needs it only when the first
+    pass's hypotheses all fail verification (``pipeline.estimate``); without, both passes' hypotheses
+    are returned together, ranked.
 
     Anytime: each unit of work (a chunk of level-A anchors, a peak's local scan, a polish) starts only
     while the ``deadline`` leaves more than ``reserve_ms`` (the caller's time to verify a result); what
@@ -831,7 +1015,10 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
     au, av, tile, cost, t, d = scan_level_a(dtt_a, tpl, scales, image_shape, p, anchor_mask, deadline,
                                             reserve_ms)
     radius = PEAK_RADIUS_EXTENT * tpl.extent_px * float(np.median(scales))
-    peaks = pick_peaks(au, av, cost, p.n_peaks, max(radius, MIN_PEAK_RADIUS_PX))
+    bg = background_cost(dtt_a, int(BG_WINDOW_EXTENT * tpl.extent_px * float(np.median(scales)))) \
+        if p.bg_norm else None
+    rank_a = cost / bg[av, au] if bg is not None else cost
+    peaks = pick_peaks(au, av, rank_a, p.n_peaks, max(radius, MIN_PEAK_RADIUS_PX))
     n_phi = len(tpl.phis_deg)
     starts: list[Hypothesis] = []
     for a in peaks:
@@ -843,38 +1030,79 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
         starts.append(Hypothesis(view, phi, z, uv))
     if not starts:
         return []
-    scanned: list[Hypothesis] = []
-    best_q = np.inf
-    deadline.new_loop()
-    for h in starts:
-        if not deadline.allows_next(reserve_ms):
-            break
-        # A peak whose neighbourhood cannot come near the best so far would never be reported first.
-        accept = int(min(tau_q, p.peak_accept_ratio * best_q))
-        hyp, q = local_scan(bank, h, dt_q, tau_q, dtt_b, K, p, distance_mm=distance_mm, accept_q=accept)
-        if hyp is not None:
-            scanned.append(hyp)
-            best_q = min(best_q, q)
-    if not scanned:
-        return []
-    Rs, ts = poses_of(bank, scanned, K, distance_mm)
-    cost_b, score_b = evaluate(bank, np.array([h.view for h in scanned]), Rs, ts, K, dtt_b, p.fine_points,
-                               p.score_px, p.rank_tau_px)
-    order = np.argsort(cost_b)[:p.n_polish]
-    neighbours = view_neighbours(bank)
-    out = []
-    deadline.new_loop()
-    for i in order:
-        if deadline.allows_next(reserve_ms):
-            out.append(polish(bank, scanned[i], dtt_b, K, p, distance_mm=distance_mm, neighbours=neighbours,
-                              step_phi_deg=p.local_phi_step_deg / 2, step_uv_px=1.0 / dtt_b.scale,
-                              step_z=p.depth_step / 4))
-        else:
-            h = scanned[i]
-            h.cost, h.score = float(cost_b[i]), float(score_b[i])
-            out.append(h)
-    out.sort(key=lambda h: h.cost)
-    return out
+    state = _LevelB(bank, dtt_b, dt_q, tau_q, K, p, distance_mm, bg, deadline, reserve_ms)
+    out = state.run(starts)
+    if p.templates_per_peak <= 1:
+        return out
+
+    def second() -> list[Hypothesis]:
+        # Each peak's second distinct template first, then each one's third, ...: the deadline reaches
+        # every peak's best alternative before any peak's next.
+        extra = peak_starts(bank, tpl, scales, dtt_a, au, av, cost, t, peaks[:p.template_peaks], image_shape,
+                            p)
+        more: list[Hypothesis] = []
+        for rank in range(p.templates_per_peak - 1):
+            more += [s[rank] for s in extra if len(s) > rank]
+        return state.run(more)
+
+    if deferred is not None:
+        deferred.append(second)
+        return out
+    return sorted(out + second(), key=lambda h: h.rank_cost)
+
+
+class _LevelB:
+    """Level B of one frame's search, run on batches of starts (``coarse_search``'s passes): each
+    start's local scan, accepted within ``peak_accept_ratio`` of the best so far over all batches
+    (over its background with ``bg_norm``), then the batch's best ``n_polish`` polished."""
+
+    def __init__(self, bank, dtt_b, dt_q, tau_q, K, p: SearchParams, distance_mm, bg, deadline: Deadline,
+                 reserve_ms: float):
+        self.bank, self.dtt_b, self.dt_q, self.tau_q, self.K, self.p = bank, dtt_b, dt_q, tau_q, K, p
+        self.distance_mm, self.bg, self.deadline, self.reserve_ms = distance_mm, bg, deadline, reserve_ms
+        self.best_q = np.inf  # the best cost so far (over its background with bg_norm)
+
+    def bg_of(self, hs: list[Hypothesis]) -> np.ndarray:
+        if self.bg is None or not hs:
+            return np.ones(len(hs))
+        return _bg_at(self.bg, np.array([x.uv for x in hs]), self.p.level_scale)
+
+    def run(self, starts: list[Hypothesis]) -> list[Hypothesis]:
+        p, bank, K, dtt_b, deadline = self.p, self.bank, self.K, self.dtt_b, self.deadline
+        scanned: list[Hypothesis] = []
+        deadline.new_loop()
+        for h in starts:
+            if not deadline.allows_next(self.reserve_ms):
+                break
+            # A peak whose neighbourhood cannot come near the best so far would never be reported first.
+            accept = int(min(self.tau_q, p.peak_accept_ratio * self.best_q * float(self.bg_of([h])[0])))
+            hyp, q = local_scan(bank, h, self.dt_q, self.tau_q, dtt_b, K, p, distance_mm=self.distance_mm,
+                                accept_q=accept)
+            if hyp is not None:
+                scanned.append(hyp)
+                self.best_q = min(self.best_q, q / float(self.bg_of([hyp])[0]))
+        if not scanned:
+            return []
+        Rs, ts = poses_of(bank, scanned, K, self.distance_mm)
+        cost_b, score_b = evaluate(bank, np.array([h.view for h in scanned]), Rs, ts, K, dtt_b, p.fine_points,
+                                   p.score_px, p.rank_tau_px)
+        order = np.argsort(cost_b / self.bg_of(scanned))[:p.n_polish]
+        neighbours = view_neighbours(bank)
+        out = []
+        deadline.new_loop()
+        for i in order:
+            if deadline.allows_next(self.reserve_ms):
+                out.append(polish(bank, scanned[i], dtt_b, K, p, distance_mm=self.distance_mm,
+                                  neighbours=neighbours, step_phi_deg=p.local_phi_step_deg / 2,
+                                  step_uv_px=1.0 / dtt_b.scale, step_z=p.depth_step / 4))
+            else:
+                h = scanned[i]
+                h.cost, h.score = float(cost_b[i]), float(score_b[i])
+                out.append(h)
+        for h, b in zip(out, self.bg_of(out), strict=True):
+            h.rank_cost = h.cost / float(b)
+        out.sort(key=lambda h: h.rank_cost)
+        return out
 
 
 _LEVEL_A = Memo(8)
