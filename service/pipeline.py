@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import trimesh
 
-from service.vision import threads
+from service.vision import memory, threads
 from service.vision.bank import TemplateBank
 from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.chamfer import distance_tensor
@@ -619,6 +619,7 @@ def warm_up() -> EstimateOutput:
     Returns the estimate of the rendered cylinder (its known answer: ``WARM_UP_POSE``)."""
     from service.vision.geometry.render import render_shaded
 
+    memory.keep_mapped()  # the warm-up's freed buffers stay mapped for the first real frame
     mesh = trimesh.creation.cylinder(radius=20.0, height=60.0, sections=24)
     bank = build_templates(mesh, symmetry="auto", grid={"view_step_deg": 30.0, "tilt_step_deg": 15.0,
                                                         "render_px": 96})
@@ -627,5 +628,7 @@ def warm_up() -> EstimateOutput:
     intr = Intrinsics(1200.0, 1200.0, 639.5, 479.5)
     img = render_shaded(bank.vertices_mm, bank.faces, WARM_UP_POSE, intr.K, WARM_UP_SIZE)
     estimate(bank, img, intr)  # the unknown-distance path has kernels of its own
-    return estimate(bank, img, intr, distance_mm=float(WARM_UP_POSE.t_mm[2]))
+    out = estimate(bank, img, intr, distance_mm=float(WARM_UP_POSE.t_mm[2]))
+    memory.keep_mapped(memory.RESERVE_MB)  # with room for what is loaded after it
+    return out
 
