@@ -104,25 +104,37 @@ def _ms(t0: float) -> float:
 
 
 class _Mean:
-    """A running mean of recent durations, ms (exponential, weight ``alpha`` on the newest)."""
+    """A running mean of recent durations, ms (exponential, weight ``alpha`` on the newest), and of their
+    absolute deviation from it (``spread``; starts at a quarter of the initial mean)."""
+
+    HIGH_SPREADS = 2.0  # ``high``: about the 90th-95th percentile of durations spread like a normal's
 
     def __init__(self, initial_ms: float, alpha: float = 0.2):
         self.value, self.alpha = initial_ms, alpha
+        self.spread = 0.25 * initial_ms
 
     def add(self, ms: float) -> None:
+        self.spread += self.alpha * (abs(ms - self.value) - self.spread)
         self.value += self.alpha * (ms - self.value)
 
+    @property
+    def high(self) -> float:
+        """A duration few recent ones exceeded: the mean plus ``HIGH_SPREADS`` mean deviations."""
+        return self.value + self.HIGH_SPREADS * self.spread
 
-# What checking a candidate (refine + evidence + verdict) takes in this process: the anytime search
-# keeps this much of its deadline for it. Starts at a paper render's (1280 x 960) on 2 cores.
+
+# What checking a candidate (refine + evidence + verdict) takes in this process: a check starts only when
+# the deadline leaves its ``high`` estimate (a check of a paper render took 26 ms CPU at the median and
+# 41 at the 90th percentile: started on the mean, one in ten answered ~15 ms late), and the anytime
+# search keeps that much of its deadline for the first. Starts at a paper render's (1280 x 960) on 2 cores.
 _CHECK_MS = _Mean(35.0)
 # What the edges (grey conversion, LSD, distance tensor) take per megapixel of frame in this process: a
 # deadline that leaves less than them and one check skips the search. Starts at a paper render's.
 _EDGES_MS_PER_MP = _Mean(12.0)
 EVIDENCE_MS = 10.0  # judging a refined pose again (its evidence only) on a 1280 x 960 frame
-# The search keeps a little more than one check for the first candidate's: its own last unit of work
-# (a polish) overruns by a part of the mean it was judged against.
-SEARCH_RESERVE_CHECKS = 1.25
+# The search keeps a little more than one check (its ``high`` estimate) for the first candidate's: its
+# own last unit of work (a polish) overruns by a part of the mean it was judged against.
+SEARCH_RESERVE_CHECKS = 0.25  # mean checks on top of one check's high estimate
 
 # The search keeps as many polished hypotheses as the verdict checks.
 SEARCH_PARAMS = SearchParams(n_polish=5)
@@ -281,8 +293,8 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     h, w = grey.shape
     cands, _, timing = propose(bank, grey, intr, distance_mm=distance_mm, distance_range_mm=distance_range_mm,
                                params=p, roi_uv=roi_uv, deadline=deadline,
-                               reserve_ms=SEARCH_RESERVE_CHECKS * _CHECK_MS.value, plane=plane,
-                               several=max_instances > 1)
+                               reserve_ms=_CHECK_MS.high + SEARCH_RESERVE_CHECKS * _CHECK_MS.value,
+                               plane=plane, several=max_instances > 1)
     t0 = time.perf_counter()
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
     # The evidence reads pixels where the ideal camera projects the model: undistort the frame once.
@@ -369,7 +381,7 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
     before a check the ``deadline`` leaves no time for."""
     out: list[Checked] = []
     for cand in cands[:N_VERIFY]:
-        if not deadline.allows(_CHECK_MS.value):
+        if not deadline.allows(_CHECK_MS.high):
             break
         c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm,
                             distance_range_mm=distance_range_mm, min_score=min_score, n_channels=n_channels,
@@ -406,7 +418,7 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
         if any(silhouette_iou(bank, cand.pose, f.refined.pose, intr, size) > INSTANCE_IOU
                for f in scene.found):
             continue
-        if not deadline.allows(_CHECK_MS.value):
+        if not deadline.allows(_CHECK_MS.high):
             break
         c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm, n_channels=n_channels,
                             others_depth_mm=scene.others if scene.found else None, **scene.judge_kw)
