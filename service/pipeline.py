@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import trimesh
 
-from service.vision import threads
+from service.vision import memory, threads
 from service.vision.bank import TemplateBank
 from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.chamfer import distance_tensor
@@ -104,25 +104,37 @@ def _ms(t0: float) -> float:
 
 
 class _Mean:
-    """A running mean of recent durations, ms (exponential, weight ``alpha`` on the newest)."""
+    """A running mean of recent durations, ms (exponential, weight ``alpha`` on the newest), and of their
+    absolute deviation from it (``spread``; starts at a quarter of the initial mean)."""
+
+    HIGH_SPREADS = 2.0  # ``high``: about the 90th-95th percentile of durations spread like a normal's
 
     def __init__(self, initial_ms: float, alpha: float = 0.2):
         self.value, self.alpha = initial_ms, alpha
+        self.spread = 0.25 * initial_ms
 
     def add(self, ms: float) -> None:
+        self.spread += self.alpha * (abs(ms - self.value) - self.spread)
         self.value += self.alpha * (ms - self.value)
 
+    @property
+    def high(self) -> float:
+        """A duration few recent ones exceeded: the mean plus ``HIGH_SPREADS`` mean deviations."""
+        return self.value + self.HIGH_SPREADS * self.spread
 
-# What checking a candidate (refine + evidence + verdict) takes in this process: the anytime search
-# keeps this much of its deadline for it. Starts at a paper render's (1280 x 960) on 2 cores.
+
+# What checking a candidate (refine + evidence + verdict) takes in this process: a check starts only when
+# the deadline leaves its ``high`` estimate (a check of a paper render took 26 ms CPU at the median and
+# 41 at the 90th percentile: started on the mean, one in ten answered ~15 ms late), and the anytime
+# search keeps that much of its deadline for the first. Starts at a paper render's (1280 x 960) on 2 cores.
 _CHECK_MS = _Mean(35.0)
 # What the edges (grey conversion, LSD, distance tensor) take per megapixel of frame in this process: a
 # deadline that leaves less than them and one check skips the search. Starts at a paper render's.
 _EDGES_MS_PER_MP = _Mean(12.0)
 EVIDENCE_MS = 10.0  # judging a refined pose again (its evidence only) on a 1280 x 960 frame
-# The search keeps a little more than one check for the first candidate's: its own last unit of work
-# (a polish) overruns by a part of the mean it was judged against.
-SEARCH_RESERVE_CHECKS = 1.25
+# The search keeps a little more than one check (its ``high`` estimate) for the first candidate's: its
+# own last unit of work (a polish) overruns by a part of the mean it was judged against.
+SEARCH_RESERVE_CHECKS = 0.25  # mean checks on top of one check's high estimate
 
 # The search keeps as many polished hypotheses as the verdict checks.
 SEARCH_PARAMS = SearchParams(n_polish=5)
@@ -303,8 +315,9 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     second: list[Callable[[], list[PoseCandidate]]] = []
     cands, _, timing = propose(bank, grey, intr, distance_mm=distance_mm, distance_range_mm=distance_range_mm,
                                params=p, roi_uv=roi_uv, deadline=deadline,
-                               reserve_ms=SEARCH_RESERVE_CHECKS * _CHECK_MS.value, plane=plane,
-                               several=max_instances > 1, deferred=second if max_instances <= 1 else None)
+                               reserve_ms=_CHECK_MS.high + SEARCH_RESERVE_CHECKS * _CHECK_MS.value,
+                               plane=plane, several=max_instances > 1,
+                               deferred=second if max_instances <= 1 else None)
     t0 = time.perf_counter()
     t_second = 0.0
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
@@ -314,7 +327,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
               deadline=deadline, plane=plane, plane_tolerance_mm=plane_tolerance_mm)
     if max_instances <= 1:
         checked = verify_candidates(bank, cands, grey, frame, intr, **kw)
-        if second and not (checked and checked[0].verdict.found) and deadline.allows(_CHECK_MS.value):
+        if second and not (checked and checked[0].verdict.found) and deadline.allows(_CHECK_MS.high):
             # None of the first pass's candidates holds: the peaks' other templates (coarse_search).
             t2 = time.perf_counter()
             more = second[0]()
@@ -400,7 +413,7 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
     the first is the truth; and before a check the ``deadline`` leaves no time for."""
     out: list[Checked] = []
     for cand in cands[:N_VERIFY]:
-        if not deadline.allows(_CHECK_MS.value):
+        if not deadline.allows(_CHECK_MS.high):
             break
         c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm,
                             distance_range_mm=distance_range_mm, min_score=min_score, n_channels=n_channels,
@@ -437,7 +450,7 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
         if any(silhouette_iou(bank, cand.pose, f.refined.pose, intr, size, memo=scene.silhouettes)
                > INSTANCE_IOU for f in scene.found):
             continue
-        if not deadline.allows(_CHECK_MS.value):
+        if not deadline.allows(_CHECK_MS.high):
             break
         c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm, n_channels=n_channels,
                             others_depth_mm=scene.others if scene.found else None, **scene.judge_kw)
@@ -666,6 +679,7 @@ def warm_up() -> EstimateOutput:
     Returns the estimate of the rendered cylinder (its known answer: ``WARM_UP_POSE``)."""
     from service.vision.geometry.render import render_shaded
 
+    memory.keep_mapped()  # the warm-up's freed buffers stay mapped for the first real frame
     mesh = trimesh.creation.cylinder(radius=20.0, height=60.0, sections=24)
     bank = build_templates(mesh, symmetry="auto", grid={"view_step_deg": 30.0, "tilt_step_deg": 15.0,
                                                         "render_px": 96})
@@ -674,5 +688,7 @@ def warm_up() -> EstimateOutput:
     intr = Intrinsics(1200.0, 1200.0, 639.5, 479.5)
     img = render_shaded(bank.vertices_mm, bank.faces, WARM_UP_POSE, intr.K, WARM_UP_SIZE)
     estimate(bank, img, intr)  # the unknown-distance path has kernels of its own
-    return estimate(bank, img, intr, distance_mm=float(WARM_UP_POSE.t_mm[2]))
+    out = estimate(bank, img, intr, distance_mm=float(WARM_UP_POSE.t_mm[2]))
+    memory.keep_mapped(memory.RESERVE_MB)  # with room for what is loaded after it
+    return out
 

@@ -119,3 +119,24 @@ def test_pooled_and_quantised_equals_the_two_passes(shape):
     np.testing.assert_array_equal(q, want_q)
     assert tau_q == want_tau
     assert (a.scale, a.tau_px, a.lambda_px) == (want_a.scale, want_a.tau_px, want_a.lambda_px)
+
+
+def test_orientation_relax_matches_brute_force():
+    # eqs. 12-13: DT3[c] = min over c' of DT3[c'] + lambda * (cyclic channel steps from c' to c); rows
+    # and pixels left at the truncation in every channel (no edge near) must stay there
+    from service.vision.estimate.chamfer import orientation_relax
+
+    rng = np.random.default_rng(1912)
+    C, H, W, tau, lam = 16, 9, 40, 10.0, 0.6
+    dt = np.full((C, H, W), tau, np.float32)
+    dt[:, 2, 5:9] = rng.uniform(0, tau, (C, 4))  # a short span in one row
+    dt[3, 4, 0] = 1.0  # single pixels at the row ends
+    dt[11, 4, W - 1] = 2.5
+    dt[:, 6:, :] = rng.uniform(0, tau, (C, H - 6, W))  # rows full of edges
+    dt[:, 7, 10:20] = 4.0  # equal channels inside a busy row
+    steps = np.abs(np.arange(C)[:, None] - np.arange(C)[None, :])
+    cyc = np.minimum(steps, C - steps).astype(np.float64)  # (c, c')
+    want = (dt.astype(np.float64)[None] + lam * cyc[:, :, None, None]).min(axis=1)
+    got = orientation_relax(dt.copy(), lam)
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    assert (got[:, [0, 1, 3, 5]] == np.float32(tau)).all()

@@ -577,3 +577,37 @@ def test_background_norm_and_templates_per_peak_together_propose_the_part_beside
     assert hs and hs[0].uv[0] > 480 and not any(right)  # over the background: the place, not the rotation
     hs, right = search(bg_norm=True, templates_per_peak=3)
     assert right[0]  # both: the part, first
+
+
+def test_level_a_tables_the_deadline_leaves_no_time_for_are_made_in_the_background(sprayer_bank, monkeypatch):
+    # Making level A's templates (per bank, camera, image size and distance) is in no unit of work the
+    # deadline checks: with no time left the search answers at once, and a later frame finds them made.
+    import threading
+
+    from service.vision.deadline import Deadline
+    from service.vision.estimate import coarse
+
+    gate = threading.Event()
+    real = coarse._cached_level_a
+
+    def slow(*args):
+        assert gate.wait(30)  # hang guard: the test opens the gate
+        return real(*args)
+
+    monkeypatch.setattr(coarse, "_cached_level_a", slow)
+    p = pipeline.SEARCH_PARAMS
+    intr = Intrinsics(1234.0, 1234.0, 640.0, 480.0)  # a camera no other test made tables for
+    args = (sprayer_bank, intr, (H, W), p, 500.0, 500.0, np.array([1.0]))
+    deadline = Deadline(100.0, clock=lambda: 0.0)  # 100 ms left, and they stay left
+    assert coarse._level_a_in_time(*args, deadline, reserve_ms=100.0) is None
+    assert deadline.hit
+    gate.set()
+    later = Deadline(60_000.0, clock=lambda: 0.0)  # a hang guard, not a speed assert
+    tpl = coarse._level_a_in_time(*args, later, reserve_ms=0.0)  # waits for the one being made
+    assert tpl is not None and not later.hit
+    want = coarse.level_a_templates(sprayer_bank, intr, (H, W), p, distance_mm=500.0, z_ref_mm=500.0)
+    np.testing.assert_array_equal(tpl.off_u, want.off_u)
+    np.testing.assert_array_equal(tpl.chan, want.chan)
+    again = Deadline(100.0, clock=lambda: 0.0)
+    assert coarse._level_a_in_time(*args, again, reserve_ms=100.0) is tpl  # made once, no wait
+    assert not again.hit

@@ -18,6 +18,7 @@ from service.vision.deadline import Deadline
 from service.vision.estimate import coarse
 from service.vision.estimate.chamfer import distance_tensor, pooled_distance_tensor
 from service.vision.estimate.edges import detect_segments, to_grey_u8
+from service.vision.estimate.evidence import colour_frame
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Ry
 from service.vision.geometry.render import render_shaded
@@ -184,3 +185,32 @@ def test_service_default_deadline_applies(tmp_path, sprayer_bytes, frame, monkey
         r = c.post(f"/models/{mid}/estimate", files={"image": ("image", image_bytes)},
                    data={"camera": json.dumps(camera), "options": json.dumps({"distance_mm": 500})})
         assert r.status_code == 200 and r.json()["verdict"]["reason"] == "deadline"
+
+
+def test_running_mean_and_its_high_estimate_by_hand():
+    m = pipeline._Mean(40.0, alpha=0.5)  # spread starts at 10
+    assert m.high == pytest.approx(40.0 + 2 * 10.0)
+    m.add(60.0)  # deviation 20: spread 10 + 0.5 * (20 - 10) = 15; mean 50
+    assert (m.value, m.spread) == pytest.approx((50.0, 15.0))
+    m.add(50.0)  # deviation 0: spread 7.5; mean stays 50
+    assert (m.value, m.spread) == pytest.approx((50.0, 7.5))
+    assert m.high == pytest.approx(50.0 + m.HIGH_SPREADS * 7.5)
+
+
+def test_a_check_starts_only_when_the_deadline_leaves_its_high_estimate(bank, image, monkeypatch):
+    # Checks took 10 ms on average but spread 20 ms: a deadline leaving 30 ms (more than the mean, less
+    # than the high estimate 10 + 2 x 20) starts none.
+    check = pipeline._Mean(10.0)
+    check.spread = 20.0
+    monkeypatch.setattr(pipeline, "_CHECK_MS", check)
+    grey = to_grey_u8(image)
+    cands, _, _ = pipeline.propose(bank, grey, INTR, distance_range_mm=(300.0, 700.0))
+    assert cands
+    frame = colour_frame(image)
+    kw = dict(distance_mm=None, distance_range_mm=(300.0, 700.0), min_score=None,
+              n_channels=pipeline.SEARCH_PARAMS.n_channels)
+    tight = Deadline(30.0, clock=lambda: 0.0)
+    assert pipeline.verify_candidates(bank, cands, grey, frame, INTR, deadline=tight, **kw) == []
+    assert tight.hit
+    roomy = Deadline(50.0, clock=lambda: 0.0)
+    assert len(pipeline.verify_candidates(bank, cands, grey, frame, INTR, deadline=roomy, **kw)) >= 1

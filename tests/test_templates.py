@@ -331,3 +331,44 @@ def test_paper_scanline_border_matches_contour_border(sprayer_mesh, case):
     assert _segment_distance(scan, uv[close], nxt[close]).max() < SCANLINE_ON_CONTOUR_PX
     # ... and the scan-line border (the line built through its nodes) covers every contour point.
     assert _segment_distance(uv, scan, np.roll(scan, -1, axis=0)).max() < SCANLINE_COVERS_CONTOUR_PX
+
+
+def _topology_brute_force(V, F):
+    """(closed, {undirected edge: sorted face pair}) by counting directed edges in a dict."""
+    directed: dict[tuple[int, int], list[int]] = {}
+    for f, tri in enumerate(np.asarray(F).tolist()):
+        for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0])):
+            directed.setdefault((a, b), []).append(f)
+    closed = all(a != b and len(fs) == 1 and len(directed.get((b, a), [])) == 1
+                 for (a, b), fs in directed.items())
+    if closed:
+        closed = trimesh.Trimesh(V, F, process=False).volume > 0
+    pairs = {(min(a, b), max(a, b)): tuple(sorted(directed[(a, b)] + directed[(b, a)]))
+             for (a, b) in directed if a < b} if closed else {}
+    return closed, pairs
+
+
+def test_mesh_topology_matches_brute_force():
+    from service.vision.geometry.silhouette import _build_topology, is_closed_outward
+
+    rng = np.random.default_rng(19)
+    sph = trimesh.creation.icosphere(subdivisions=2, radius=50.0)
+    box = trimesh.creation.box((10.0, 20.0, 30.0))
+    flipped = sph.faces.copy()
+    flipped[7] = flipped[7, ::-1]  # one face wound the other way
+    perm = rng.permutation(len(sph.faces))
+    cases = {"sphere": (sph.vertices, sph.faces), "box": (box.vertices, box.faces),
+             "shuffled": (sph.vertices, sph.faces[perm][:, [1, 2, 0]]),
+             "inward": (sph.vertices, sph.faces[:, ::-1]), "open": (sph.vertices, sph.faces[1:]),
+             "flipped": (sph.vertices, flipped), "doubled": (sph.vertices, np.vstack([sph.faces, sph.faces])),
+             "degenerate": (sph.vertices, np.vstack([sph.faces, [[0, 0, 1]]]))}
+    expect_closed = {"sphere": True, "box": True, "shuffled": True, "inward": False, "open": False,
+                     "flipped": False, "doubled": False, "degenerate": False}
+    for name, (V, F) in cases.items():
+        closed, pairs = _topology_brute_force(V, F)
+        assert closed == expect_closed[name], name
+        topo = _build_topology(np.asarray(V, float), np.asarray(F, np.int32))
+        assert topo.closed == closed == is_closed_outward(V, F), name
+        got = {tuple(e): tuple(sorted(fs)) for e, fs in zip(topo.edges.tolist(), topo.edge_faces.tolist(),
+                                                             strict=True)}
+        assert got == pairs and len(topo.edges) == len(pairs), name

@@ -79,11 +79,15 @@ class TemplateBank:
 
     @classmethod
     def from_arrays(cls, a) -> TemplateBank:
+        """The bank stored by ``to_arrays``, with its mesh's topology made (``silhouette.mesh_topology``,
+        kept per mesh): every refinement's border trace reads it, and the first frame should not make it."""
         import json
+
+        from service.vision.geometry.silhouette import mesh_topology
 
         axis = np.asarray(a["symmetry_axis_obj"], float)
         point = np.asarray(a["symmetry_point_obj"], float)
-        return cls(
+        bank = cls(
             R_tpl_obj=np.asarray(a["R_tpl_obj"]), view_params_deg=np.asarray(a["view_params_deg"]),
             offsets=np.asarray(a["offsets"]), xy_n=np.asarray(a["xy_n"]),
             theta_rad=np.asarray(a["theta_rad"]), p_obj=np.asarray(a["p_obj"]),
@@ -96,6 +100,8 @@ class TemplateBank:
             R_rest_obj=np.asarray(a["R_rest_obj"], float) if "R_rest_obj" in a else None,
             rest_probability=np.asarray(a["rest_probability"], float) if "R_rest_obj" in a else None,
         )
+        mesh_topology(bank.vertices_mm, bank.faces)
+        return bank
 
 
 # --- the bank's views on the view sphere (the coarse search moves between them) -------------------

@@ -19,6 +19,12 @@ class Memo:
         self._items: OrderedDict = OrderedDict()
         self._lock = threading.Lock()
 
+    def peek(self, owner: object, key: Hashable) -> object | None:
+        """The value kept for (``owner``, ``key``), or None (nothing is made)."""
+        with self._lock:
+            hit = self._items.get((id(owner), key))
+            return hit[1] if hit is not None and hit[0] is owner else None
+
     def get(self, owner: object, key: Hashable, make: Callable[[], T]) -> T:
         """``make()`` for (``owner``, ``key``), made once while it stays among the ``size`` latest."""
         k = (id(owner), key)

@@ -30,13 +30,16 @@ corners too.
 
 from __future__ import annotations
 
+import concurrent.futures
 import math
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
 
+from service.vision import threads
 from service.vision.bank import (
     TemplateBank,
     border_triplets,
@@ -1011,7 +1014,13 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
     dtt_a, dt_q, tau_q = pooled_and_quantised(dtt_b, p.level_scale, p.rank_tau_px * dtt_b.scale)
     z_ref, scales = (distance_mm, np.array([1.0])) if distance_mm is not None else \
         depth_scales(distance_range_mm, p.depth_step)
-    tpl = _cached_level_a(bank, intr, image_shape, p, distance_mm, z_ref)
+    if deadline.ms is None:
+        tpl = _cached_level_a(bank, intr, image_shape, p, distance_mm, z_ref)
+    else:
+        tpl = _level_a_in_time(bank, intr, image_shape, p, distance_mm, z_ref, scales, deadline,
+                               LEVEL_A_RESERVE_FACTOR * reserve_ms)
+        if tpl is None:
+            return []
     au, av, tile, cost, t, d = scan_level_a(dtt_a, tpl, scales, image_shape, p, anchor_mask, deadline,
                                             reserve_ms)
     radius = PEAK_RADIUS_EXTENT * tpl.extent_px * float(np.median(scales))
@@ -1106,15 +1115,53 @@ class _LevelB:
 
 
 _LEVEL_A = Memo(8)
+_MAKING: dict = {}  # level-A tables being made in the background, by their memo key
+_MAKING_LOCK = threading.Lock()
+
+
+def _level_a_in_time(bank, intr, image_shape, p, distance_mm, z_ref, scales, deadline: Deadline,
+                     reserve_ms: float) -> LevelATemplates | None:
+    """The level-A templates and their ``scaled_offsets`` (made once per bank, camera, image size and
+    distance: ~50-150 ms, in no unit of work the deadline checks), or None when the ``deadline``, less
+    ``reserve_ms``, comes first: they are then made in the background, waited for until then, and
+    ready for a later frame (the deadline is marked hit)."""
+    key = _level_a_key(intr, image_shape, p, distance_mm, z_ref)
+    tpl = _LEVEL_A.peek(bank, key)
+    sc = tuple(np.asarray(scales, np.float64).tolist())
+    if tpl is not None and _SCALED.peek(tpl, sc) is not None:
+        return tpl
+
+    def make() -> LevelATemplates:
+        try:
+            tables = _cached_level_a(bank, intr, image_shape, p, distance_mm, z_ref)
+            scaled_offsets(tables, scales)
+            return tables
+        finally:
+            with _MAKING_LOCK:
+                _MAKING.pop((id(bank), key, sc), None)
+
+    with _MAKING_LOCK:
+        fut = _MAKING.get((id(bank), key, sc))
+        if fut is None:
+            fut = _MAKING[(id(bank), key, sc)] = threads.background().submit(make)
+    try:
+        return fut.result(timeout=max(deadline.left_ms() - reserve_ms, 0.0) / 1000.0)
+    except concurrent.futures.TimeoutError:
+        deadline.hit = True
+        return None
+
+
+def _level_a_key(intr, image_shape, p, distance_mm, z_ref) -> tuple:
+    # Keyed on the fields level_a_templates reads: a region of interest or more instances change only
+    # the peak and polish counts, and must not make the templates again.
+    fields = (p.n_channels, p.level_scale, p.inplane_step_deg, p.view_step_deg, p.view_step_any_deg, p.tiles,
+              p.points_per_template)
+    return (intr, tuple(image_shape), fields, distance_mm, z_ref)
 
 
 def _cached_level_a(bank, intr, image_shape, p, distance_mm, z_ref) -> LevelATemplates:
     """Level-A templates depend only on the bank, the camera, the image size and the distance: a
     cell's camera and distance rarely change between frames, so they are made once per camera."""
-    # Keyed on the fields level_a_templates reads: a region of interest or more instances change only
-    # the peak and polish counts, and must not make the templates again.
-    fields = (p.n_channels, p.level_scale, p.inplane_step_deg, p.view_step_deg, p.view_step_any_deg, p.tiles,
-              p.points_per_template)
-    return _LEVEL_A.get(bank, (intr, tuple(image_shape), fields, distance_mm, z_ref),
+    return _LEVEL_A.get(bank, _level_a_key(intr, image_shape, p, distance_mm, z_ref),
                         lambda: level_a_templates(bank, intr, image_shape, p, distance_mm=distance_mm,
                                                   z_ref_mm=z_ref))

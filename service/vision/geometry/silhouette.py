@@ -250,14 +250,15 @@ class MeshTopology:
 def _build_topology(V: np.ndarray, F: np.ndarray) -> MeshTopology:
     tri = V[F]
     normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    closed = is_closed_outward(V, F)
     edges = np.zeros((0, 2), np.int64)
     edge_faces = np.zeros((0, 2), np.int64)
+    d = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]).astype(np.int64)
+    key = np.stack([np.minimum(d[:, 0], d[:, 1]), np.maximum(d[:, 0], d[:, 1])], axis=1)
+    # One stable sort of one int64 key orders the edges as np.lexsort((key[:, 1], key[:, 0])) would.
+    order = np.argsort(key[:, 0] * (int(F.max()) + 1 if len(F) else 1) + key[:, 1], kind="stable")
+    closed = _closed_outward(V, F, d, key, order)
     if closed:
-        d = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]).astype(np.int64)
         face_of = np.tile(np.arange(len(F)), 3)
-        key = np.sort(d, axis=1)
-        order = np.lexsort((key[:, 1], key[:, 0]))
         # Closed: every undirected edge occurs exactly twice, so sorted pairs are adjacent.
         first, second = order[0::2], order[1::2]
         edges = key[first]
@@ -291,13 +292,22 @@ def is_closed_outward(vertices_mm, faces) -> bool:
     F = np.asarray(faces, np.int64)
     if len(F) == 0:
         return False
-    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    n = int(F.max()) + 1
-    fwd = e[:, 0] * n + e[:, 1]
-    rev = e[:, 1] * n + e[:, 0]
-    if len(np.unique(fwd)) != len(fwd):  # an edge used twice in the same direction
+    d = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    key = np.stack([np.minimum(d[:, 0], d[:, 1]), np.maximum(d[:, 0], d[:, 1])], axis=1)
+    return _closed_outward(vertices_mm, F, d, key, np.argsort(key[:, 0] * (int(F.max()) + 1) + key[:, 1],
+                                                              kind="stable"))
+
+
+def _closed_outward(vertices_mm, F: np.ndarray, d: np.ndarray, key: np.ndarray, order: np.ndarray) -> bool:
+    """``is_closed_outward`` given the faces' directed edges ``d`` (3F, 2) int64, the same edges
+    undirected (``key``: (lower, higher) vertex) and the order sorting them (``_build_topology``'s)."""
+    if len(F) == 0 or (d[:, 0] == d[:, 1]).any():  # a degenerate face cannot close a surface
         return False
-    if not np.array_equal(np.sort(fwd), np.sort(rev)):  # an edge without its opposite
+    k = key[order]
+    a, b = order[0::2], order[1::2]
+    if len(order) % 2 or not (k[0::2] == k[1::2]).all() or (k[1:-1:2] == k[2::2]).all(axis=1).any():
+        return False  # an edge not shared by exactly two faces
+    if not ((d[a, 0] == d[b, 1]) & (d[a, 1] == d[b, 0])).all():  # two faces traversing an edge alike
         return False
     tri = np.asarray(vertices_mm, float)[F]
     volume = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0
