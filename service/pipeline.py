@@ -162,7 +162,8 @@ def search_params(max_instances: int) -> SearchParams:
     extra = max_instances - 1
     # Several instances rank by plain cost: over the background, bench/instances.py (seed 3) reported a
     # wrong instance that cost order does not, for no more copies found.
-    return replace(SEARCH_PARAMS, bg_norm=False, n_peaks=min(SEARCH_PARAMS.n_peaks + PEAKS_PER_INSTANCE * extra, MAX_PEAKS),
+    return replace(SEARCH_PARAMS, bg_norm=False,
+                   n_peaks=min(SEARCH_PARAMS.n_peaks + PEAKS_PER_INSTANCE * extra, MAX_PEAKS),
                    n_polish=min(SEARCH_PARAMS.n_polish + POLISH_PER_INSTANCE * extra, MAX_POLISH),
                    peak_accept_ratio=INSTANCES_PEAK_ACCEPT_RATIO)
 
