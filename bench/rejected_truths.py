@@ -140,13 +140,15 @@ def run(a) -> None:
             print(line(f"P{pas}/{j:02d} {'chk' if chk else '---'}", m0, m1, ch.verdict, ref))
             # What the refinement itself reached, kept or not (``pipeline._refine`` keeps it only when its
             # full-resolution score reaches the candidate's coarse score).
-            r = refine_pose(bank, ch.candidate.pose, grey, intr, None, distance_mm=None, n_channels=p.n_channels)
+            r = refine_pose(bank, ch.candidate.pose, grey, intr, None, distance_mm=None,
+                            n_channels=p.n_channels)
             rc = judge(bank, Checked(ch.candidate, RefinedPose(r.pose, float(r.cost), float(r.score),
                                                                int(r.iterations), float(r.inlier_ratio)),
                                      ch.verdict), frame, intr, edge_support=float(r.score),
                        unexplained=r.unexplained, distance_range_mm=DEFAULT_DISTANCE_RANGE_MM, min_score=None)
             print(f"    refine_pose alone: MSPD {mspd(r.pose):.1f}, full-res score {r.score:.3f} vs the "
-                  f"candidate's coarse score {ch.candidate.score:.3f} -> {'kept' if r.score >= ch.candidate.score else 'dropped'}")
+                  f"candidate's coarse score {ch.candidate.score:.3f} -> "
+                  f"{'above' if r.score >= ch.candidate.score else 'below'}")
             print(line("  if kept", m0, mspd(r.pose), rc.verdict, ref))
         print(line("truth", 0.0, mspd(tc.refined.pose), tc.verdict, ref))
         wrong = [r for r in rows if r[3] >= RIGHT_PX]
