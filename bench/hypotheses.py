@@ -138,7 +138,7 @@ def features(set_dir: Path, recs: list[dict], *, max_refine: int = 12) -> list[d
             rows.append({"q": r["i"], "rank": -1 if r.get("truth") else j, "absent": bool(g.get("absent")),
                          "image": g["image"], "model": g["model"],
                          "vis": float(g.get("visible_fraction", 0.0)), "mspd0": h["mspd640"], "mspd1": m1,
-                         "ev": c.verdict.evidence})
+                         "ev": c.verdict.evidence, "R1": c.refined.pose.R, "t1": c.refined.pose.t_mm})
         print(f"{r['i']:4d} {g['image']} {g['model']}", file=sys.stderr)
     return rows
 
