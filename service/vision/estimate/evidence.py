@@ -80,7 +80,7 @@ class ColourFrame:
 class _Window:
     """Arrays of one hypothesis's region of interest (gradients only where they are read)."""
     bgr: np.ndarray  # (h, w, 3) uint8
-    blur: np.ndarray  # (h, w, 3) float32: bgr smoothed by a 1 px Gaussian (gradients are read off it)
+    blur: np.ndarray  # (h, w, 3) uint8: bgr smoothed by a 1 px Gaussian (gradients are read off it)
 
     def quantised_at(self, v: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Colour bin index in [0, REGION_BINS ** 3) of the pixels (v, u), int64: only where the
@@ -105,8 +105,7 @@ def colour_frame(image: np.ndarray) -> ColourFrame:
 
 def _window(frame: ColourFrame, u0: int, v0: int, w: int, h: int) -> _Window:
     bgr = frame.bgr[v0:v0 + h, u0:u0 + w]
-    blur = cv2.GaussianBlur(bgr, (0, 0), 1.0).astype(np.float32)
-    return _Window(bgr, blur)
+    return _Window(bgr, cv2.GaussianBlur(bgr, (0, 0), 1.0))
 
 
 def _gradient_at(win: _Window, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -115,8 +114,9 @@ def _gradient_at(win: _Window, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     h, w = win.blur.shape[:2]
     u = np.clip(np.rint(uv[..., 0]).astype(int), 1, w - 2)
     v = np.clip(np.rint(uv[..., 1]).astype(int), 1, h - 2)
-    gu = 0.5 * (win.blur[v, u + 1] - win.blur[v, u - 1])  # (..., 3)
-    gv = 0.5 * (win.blur[v + 1, u] - win.blur[v - 1, u])
+    # float32 only where read (the same values as converting the whole window first)
+    gu = 0.5 * (win.blur[v, u + 1].astype(np.float32) - win.blur[v, u - 1])  # (..., 3)
+    gv = 0.5 * (win.blur[v + 1, u].astype(np.float32) - win.blur[v - 1, u])
     best = np.argmax(gu * gu + gv * gv, axis=-1)[..., None]
     return np.take_along_axis(gu, best, -1)[..., 0], np.take_along_axis(gv, best, -1)[..., 0]
 
