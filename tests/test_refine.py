@@ -333,3 +333,38 @@ def test_symmetric_result_is_canonical_and_keeps_the_held_distance(sprayer_bank)
     assert res.pose.t_mm[2] == pytest.approx(SPRAYER_POSE.t_mm[2], abs=1e-6)
     # The translation stays consistent with the spin removed: the axis point is where it was.
     assert symmetric_translation_error_mm(sprayer_bank, res.pose, SPRAYER_POSE).max() <= 1.0
+
+
+def test_match_lines_is_the_brute_force_nearest_gated_segment():
+    """Every border point gets the segment a plain loop over all segments picks: the nearest (endpoints
+    extended by 1 px) within the orientation and distance gates, the first one on a tie; the chunks'
+    box test only skips segments beyond the gate."""
+    rng = np.random.default_rng(7)
+    p0 = rng.uniform(0, 400, (300, 2)).astype(np.float32)
+    p1 = (p0 + rng.normal(0, 15, (300, 2))).astype(np.float32)
+    d = p1 - p0
+    seg = Segments(p0, p1, np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi).astype(np.float32), (400, 400))
+    # points near the segments (most match) and scattered (most do not), in runs along a walk
+    near = p0[rng.integers(0, 300, 500)] + rng.normal(0, 2, (500, 2))
+    uv = np.concatenate([near, np.cumsum(rng.normal(0, 3, (400, 2)), axis=0) + 200])
+    theta = rng.uniform(0, np.pi, len(uv))
+    m = match_lines(uv, theta, seg)
+    want = []
+    for k, (q, th) in enumerate(zip(uv, theta, strict=True)):
+        best, best_j = np.inf, -1
+        for j in range(len(seg)):
+            a, b = seg.uv0[j].astype(float), seg.uv1[j].astype(float)
+            length = max(np.linalg.norm(b - a), 1e-9)
+            e = (b - a) / length
+            t = np.clip((q - a) @ e, -1.0, length + 1.0)
+            dist = np.linalg.norm(q - a - t * e)
+            seg_theta = np.mod(np.arctan2(b[1] - a[1], b[0] - a[0]), np.pi)
+            if abs(np.cos(th - seg_theta)) >= np.cos(np.radians(20.0)) and dist < best:
+                best, best_j = dist, j
+        if best <= 3.0:
+            want.append((k, best_j))
+    assert len(want) > 100
+    assert m.idx.tolist() == [k for k, _ in want]
+    d_want = np.array([seg.uv1[j] - seg.uv0[j] for _, j in want], float)
+    e = d_want / np.linalg.norm(d_want, axis=1, keepdims=True)
+    np.testing.assert_allclose(m.normal, np.stack([-e[:, 1], e[:, 0]], 1), atol=1e-12)

