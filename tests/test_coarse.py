@@ -291,6 +291,70 @@ def test_window_block_bounds_are_lower_bounds_and_change_no_result(seed, near_im
         numba.set_num_threads(threads)
 
 
+def _shared_scan_reference(dt, tau_q, off_u, off_v, chan, au, av, accept, n_sentinel):
+    """``_scan_bounded`` with a shared bound as its docstring specifies it, serially in Python: anchors in
+    rounds of SHARED_FIRST_ROUND, 2x, 4x, ..., each starting from the best total of the rounds before."""
+    from service.vision.estimate.coarse import SENTINEL_RATIO, SHARED_FIRST_ROUND
+
+    H, W, _ = dt.shape
+    _, D, T, P = off_u.shape
+    A = len(au)
+    cost, bt, bd = np.full(A, np.inf), np.full(A, -1, np.int32), np.full(A, -1, np.int32)
+    bound, start, size = int(accept) * P, 0, SHARED_FIRST_ROUND
+    while start < A:
+        stop = min(A, start + size)
+        for a in range(start, stop):
+            best = bound
+            for t in range(T):
+                for d in range(D):
+                    y, x = av[a] + off_v[0, d, t], au[a] + off_u[0, d, t]
+                    inside = (y >= 0) & (y < H) & (x >= 0) & (x < W)
+                    acc = np.cumsum(np.where(inside, dt[np.clip(y, 0, H - 1), np.clip(x, 0, W - 1), chan[t]],
+                                             tau_q).astype(np.int64))
+                    if acc[-1] >= best or (0 < n_sentinel <= P
+                                           and acc[n_sentinel - 1] * P > best * n_sentinel * SENTINEL_RATIO):
+                        continue
+                    best, bt[a], bd[a] = int(acc[-1]), t, d
+            if bt[a] >= 0:
+                cost[a] = best / P
+        finite = cost[start:stop][np.isfinite(cost[start:stop])]
+        bound = min([bound, *(int(round(c * P)) for c in finite)])
+        start, size = stop, 2 * size
+    return cost, bt, bd
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_shared_bound_scan_does_not_depend_on_the_threads(seed):
+    """Level B's scan with a shared bound returns exactly the serial reference's costs, templates and
+    scales, with one thread and with every thread numba has: the bound an anchor prunes against (and so
+    its sentinel tests and ties) follows from the anchors' order, never from the threads' timing (a bound
+    read as the threads ran changed clutter 0002's candidates from run to run)."""
+    from service.vision.estimate.coarse import LEVEL_B_SENTINEL_POINTS, _scan_bounded, _window_bounds
+
+    dt, tau_q, off_u, off_v, chan, au, av, gu, gv, stride = _window_case(seed)
+    # two depths: the scale index is part of the answer
+    off_u = np.concatenate([off_u, (off_u * 1.1).astype(np.int16)], axis=1)
+    off_v = np.concatenate([off_v, (off_v * 1.1).astype(np.int16)], axis=1)
+    lower, block = _window_bounds(dt, tau_q, off_u, off_v, chan, au, av, gu, gv, stride)
+    n = LEVEL_B_SENTINEL_POINTS
+    threads = numba.get_num_threads()
+    reported = []
+    try:
+        for accept in (8, 16, tau_q):
+            want = _shared_scan_reference(dt, tau_q, off_u, off_v, chan, au, av, accept, n)
+            reported.append(int(np.isfinite(want[0]).sum()))
+            for k in sorted({1, numba.config.NUMBA_NUM_THREADS}):
+                numba.set_num_threads(k)
+                for _ in range(3):
+                    got = _scan_bounded(dt, tau_q, off_u, off_v, chan, au, av, np.zeros(len(au), np.int32),
+                                        np.int64(accept), n, True, lower, block)
+                    for g_, w_ in zip(got, want, strict=True):
+                        np.testing.assert_array_equal(g_, w_)
+    finally:
+        numba.set_num_threads(threads)
+    assert max(reported) > 1  # later rounds beat earlier ones: the bound moved between rounds
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_level_a_block_scan_equals_the_anchor_scan(seed):
     """Level A's blocked scan (tiles, several scales, any subset of the stride grid, anchors near and past

@@ -33,3 +33,10 @@ def test_a_recycled_id_does_not_return_the_old_owners_value():
     impostor = Owner()
     memo._items[(id(impostor), "k")] = memo._items.pop(stale)  # as if impostor had been given first's id
     assert memo.get(impostor, "k", lambda: "impostor's") == "impostor's"
+
+
+def test_clear_forgets_every_value():
+    memo, a = Memo(4), Owner()
+    memo.get(a, 1, lambda: "old")
+    memo.clear()
+    assert memo.peek(a, 1) is None and memo.get(a, 1, lambda: "new") == "new"

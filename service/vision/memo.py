@@ -39,3 +39,8 @@ class Memo:
             while len(self._items) > self.size:
                 self._items.popitem(last=False)
         return value
+
+    def clear(self) -> None:
+        """Forget every value (the next ``get`` of any key makes it again, as in a fresh process)."""
+        with self._lock:
+            self._items.clear()

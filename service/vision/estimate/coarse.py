@@ -168,6 +168,11 @@ _NO_BOUNDS = np.zeros((0, 0, 0), np.int64)
 _NO_BLOCKS = np.zeros(0, np.int32)
 
 
+# With a shared bound, ``_scan_bounded`` scans its anchors in rounds of 1, 2, 4, ... anchors: each round's
+# anchors prune against the best total of the rounds before it (its start), never against each other's.
+SHARED_FIRST_ROUND = 1
+
+
 @nb.njit(parallel=True, cache=True)
 def _scan_bounded(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, anchor_tile, accept, n_sentinel,
                   shared, lower, anchor_block):
@@ -179,11 +184,13 @@ def _scan_bounded(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, anchor_ti
     Returns best mean cost (A,), template (A,), scale index (A,). A template is abandoned as soon as
     its partial sum reaches the anchor's best total (all terms are >= 0), or when its first
     ``n_sentinel`` points already average ``SENTINEL_RATIO`` times the best mean. With ``shared`` only
-    the overall best matters (a local search): every anchor prunes against the best total any anchor
-    has reached, and anchors that cannot beat it report inf. Threads read that bound unsynchronised; a
-    stale (higher) bound only prunes less, so with ``n_sentinel = 0`` the overall best is exact. The
-    sentinel is a heuristic: points come in ``spread_order``, so the first ones are a fair sample of the
-    border.
+    the overall best matters (a local search): anchors go in rounds of ``SHARED_FIRST_ROUND``, then
+    twice as many each round, and an anchor starts from the best total of the rounds before its own;
+    anchors that cannot beat it report inf. The bound an anchor prunes against is thus fixed by the
+    anchors' order, never by which thread got where first: the sentinel and ties make the overall best
+    depend on that bound, and a bound read as the threads ran made the same frame's answer differ from
+    run to run. With ``n_sentinel = 0`` the overall best is exact. The sentinel is a heuristic:
+    points come in ``spread_order``, so the first ones are a fair sample of the border.
 
     ``lower`` (B, D, T) int64 and ``anchor_block`` (A,) int32 (or empty: none): a lower bound, per
     block of anchors, of every template's sum over its first ``n_sentinel`` points (``_window_bounds``).
@@ -192,57 +199,71 @@ def _scan_bounded(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, anchor_ti
     unbounded scan's (same best, same ties), only cheaper.
     """
     A = anchors_u.shape[0]
+    P = off_u.shape[3]
+    best_sum = np.empty(A, np.int64)
+    best_t = np.full(A, -1, np.int32)
+    best_d = np.full(A, -1, np.int32)
+    bound = accept * P
+    start = 0
+    size = SHARED_FIRST_ROUND if shared else A
+    while start < A:
+        stop = min(A, start + size)
+        for a in nb.prange(start, stop):
+            best_sum[a], best_t[a], best_d[a] = _scan_anchor(dt, tau_q, off_u, off_v, chan, anchors_u[a],
+                                                             anchors_v[a], anchor_tile[a], bound, n_sentinel,
+                                                             lower, anchor_block, a)
+        for a in range(start, stop):  # the next round's bound, from this round's anchors in order
+            if best_t[a] >= 0 and best_sum[a] < bound:
+                bound = best_sum[a]
+        start = stop
+        size *= 2
+    best_cost = np.full(A, np.inf, np.float64)
+    for a in range(A):
+        if best_t[a] >= 0:
+            best_cost[a] = best_sum[a] / P
+    return best_cost, best_t, best_d
+
+
+@nb.njit(cache=True)
+def _scan_anchor(dt, tau_q, off_u, off_v, chan, ua, va, j, start, n_sentinel, lower, anchor_block, a):
+    """``_scan_bounded`` at one anchor (``ua``, ``va``; tile ``j``; index ``a`` into ``anchor_block``),
+    from the best total ``start`` -> (best total, its template, its scale index; -1, -1 when nothing
+    beats ``start``)."""
     H = dt.shape[0]
     W = dt.shape[1]
     D = off_u.shape[1]
     T = off_u.shape[2]
     P = off_u.shape[3]
-    best_cost = np.full(A, np.inf, np.float64)
-    best_t = np.full(A, -1, np.int32)
-    best_d = np.full(A, -1, np.int32)
-    bound = np.full(1, accept * P, np.int64)
     bounded = lower.shape[0] > 0
-    for a in nb.prange(A):
-        ua = anchors_u[a]
-        va = anchors_v[a]
-        j = anchor_tile[a]
-        best = accept * P
-        bt = -1
-        bd = -1
-        for t in range(T):
-            if shared and bound[0] < best:
-                best = bound[0]
-            for d in range(D):
-                if bounded:
-                    lo = lower[anchor_block[a], d, t]
-                    if lo >= best or (0 < n_sentinel <= P and lo * P > best * n_sentinel * SENTINEL_RATIO):
-                        continue
-                acc = 0
-                ok = True
-                for i in range(P):
-                    y = va + off_v[j, d, t, i]
-                    x = ua + off_u[j, d, t, i]
-                    if y >= 0 and y < H and x >= 0 and x < W:
-                        acc += dt[y, x, chan[t, i]]
-                    else:
-                        acc += tau_q
-                    if acc >= best:
-                        ok = False
-                        break
-                    if i + 1 == n_sentinel and acc * P > best * n_sentinel * SENTINEL_RATIO:
-                        ok = False
-                        break
-                if ok:
-                    best = acc
-                    bt = t
-                    if shared and acc < bound[0]:
-                        bound[0] = acc
-                    bd = d
-        if bt >= 0:
-            best_cost[a] = best / P
-            best_t[a] = bt
-            best_d[a] = bd
-    return best_cost, best_t, best_d
+    best = start
+    bt = -1
+    bd = -1
+    for t in range(T):
+        for d in range(D):
+            if bounded:
+                lo = lower[anchor_block[a], d, t]
+                if lo >= best or (0 < n_sentinel <= P and lo * P > best * n_sentinel * SENTINEL_RATIO):
+                    continue
+            acc = 0
+            ok = True
+            for i in range(P):
+                y = va + off_v[j, d, t, i]
+                x = ua + off_u[j, d, t, i]
+                if y >= 0 and y < H and x >= 0 and x < W:
+                    acc += dt[y, x, chan[t, i]]
+                else:
+                    acc += tau_q
+                if acc >= best:
+                    ok = False
+                    break
+                if i + 1 == n_sentinel and acc * P > best * n_sentinel * SENTINEL_RATIO:
+                    ok = False
+                    break
+            if ok:
+                best = acc
+                bt = t
+                bd = d
+    return best, bt, bd
 
 
 @nb.njit(parallel=True, cache=True)

@@ -200,8 +200,10 @@ def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t
     point outside costs ``tau_q``.
 
     A template is abandoned (inf) once its partial sum reaches ``limit`` x P (all terms are >= 0); with
-    ``shared`` the limit drops to the best total reached so far (only the best matters: threads read it
-    unsynchronised, and a stale, higher limit only prunes less). ``group`` (M,) int64 in [0, n_groups) (or
+    ``shared`` the limit drops to just above the best total reached so far (only the best matters: threads
+    read it unsynchronised, and a stale, higher limit only prunes less). Totals are whole numbers, so every
+    pose costing the best total stays finite: the caller's argmin picks the first of them, not the one a
+    thread happened to finish first. ``group`` (M,) int64 in [0, n_groups) (or
     empty: one group): each group has its own best, as if scored by a call of its own.
 
     ``views`` empty: each pose's view is the one nearest the direction it sees ``centre`` (3,) from
@@ -255,8 +257,8 @@ def _score(dt_q, tau_q, scale, ou, ov, fx, fy, cx, cy, p_mid, d_obj, views, R, t
                 break
         if ok:
             out[m] = acc / P
-            if shared and acc < bound[gi]:
-                bound[gi] = acc
+            if shared and acc + 1 < bound[gi]:
+                bound[gi] = acc + 1  # ties stay finite: which one reaches the bound first is the threads'
     return out
 
 
