@@ -345,6 +345,55 @@ def new_evidence_table(recs: list[dict], set_dir: Path) -> None:
         print(f"| {k} | {np.median(t):.2f} | {np.median(w):.2f} | {auc(t, w):.2f} |")
 
 
+def ceiling(recs: list[dict], set_dir: Path) -> None:
+    """How far the evidence could go at all: a logistic score learnt on these frames themselves (leave one
+    image out, so no query is judged by a score fitted on it), on the service's evidence, on
+    ``candidate_evidence`` and on both, with each query's truth among its candidates. A diagnostic, not
+    an operating point: the service never fits on the set it reports."""
+    from bench.fit_verdict import fit_logistic
+
+    rows: list[tuple[int, str, bool, dict, dict]] = []  # query, image, truth?, evidence, new evidence
+    for qi, r in enumerate(recs):
+        if "truth_pose" not in r:
+            continue
+        bank = load_bank(r["model"], set_dir / "models" / f"{r['model']}.stl", None)
+        image = read_colour(set_dir / r["image"])[..., :3]
+        g = next(g for g in read_gt(set_dir) if g["image"] == r["image"] and g["model"] == r["model"])
+        intr = Intrinsics.from_K(np.asarray(g["K"], float))
+        lab, dtt = cv2.cvtColor(image, cv2.COLOR_BGR2LAB), colour_edges.canny_tensor(image, scale=1.0)
+        items = ([(True, r["truth_ev"], r["truth_pose"])] if r["truth_mspd"] < RIGHT_PX else []) + \
+            [(False, c["ev"], c["pose"]) for c in r["checked"] if c["mspd1"] >= RIGHT_PX]
+        for truth, ev, pl in items:
+            ne = candidate_evidence(bank, Pose(np.asarray(pl[:3], float), np.asarray(pl[3], float)), intr,
+                                    image, lab, dtt)
+            if ne is not None:
+                rows.append((qi, r["image"], truth, ev, ne))
+    if not rows:
+        return
+    n_q = len({r[0] for r in rows})
+    print(f"\nCeiling: a score learnt on these {n_q} queries (leave one image out), the truth a candidate")
+    print("| evidence | AUC truth / wrong | recall at precision >= 95 % |\n|---|---|---|")
+    y = np.array([r[2] for r in rows], float)
+    for name, feats in (("service's", lambda r: [r[3][k] for k in FEATURES]),
+                        ("candidate_evidence", lambda r: list(r[4].values())),
+                        ("both", lambda r: [r[3][k] for k in FEATURES] + list(r[4].values()))):
+        X = np.array([feats(r) for r in rows], float)
+        X = (X - X.mean(0)) / (X.std(0) + 1e-9)
+        s = np.zeros(len(rows))
+        for im in {r[1] for r in rows}:
+            te = np.array([r[1] == im for r in rows])
+            w = fit_logistic(X[~te], y[~te])
+            s[te] = 1.0 / (1.0 + np.exp(-(w[0] + X[te] @ w[1:])))
+        best = []
+        for qi in sorted({r[0] for r in rows}):
+            idx = [i for i, r in enumerate(rows) if r[0] == qi]
+            b = max(idx, key=lambda i: s[i])
+            best.append((s[b], rows[b][2]))
+        rec95 = max((sum(b[1] for b in best if b[0] >= t) / len(best) for t in {b[0] for b in best}
+                     if np.mean([b[1] for b in best if b[0] >= t]) >= 0.95), default=0.0)
+        print(f"| {name} | {auc(s[y > 0], s[y == 0]):.2f} | {rec95:.0%} |")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--set", default="lmo_dev")
@@ -364,6 +413,7 @@ def main(argv=None) -> int:
         table(recs)
         verdict_table(recs)
         new_evidence_table(recs, set_dir)
+        ceiling(recs, set_dir)
         return 0
     meta = read_meta(set_dir)
     gts = [g for g in read_gt(set_dir) if not g.get("absent") and g.get("visible_fraction", 1) >= 0.5]
