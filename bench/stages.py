@@ -108,7 +108,8 @@ def run(a) -> None:
     p = replace(SEARCH_PARAMS, fine_scale=a.fine_scale, level_scale=a.level_scale, n_peaks=a.n_peaks,
                 n_polish=a.n_polish, peak_accept_ratio=a.accept_ratio,
                 bg_norm=SEARCH_PARAMS.bg_norm if a.bg_norm is None else a.bg_norm == "on",
-                templates_per_peak=a.templates_per_peak or SEARCH_PARAMS.templates_per_peak)
+                templates_per_peak=a.templates_per_peak or SEARCH_PARAMS.templates_per_peak,
+                template_peaks=a.template_peaks or SEARCH_PARAMS.template_peaks)
     tot = {"n": 0, "peak": 0, "inB": 0, "inP": 0, "inP1": 0, "inP5": 0, "cheap": 0, "oracleB": 0}
     cov_all, search_ms = [], []
     print("q image model size vis cov | A rank/n peak | B in rank | P in rank")
@@ -196,7 +197,8 @@ def run(a) -> None:
               flush=True)
     n = tot["n"]
     print(f"\n{a.set} {a.edges} {a.lsd_scale} fine {a.fine_scale} level {a.level_scale} peaks {a.n_peaks} "
-          f"polish {a.n_polish} bg_norm {p.bg_norm} templates/peak {p.templates_per_peak} "
+          f"polish {a.n_polish} bg_norm {p.bg_norm} "
+          f"templates/peak {p.templates_per_peak} at {p.template_peaks} peaks "
           f"dist {'given' if a.distance_given else 'not given'}: n={n} "
           f"cov mean {np.mean(cov_all):.2f} | peak near truth {tot['peak']} | "
           f"truth after level B {tot['inB']} | "
@@ -224,6 +226,8 @@ def main(argv=None) -> int:
                     help="SearchParams.bg_norm (default: the service's)")
     ap.add_argument("--templates-per-peak", type=int, default=None,
                     help="SearchParams.templates_per_peak (default: the service's)")
+    ap.add_argument("--template-peaks", type=int, default=None,
+                    help="SearchParams.template_peaks (default: the service's)")
     run(ap.parse_args(argv))
     return 0
 
