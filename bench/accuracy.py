@@ -234,6 +234,12 @@ def load_bank(model: str, mesh_path: Path, grid: dict | None, *, rebuild: bool =
     return bank
 
 
+
+def gt_bank(set_dir: Path, model: str) -> TemplateBank:
+    """``load_bank`` of a data set's model (``models/<model>.stl``), default grid."""
+    return load_bank(model, set_dir / "models" / f"{model}.stl", None)
+
+
 # --- per-image evaluation --------------------------------------------------------------------------
 
 

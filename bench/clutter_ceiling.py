@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `python bench/clutter_ceiling.py`
-from bench.accuracy import DATA_DIR, load_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
+from bench.accuracy import DATA_DIR, gt_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
 from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, estimate  # noqa: E402
 from service.vision.estimate import chamfer, coarse  # noqa: E402
 from service.vision.estimate.chamfer import distance_tensor  # noqa: E402
@@ -94,7 +94,7 @@ def main() -> None:
     for g in rows[:a.limit]:
         m = g["model"]
         if m not in banks:
-            banks[m] = load_bank(m, set_dir / "models" / f"{m}.stl", None)
+            banks[m] = gt_bank(set_dir, m)
         bank, K = banks[m], np.asarray(g["K"], float)
         bgr = cv2.imread(str(set_dir / g["image"]), cv2.IMREAD_COLOR)
         grey = to_grey_u8(bgr)

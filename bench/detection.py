@@ -32,7 +32,7 @@ from bench.accuracy import (  # noqa: E402
     DATA_DIR,
     MIN_VISIBLE,
     OUT_DIR,
-    load_bank,
+    gt_bank,
     load_model_info,
     read_gt,
     read_meta,
@@ -63,7 +63,7 @@ def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: fl
     minfo: dict = {}
     recs = []
     for g in gts:
-        bank = load_bank(g["model"], set_dir / "models" / f"{g['model']}.stl", None)
+        bank = gt_bank(set_dir, g["model"])
         image = read_colour(set_dir / g["image"])
         intr = Intrinsics.from_K(np.asarray(g["K"], float))
         absent = bool(g.get("absent", False))

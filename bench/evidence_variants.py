@@ -37,7 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.accuracy import load_bank, read_gt  # noqa: E402
+from bench.accuracy import gt_bank, read_gt  # noqa: E402
 from bench.hypotheses import OUT, read_colour, set_dir_of  # noqa: E402
 from service.vision.estimate import evidence as ev  # noqa: E402
 from service.vision.geometry.camera import Intrinsics, undistort_image  # noqa: E402
@@ -151,7 +151,7 @@ def rows_with_variants(name: str) -> list[dict]:
             frame = ev.colour_frame(undistort_image(read_colour(set_dir / g["image"]), intr))
             frames[r["image"]] = (frame, intr, cv2.cvtColor(frame.bgr, cv2.COLOR_BGR2LAB))
         frame, intr, lab = frames[r["image"]]
-        bank = load_bank(r["model"], set_dir / "models" / f"{r['model']}.stl", None)
+        bank = gt_bank(set_dir, r["model"])
         r["var"] = variants(bank, Pose(np.asarray(r["R1"]), np.asarray(r["t1"])), intr, frame, lab)
     return rows
 

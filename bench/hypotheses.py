@@ -28,7 +28,7 @@ if str(ROOT) not in sys.path:
 
 from bench.accuracy import (  # noqa: E402
     DATA_DIR,
-    load_bank,
+    gt_bank,
     load_model_info,
     read_gt,
     read_meta,
@@ -67,7 +67,7 @@ def proposals(set_dir: Path, *, limit: int | None, distance_given: bool, params=
     minfo: dict = {}
     recs = []
     for i, g in enumerate(queries(set_dir, limit)):
-        bank = load_bank(g["model"], set_dir / "models" / f"{g['model']}.stl", None)
+        bank = gt_bank(set_dir, g["model"])
         image = read_colour(set_dir / g["image"])
         intr = Intrinsics.from_K(np.asarray(g["K"], float))
         dist = float(g["t_mm"][2]) if distance_given and not g.get("absent") else None
@@ -123,7 +123,7 @@ def features(set_dir: Path, recs: list[dict], *, max_refine: int = 12) -> list[d
     rows = []
     for r in recs:
         g = r["g"]
-        bank = load_bank(g["model"], set_dir / "models" / f"{g['model']}.stl", None)
+        bank = gt_bank(set_dir, g["model"])
         image = read_colour(set_dir / g["image"])
         grey = to_grey_u8(image)
         intr = Intrinsics.from_K(np.asarray(g["K"], float))

@@ -42,7 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.accuracy import DATA_DIR, OUT_DIR, load_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
+from bench.accuracy import DATA_DIR, OUT_DIR, gt_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
 from bench.hypotheses import read_colour  # noqa: E402
 from service import pipeline  # noqa: E402
 from service.pipeline import (  # noqa: E402
@@ -103,7 +103,7 @@ def first_near(mspds: list[float]) -> int:
 
 
 def query(g: dict, set_dir: Path, meta: dict, minfo: dict, edges: str, check_all: bool) -> dict:
-    bank = load_bank(g["model"], set_dir / "models" / f"{g['model']}.stl", None)
+    bank = gt_bank(set_dir, g["model"])
     info = load_model_info(set_dir, g["model"], meta, minfo)
     image = read_colour(set_dir / g["image"])
     grey = to_grey_u8(image)
@@ -311,30 +311,36 @@ def candidate_evidence(bank, pose: Pose, intr: Intrinsics, image: np.ndarray, la
             "chroma_conc": float(np.sort(chroma_hist(win[mask]))[-2:].sum())}
 
 
+def pose_of(pl: list) -> Pose:
+    """A record's pose ``[R rows..., t_mm]`` -> Pose."""
+    return Pose(np.asarray(pl[:3], float), np.asarray(pl[3], float))
+
+
+def record_inputs(recs: list[dict], set_dir: Path):
+    """Per record with a truth pose: (index, record, (bank, intr, image, Lab image, colour Canny tensor)),
+    the arguments ``candidate_evidence`` takes besides the pose; the gt lines read once."""
+    gts = {(g["image"], g["model"]): g for g in read_gt(set_dir)}
+    for qi, r in enumerate(recs):
+        if "truth_pose" not in r:
+            continue
+        image = read_colour(set_dir / r["image"])[..., :3]
+        intr = Intrinsics.from_K(np.asarray(gts[(r["image"], r["model"])]["K"], float))
+        yield qi, r, (gt_bank(set_dir, r["model"]), intr, image, cv2.cvtColor(image, cv2.COLOR_BGR2LAB),
+                      colour_edges.canny_tensor(image, scale=1.0))
+
+
 def new_evidence_table(recs: list[dict], set_dir: Path) -> None:
     """``candidate_evidence`` of the truth (refined from the true pose) against the wrong candidates an
     estimate checks, on the poses the records keep (``--check-all`` runs): AUC per evidence."""
     truth: list[dict] = []
     wrong: list[dict] = []
-    for r in recs:
-        if "truth_pose" not in r:
-            continue
-        bank = load_bank(r["model"], set_dir / "models" / f"{r['model']}.stl", None)
-        image = read_colour(set_dir / r["image"])[..., :3]
-        g = next(g for g in read_gt(set_dir) if g["image"] == r["image"] and g["model"] == r["model"])
-        intr = Intrinsics.from_K(np.asarray(g["K"], float))
-        lab = cv2.cvtColor(image, cv2.COLOR_BGR2LAB)
-        dtt = colour_edges.canny_tensor(image, scale=1.0)
-
-        def pose_of(pl: list) -> Pose:
-            return Pose(np.asarray(pl[:3], float), np.asarray(pl[3], float))
-
+    for _, r, inputs in record_inputs(recs, set_dir):
         if r["truth_mspd"] < RIGHT_PX:
-            e = candidate_evidence(bank, pose_of(r["truth_pose"]), intr, image, lab, dtt)
+            e = candidate_evidence(inputs[0], pose_of(r["truth_pose"]), *inputs[1:])
             truth += [e] if e else []
         for c in r["checked"]:
             if c["mspd1"] >= RIGHT_PX:
-                e = candidate_evidence(bank, pose_of(c["pose"]), intr, image, lab, dtt)
+                e = candidate_evidence(inputs[0], pose_of(c["pose"]), *inputs[1:])
                 wrong += [e] if e else []
     if not truth or not wrong:
         return
@@ -353,19 +359,11 @@ def ceiling(recs: list[dict], set_dir: Path) -> None:
     from bench.fit_verdict import fit_logistic
 
     rows: list[tuple[int, str, bool, dict, dict]] = []  # query, image, truth?, evidence, new evidence
-    for qi, r in enumerate(recs):
-        if "truth_pose" not in r:
-            continue
-        bank = load_bank(r["model"], set_dir / "models" / f"{r['model']}.stl", None)
-        image = read_colour(set_dir / r["image"])[..., :3]
-        g = next(g for g in read_gt(set_dir) if g["image"] == r["image"] and g["model"] == r["model"])
-        intr = Intrinsics.from_K(np.asarray(g["K"], float))
-        lab, dtt = cv2.cvtColor(image, cv2.COLOR_BGR2LAB), colour_edges.canny_tensor(image, scale=1.0)
+    for qi, r, inputs in record_inputs(recs, set_dir):
         items = ([(True, r["truth_ev"], r["truth_pose"])] if r["truth_mspd"] < RIGHT_PX else []) + \
             [(False, c["ev"], c["pose"]) for c in r["checked"] if c["mspd1"] >= RIGHT_PX]
         for truth, ev, pl in items:
-            ne = candidate_evidence(bank, Pose(np.asarray(pl[:3], float), np.asarray(pl[3], float)), intr,
-                                    image, lab, dtt)
+            ne = candidate_evidence(inputs[0], pose_of(pl), *inputs[1:])
             if ne is not None:
                 rows.append((qi, r["image"], truth, ev, ne))
     if not rows:

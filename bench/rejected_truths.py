@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.accuracy import DATA_DIR, load_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
+from bench.accuracy import DATA_DIR, gt_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
 from bench.hypotheses import read_colour  # noqa: E402
 from service.pipeline import (  # noqa: E402
     DEFAULT_DISTANCE_RANGE_MM,
@@ -105,7 +105,7 @@ def run(a) -> None:
         gts = [g for g in gts if any(k in g["image"] for k in keep)]
     p = search_params(1)
     for g in gts[:a.limit]:
-        bank = load_bank(g["model"], set_dir / "models" / f"{g['model']}.stl", None)
+        bank = gt_bank(set_dir, g["model"])
         info = load_model_info(set_dir, g["model"], meta, minfo)
         image = read_colour(set_dir / g["image"])
         grey = to_grey_u8(image)

@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.accuracy import load_bank, read_gt  # noqa: E402
+from bench.accuracy import gt_bank, read_gt  # noqa: E402
 from bench.detection import set_dir_of  # noqa: E402
 from bench.hypotheses import read_colour  # noqa: E402
 from service.pipeline import estimate  # noqa: E402
@@ -93,7 +93,7 @@ def main(argv=None) -> int:
             clear_memos()
         run = {}
         for key, g, set_dir in todo:
-            bank = load_bank(g["model"], set_dir / "models" / f"{g['model']}.stl", None)
+            bank = gt_bank(set_dir, g["model"])
             image = read_colour(set_dir / g["image"])
             out = estimate(bank, image, Intrinsics.from_K(np.asarray(g["K"], float)))
             run[key] = fingerprint(out)

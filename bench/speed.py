@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.accuracy import DATA_DIR, load_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
+from bench.accuracy import DATA_DIR, gt_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
 from bench.hypotheses import read_colour  # noqa: E402
 from service.pipeline import estimate, warm_up  # noqa: E402
 from service.settings import DEFAULT_DEADLINE_MS  # noqa: E402
@@ -51,7 +51,7 @@ def frames(set_name: str, limit: int | None) -> list[dict]:
     for g in read_gt(set_dir)[:limit] if limit else read_gt(set_dir):
         out.append({"g": g, "set_dir": set_dir, "image": read_colour(set_dir / g["image"]),
                     "intr": Intrinsics.from_K(np.asarray(g["K"], float)),
-                    "bank": load_bank(g["model"], set_dir / "models" / f"{g['model']}.stl", None)})
+                    "bank": gt_bank(set_dir, g["model"])})
     return out
 
 

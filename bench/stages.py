@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.accuracy import DATA_DIR, load_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
+from bench.accuracy import DATA_DIR, gt_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
 from bench.hypotheses import read_colour  # noqa: E402
 from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, SEARCH_PARAMS  # noqa: E402
 from service.vision.bank import view_dirs_obj  # noqa: E402
@@ -114,7 +114,7 @@ def run(a) -> None:
     cov_all, search_ms = [], []
     print("q image model size vis cov | A rank/n peak | B in rank | P in rank")
     for qi, g in enumerate(gts):
-        bank = load_bank(g["model"], set_dir / "models" / f"{g['model']}.stl", None)
+        bank = gt_bank(set_dir, g["model"])
         info = load_model_info(set_dir, g["model"], meta, minfo)
         image = read_colour(set_dir / g["image"])
         grey = to_grey_u8(image)
