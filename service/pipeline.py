@@ -381,9 +381,8 @@ def check_candidate(bank: TemplateBank, cand: PoseCandidate, grey: np.ndarray, f
     """One candidate refined, its evidence measured at the refined pose, and the verdict on it (with a
     plane, also whether the refined pose rests on it; ``others_depth_mm``: see ``judge``)."""
     t0 = time.perf_counter()
-    kept, verified, unexplained = _refine(bank, cand, grey, intr, distance_mm=distance_mm,
-                                          n_channels=n_channels)
-    c = judge(bank, Checked(cand, kept, decide(None)), frame, intr, edge_support=verified,
+    kept, unexplained = _refine(bank, cand, grey, intr, distance_mm=distance_mm, n_channels=n_channels)
+    c = judge(bank, Checked(cand, kept, decide(None)), frame, intr, edge_support=kept.score,
               unexplained=unexplained, distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
               plane_tolerance_mm=plane_tolerance_mm, others_depth_mm=others_depth_mm)
     _CHECK_MS.add(_ms(t0))
@@ -653,22 +652,19 @@ def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.nd
 
 
 def _refine(bank: TemplateBank, best: PoseCandidate, grey: np.ndarray, intr: Intrinsics, *,
-            distance_mm: float | None, n_channels: int) -> tuple[RefinedPose, float, float]:
-    """Refine a candidate; ``refine_pose`` keeps the refined pose only if it verifies at least as well
-    on the full-resolution edges (less ``refine.SCORE_SLACK``), else returns the candidate.
+            distance_mm: float | None, n_channels: int) -> tuple[RefinedPose, float]:
+    """Refine a candidate -> (the kept pose, its unexplained-edge ratio ``interior.unexplained_edge_ratio``).
 
-    Also returns the verdict's evidence: the kept pose's score verified on the full-resolution edges,
-    and its unexplained-edge ratio (``interior.unexplained_edge_ratio``)."""
+    ``refine_pose`` keeps the refined pose only if it verifies at least as well on the full-resolution
+    edges (less ``refine.SCORE_SLACK``), else the candidate; the kept pose's ``score`` is that
+    full-resolution verification, the verdict's edge support. The candidate's own score is the coarse,
+    half-resolution one and is not compared with it: a textured floor inflates it, and a refinement
+    onto the truth was dropped for scoring under it (bench/rejected_truths.py, clutter2 0023)."""
     from service.vision.estimate.refine import refine_pose
 
     r = refine_pose(bank, best.pose, grey, intr, None, distance_mm=distance_mm, n_channels=n_channels)
-    # r.score: the full-resolution score of r.pose, which is the candidate itself when refinement lost
-    # score, else a pose scoring at least the candidate's there (less refine.SCORE_SLACK): refine_pose
-    # already keeps or drops the refinement on one scale. The candidate's own score is the coarse,
-    # half-resolution one and is not compared with it (a textured floor inflates it, and a refinement
-    # onto the truth was dropped for scoring under it: bench/rejected_truths.py, clutter2 0023).
-    kept = RefinedPose(r.pose, float(r.cost), float(r.score), int(r.iterations), float(r.inlier_ratio))
-    return kept, float(r.score), r.unexplained
+    return RefinedPose(r.pose, float(r.cost), float(r.score), int(r.iterations), float(r.inlier_ratio)), \
+        r.unexplained
 
 
 WARM_UP_POSE = Pose(Rx(60.0), np.array([5.0, -4.0, 300.0]))  # a cylinder, slightly off the optical axis
