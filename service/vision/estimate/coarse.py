@@ -224,13 +224,34 @@ def _scan_bounded(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, anchor_ti
     return best_cost, best_t, best_d
 
 
+@nb.njit(cache=True, inline="always")
+def _placement_total(dt, tau_q, off_u, off_v, chan, j, d, t, ua, va, best, n_sentinel):
+    """Template ``t`` at scale ``d`` (tile ``j``'s offsets) placed at anchor (``ua``, ``va``): its total
+    over all points (``tau_q`` for a point off the image), or -1 as soon as the partial total reaches
+    ``best`` or, at point ``n_sentinel`` (0: no test), is over the sentinel's share of it."""
+    H = dt.shape[0]
+    W = dt.shape[1]
+    P = off_u.shape[3]
+    acc = 0
+    for i in range(P):
+        y = va + off_v[j, d, t, i]
+        x = ua + off_u[j, d, t, i]
+        if y >= 0 and y < H and x >= 0 and x < W:
+            acc += dt[y, x, chan[t, i]]
+        else:
+            acc += tau_q
+        if acc >= best:
+            return -1
+        if i + 1 == n_sentinel and acc * P > best * n_sentinel * SENTINEL_RATIO:
+            return -1
+    return acc
+
+
 @nb.njit(cache=True)
 def _scan_anchor(dt, tau_q, off_u, off_v, chan, ua, va, j, start, n_sentinel, lower, anchor_block, a):
     """``_scan_bounded`` at one anchor (``ua``, ``va``; tile ``j``; index ``a`` into ``anchor_block``),
     from the best total ``start`` -> (best total, its template, its scale index; -1, -1 when nothing
     beats ``start``)."""
-    H = dt.shape[0]
-    W = dt.shape[1]
     D = off_u.shape[1]
     T = off_u.shape[2]
     P = off_u.shape[3]
@@ -244,22 +265,8 @@ def _scan_anchor(dt, tau_q, off_u, off_v, chan, ua, va, j, start, n_sentinel, lo
                 lo = lower[anchor_block[a], d, t]
                 if lo >= best or (0 < n_sentinel <= P and lo * P > best * n_sentinel * SENTINEL_RATIO):
                     continue
-            acc = 0
-            ok = True
-            for i in range(P):
-                y = va + off_v[j, d, t, i]
-                x = ua + off_u[j, d, t, i]
-                if y >= 0 and y < H and x >= 0 and x < W:
-                    acc += dt[y, x, chan[t, i]]
-                else:
-                    acc += tau_q
-                if acc >= best:
-                    ok = False
-                    break
-                if i + 1 == n_sentinel and acc * P > best * n_sentinel * SENTINEL_RATIO:
-                    ok = False
-                    break
-            if ok:
+            acc = _placement_total(dt, tau_q, off_u, off_v, chan, j, d, t, ua, va, best, n_sentinel)
+            if acc >= 0:
                 best = acc
                 bt = t
                 bd = d
@@ -454,8 +461,6 @@ def _scan_blocks(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, block_star
     exactly ``_scan``'s."""
     A = anchors_u.shape[0]
     B = block_u.shape[0]
-    H = dt.shape[0]
-    W = dt.shape[1]
     D = off_u.shape[1]
     T = off_u.shape[2]
     P = off_u.shape[3]
@@ -489,22 +494,9 @@ def _scan_blocks(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, block_star
                         continue
                     ua = anchors_u[a0 + k]
                     va = anchors_v[a0 + k]
-                    acc = 0
-                    ok = True
-                    for i in range(P):
-                        y = va + off_v[j, d, t, i]
-                        x = ua + off_u[j, d, t, i]
-                        if y >= 0 and y < H and x >= 0 and x < W:
-                            acc += dt[y, x, chan[t, i]]
-                        else:
-                            acc += tau_q
-                        if acc >= best[k]:
-                            ok = False
-                            break
-                        if i + 1 == n_sentinel and acc * P > best[k] * n_sentinel * SENTINEL_RATIO:
-                            ok = False
-                            break
-                    if ok:
+                    acc = _placement_total(dt, tau_q, off_u, off_v, chan, j, d, t, ua, va, best[k],
+                                           n_sentinel)
+                    if acc >= 0:
                         best[k] = acc
                         bt[k] = t
                         bd[k] = d
@@ -652,8 +644,6 @@ def _scan_templates(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, anchor_
     int32 that scale's index; inf and -1 where no scale's total is under ``bound_q[a]`` (a template
     is abandoned once its partial sum reaches the bound or its own best total at an earlier scale)."""
     A = anchors_u.shape[0]
-    H = dt.shape[0]
-    W = dt.shape[1]
     D = off_u.shape[1]
     T = off_u.shape[2]
     P = off_u.shape[3]
@@ -666,19 +656,8 @@ def _scan_templates(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, anchor_
         for t in range(T):
             best = bound_q[a]
             for d in range(D):
-                acc = 0
-                ok = True
-                for i in range(P):
-                    y = va + off_v[j, d, t, i]
-                    x = ua + off_u[j, d, t, i]
-                    if y >= 0 and y < H and x >= 0 and x < W:
-                        acc += dt[y, x, chan[t, i]]
-                    else:
-                        acc += tau_q
-                    if acc >= best:
-                        ok = False
-                        break
-                if ok:
+                acc = _placement_total(dt, tau_q, off_u, off_v, chan, j, d, t, ua, va, best, 0)
+                if acc >= 0:
                     best = acc
                     cost[a, t] = acc / P
                     best_d[a, t] = d
