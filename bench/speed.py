@@ -188,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     parts = a.parts.split(",")
     warm_up()
     if "runs" in parts:
-        runs_table(a.limit, a.repeat, a.clutter_sets.split(","))
+        runs_table(a.limit, a.repeat, [s for s in a.clutter_sets.split(",") if s])
         print()
     if "deadline" in parts:
         deadline_table(a.limit)
