@@ -1,0 +1,80 @@
+"""Parallel paths give the serial answers bit for bit: each compiled kernel or threaded split against a
+plain one-thread transliteration of the loop it replaced, and on 1 and 2 numba threads."""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import pytest
+
+from service.vision.estimate.chamfer import segment_distance_tensor
+from service.vision.estimate.edges import Segments, channel_of
+
+
+def _segment_dt_serial(C, h, w, p0, p1, chan, lam, tau):
+    """The segment-by-segment loop ``_segment_dt`` ran before its row bands, in plain Python."""
+    dt = np.full((C, h, w), tau, np.float32)
+    for s in range(len(p0)):
+        ax, ay = float(p0[s, 0]), float(p0[s, 1])
+        dx, dy = float(p1[s, 0]) - ax, float(p1[s, 1]) - ay
+        L2 = dx * dx + dy * dy
+        u_lo = max(int(math.floor(min(ax, ax + dx) - tau)), 0)
+        u_hi = min(int(math.ceil(max(ax, ax + dx) + tau)), w - 1)
+        v_lo = max(int(math.floor(min(ay, ay + dy) - tau)), 0)
+        v_hi = min(int(math.ceil(max(ay, ay + dy) + tau)), h - 1)
+        cs = int(chan[s])
+        for v in range(v_lo, v_hi + 1):
+            for u in range(u_lo, u_hi + 1):
+                t = 0.0
+                if L2 > 0.0:
+                    t = min(max(((u - ax) * dx + (v - ay) * dy) / L2, 0.0), 1.0)
+                ex, ey = u - (ax + t * dx), v - (ay + t * dy)
+                d = math.sqrt(ex * ex + ey * ey)
+                if d >= tau:
+                    continue
+                if d < dt[cs, v, u]:
+                    dt[cs, v, u] = d
+                reach = min(int((tau - d) / lam) if lam > 0 else C, C // 2)
+                for j in range(1, reach + 1):
+                    val = d + lam * j
+                    for k in ((cs + j) % C, (cs - j) % C):
+                        if val < dt[k, v, u]:
+                            dt[k, v, u] = val
+    return dt
+
+
+@pytest.mark.parametrize("n_threads", [1, 2])
+def test_segment_distance_tensor_bands_equal_the_segment_loop(n_threads):
+    rng = np.random.default_rng(5)
+    n = 40
+    p0 = rng.uniform(-5, 70, (n, 2)).astype(np.float32)
+    p1 = (p0 + rng.uniform(-25, 25, (n, 2))).astype(np.float32)
+    p1[3] = p0[3]  # a zero-length segment
+    d = p1 - p0
+    th = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi).astype(np.float32)
+    roi = (3, 2, 61, 53)  # h = 53: the last row band is a short one
+    C, tau, lam = 8, 9.0, 1.3
+    before = numba.get_num_threads()
+    numba.set_num_threads(min(n_threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        dtt = segment_distance_tensor(Segments(p0, p1, th, (70, 70)), roi, n_channels=C, tau_px=tau,
+                                      lambda_px=lam)
+    finally:
+        numba.set_num_threads(before)
+    org = np.array(roi[:2], np.float64)
+    g0 = (p0.astype(np.float64) - org + 0.5) * 1.0 - 0.5  # as segment_distance_tensor maps them (scale 1)
+    g1 = (p1.astype(np.float64) - org + 0.5) * 1.0 - 0.5
+    chan = channel_of(th, C)
+    serial = _segment_dt_serial(C, roi[3], roi[2], g0, g1, chan, lam, tau)
+    assert dtt.dt.dtype == np.float32
+    np.testing.assert_array_equal(dtt.dt, serial)
+
+
+def test_segment_distance_tensor_without_segments_is_tau():
+    z = np.zeros((0, 2), np.float32)
+    empty = Segments(z, z, np.zeros(0, np.float32), (20, 20))
+    dtt = segment_distance_tensor(empty, (0, 0, 11, 9), n_channels=4, tau_px=5.0)
+    np.testing.assert_array_equal(dtt.dt, np.full((4, 9, 11), 5.0, np.float32))
+
