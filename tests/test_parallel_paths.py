@@ -78,3 +78,53 @@ def test_segment_distance_tensor_without_segments_is_tau():
     dtt = segment_distance_tensor(empty, (0, 0, 11, 9), n_channels=4, tau_px=5.0)
     np.testing.assert_array_equal(dtt.dt, np.full((4, 9, 11), 5.0, np.float32))
 
+
+def _window_offsets_serial(p_rel, theta, Rv, zc, depth_f, ray, fx, fy, cx, cy, s, c0u, c0v, phis_rad, C):
+    """``coarse._window_offsets``'s loop, one template after the other, in plain Python."""
+    Tv, P = theta.shape
+    T, D = len(Rv), len(depth_f)
+    off_u = np.empty((1, D, T, P), np.int16)
+    off_v = np.empty((1, D, T, P), np.int16)
+    chan = np.empty((T, P), np.int32)
+    for t in range(T):
+        iv, phi, R = t % Tv, phis_rad[t // Tv], Rv[t]
+        for i in range(P):
+            x, y, z = p_rel[iv, i]
+            qx = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z
+            qy = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z
+            qz = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z
+            for k in range(D):
+                zk = zc[t] * depth_f[k]
+                X, Y, Z = qx + ray[0] * zk, qy + ray[1] * zk, qz + zk
+                off_u[0, k, t, i] = np.int16(np.rint((fx * X / Z + cx + 0.5) * s - 0.5 - c0u))
+                off_v[0, k, t, i] = np.int16(np.rint((fy * Y / Z + cy + 0.5) * s - 0.5 - c0v))
+            a = (theta[iv, i] + phi) % np.pi
+            chan[t, i] = np.int32(np.floor(a * (C / np.pi) + 0.5)) % C
+    return off_u, off_v, chan
+
+
+@pytest.mark.parametrize("n_threads", [1, 2])
+def test_window_offsets_per_template_items_equal_the_template_loop(n_threads):
+    from service.vision.estimate.coarse import _window_offsets
+    from service.vision.geometry.frames import R_from_rotvec
+
+    rng = np.random.default_rng(7)
+    Tv, Tp, P = 5, 7, 23
+    p_rel = rng.uniform(-30, 30, (Tv, P, 3))
+    theta = rng.uniform(0, np.pi, (Tv, P))
+    Rv = np.stack([R_from_rotvec(rng.normal(size=3)) for _ in range(Tv * Tp)])
+    zc = rng.uniform(400, 600, Tv * Tp)
+    depth_f = np.array([1.0, 1.075, 1 / 1.075])
+    ray = np.array([0.1, -0.05, 1.0])
+    phis = np.deg2rad(np.arange(-6.0, 7.0, 2.0))
+    args = (p_rel, theta, Rv, zc, depth_f, ray, 1100.0, 1100.0, 643.0, 477.0, 0.5, 350.0, 240.0, phis, 16)
+    before = numba.get_num_threads()
+    numba.set_num_threads(min(n_threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        got = _window_offsets(*args)
+    finally:
+        numba.set_num_threads(before)
+    for a, b in zip(got, _window_offsets_serial(*args), strict=True):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+
