@@ -128,3 +128,50 @@ def test_window_offsets_per_template_items_equal_the_template_loop(n_threads):
         assert a.dtype == b.dtype
         np.testing.assert_array_equal(a, b)
 
+
+def _evidence_serial(bank, pose, intr, frame, others=None):
+    """``evidence.evidence`` with every piece run in turn on the calling thread."""
+    from service.vision.estimate import evidence as ev
+
+    H, W = frame.shape
+    fid, invz, (u0, v0) = ev.face_ids_roi(bank, pose, intr, (W, H), margin_px=ev.BAND_MAX_PX + 2)
+    mask = fid >= 0
+    hidden = explained = None
+    if others is not None:
+        o = others[v0:v0 + mask.shape[0], u0:u0 + mask.shape[1]]
+        with np.errstate(divide="ignore"):
+            own = np.where(mask, 1.0 / np.maximum(invz, 1e-12), np.inf)
+        hidden = mask & (o < own - ev.OCCLUSION_MARGIN_MM)
+        explained = ~mask & np.isfinite(o)
+        fid = np.where(hidden, -1, fid)
+    win = ev._window(frame, u0, v0, mask.shape[1], mask.shape[0])
+    band = int(np.clip(ev.BAND_FRACTION * np.sqrt(mask.sum() / np.pi), ev.BAND_MIN_PX, ev.BAND_MAX_PX))
+    p, n = ev._outline(mask)
+    u, v = p[:, 0] + u0, p[:, 1] + v0
+    in_image = (u >= 1) & (u < W - 1) & (v >= 1) & (v < H - 1)
+    e = ev._edge_and_polarity(win, p, n, in_image)
+    r = ev._region(win, mask, band, hidden, explained)
+    s = ev._shading(win, fid, bank, pose)
+    return ev.Evidence(e[0], e[1], r[0], r[1], r[2], e[2], s[0], s[1], float(in_image.mean()))
+
+
+def test_evidence_with_its_region_on_the_pool_equals_the_pieces_in_turn():
+    import trimesh
+
+    from service.vision.estimate.evidence import colour_frame, evidence
+    from service.vision.geometry.camera import Intrinsics
+    from service.vision.geometry.frames import Pose, Rx, Ry
+    from service.vision.geometry.render import render_shaded
+
+    mesh = trimesh.creation.box(extents=(60.0, 40.0, 25.0))
+    bank = type("B", (), {"vertices_mm": np.asarray(mesh.vertices, float), "faces": np.asarray(mesh.faces)})
+    intr = Intrinsics(900.0, 900.0, 319.5, 239.5)
+    pose = Pose(Rx(35.0) @ Ry(20.0), np.array([10.0, -5.0, 400.0]))
+    img = render_shaded(bank.vertices_mm, bank.faces, pose, intr.K, (640, 480))
+    noise = np.random.default_rng(1).integers(0, 30, img.shape[:2] + (3,), dtype=np.uint8)
+    frame = colour_frame(np.dstack([img] * 3) // 2 + noise if img.ndim == 2 else img // 2 + noise)
+    others = np.full((480, 640), np.inf, np.float32)
+    others[200:260, 300:340] = 350.0  # a nearer part hides a corner of this one
+    for off in (None, others):
+        for p in (pose, Pose(Rx(38.0) @ Ry(17.0), np.array([13.0, -3.0, 405.0]))):
+            assert evidence(bank, p, intr, frame, off) == _evidence_serial(bank, p, intr, frame, off)
