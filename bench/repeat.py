@@ -4,6 +4,7 @@ every time; ``--dump`` writes each frame's first answer (a fingerprint: every ca
 score; the verdict; the refined pose) so that two processes can be compared with ``--against``.
 
     python bench/repeat.py --sets clutter [--limit N] [--runs 2] [--cold] [--dump a.json] [--against b.json]
+                           [--distance-given]
 
 ``--cold``: empty the process's memos (level-A tables, scaled offsets, ...) before every run, so that
 each run makes its tables again (run 1 of a process is cold anyway). The answer must not depend on
@@ -85,6 +86,8 @@ def main(argv=None) -> int:
     ap.add_argument("--cold", action="store_true", help="empty the memos before every run")
     ap.add_argument("--dump", type=Path, default=None)
     ap.add_argument("--against", type=Path, default=None, help="a --dump of another process to compare with")
+    ap.add_argument("--distance-given", action="store_true", help="estimate with each frame's true distance "
+                    "(the ground truth's t_z), as the paper protocol does")
     a = ap.parse_args(argv)
     todo = frames(a.sets, a.limit)
     runs: list[dict[str, dict]] = []
@@ -95,7 +98,8 @@ def main(argv=None) -> int:
         for key, g, set_dir in todo:
             bank = gt_bank(set_dir, g["model"])
             image = read_colour(set_dir / g["image"])
-            out = estimate(bank, image, Intrinsics.from_K(np.asarray(g["K"], float)))
+            out = estimate(bank, image, Intrinsics.from_K(np.asarray(g["K"], float)),
+                           distance_mm=float(g["t_mm"][2]) if a.distance_given else None)
             run[key] = fingerprint(out)
         runs.append(run)
     other = json.loads(a.against.read_text()) if a.against else None

@@ -40,3 +40,17 @@ def test_the_budget_caps_numba_in_the_calling_thread_and_sizes_the_pool(restore_
 def test_a_budget_under_one_thread_is_refused(restore_budget):
     with pytest.raises(ValueError):
         threads.configure(0)
+
+
+def test_openmp_threads_sleep_between_kernels_unless_the_environment_says_otherwise():
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = "import os, service.vision.threads; print(os.environ['OMP_WAIT_POLICY'])"
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    for given, expected in ((None, "PASSIVE"), ("ACTIVE", "ACTIVE")):
+        e = env if given is None else env | {"OMP_WAIT_POLICY": given}
+        out = subprocess.run([sys.executable, "-c", code], env=e, cwd=Path(__file__).resolve().parents[1],
+                             capture_output=True, text=True, check=True)
+        assert out.stdout.strip() == expected

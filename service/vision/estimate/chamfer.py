@@ -341,44 +341,60 @@ def _pool_quantise(dt, f, factor, tau_q):
 # --- DT3 from segments, exact in a band -------------------------------------------------------
 
 
-@nb.njit(cache=True, nogil=True)
+SEGMENT_DT_BAND = 8  # rows per work item of ``_segment_dt``
+
+
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _segment_dt(dt, p0, p1, chan, lam, tau):  # pragma: no cover - compiled
-    """dt (C, h, w) float32 initialised to tau: min over segments of the exact point-to-segment
-    distance plus ``lam`` per cyclic channel step (eq. 11 without rasterising the edges)."""
+    """dt (C, h, w) float32, filled here: min over segments of the exact point-to-segment distance
+    plus ``lam`` per cyclic channel step (eq. 11 without rasterising the edges), capped at ``tau``.
+
+    Work items are bands of ``SEGMENT_DT_BAND`` rows, each visiting every segment's part in it: threads
+    never write the same pixel, and a pixel's value, a min, does not depend on the order segments
+    reach it (the one-thread loop over segments gives the same array)."""
     C, h, w = dt.shape
-    for s in range(p0.shape[0]):
-        ax = p0[s, 0]
-        ay = p0[s, 1]
-        dx = p1[s, 0] - ax
-        dy = p1[s, 1] - ay
-        L2 = dx * dx + dy * dy
-        u_lo = max(int(math.floor(min(ax, ax + dx) - tau)), 0)
-        u_hi = min(int(math.ceil(max(ax, ax + dx) + tau)), w - 1)
-        v_lo = max(int(math.floor(min(ay, ay + dy) - tau)), 0)
-        v_hi = min(int(math.ceil(max(ay, ay + dy) + tau)), h - 1)
-        cs = chan[s]
-        for v in range(v_lo, v_hi + 1):
-            for u in range(u_lo, u_hi + 1):
-                t = 0.0
-                if L2 > 0.0:
-                    t = ((u - ax) * dx + (v - ay) * dy) / L2
-                    t = min(max(t, 0.0), 1.0)
-                ex = u - (ax + t * dx)
-                ey = v - (ay + t * dy)
-                d = math.sqrt(ex * ex + ey * ey)
-                if d >= tau:
-                    continue
-                if d < dt[cs, v, u]:
-                    dt[cs, v, u] = d
-                reach = min(int((tau - d) / lam) if lam > 0 else C, C // 2)
-                for j in range(1, reach + 1):
-                    val = d + lam * j
-                    k = (cs + j) % C
-                    if val < dt[k, v, u]:
-                        dt[k, v, u] = val
-                    k = (cs - j) % C
-                    if val < dt[k, v, u]:
-                        dt[k, v, u] = val
+    n_bands = (h + SEGMENT_DT_BAND - 1) // SEGMENT_DT_BAND
+    ftau = np.float32(tau)
+    for b in nb.prange(n_bands):
+        b0 = b * SEGMENT_DT_BAND
+        b1 = min(h, b0 + SEGMENT_DT_BAND) - 1
+        for c in range(C):
+            for v in range(b0, b1 + 1):
+                for u in range(w):
+                    dt[c, v, u] = ftau
+        for s in range(p0.shape[0]):
+            ax = p0[s, 0]
+            ay = p0[s, 1]
+            dx = p1[s, 0] - ax
+            dy = p1[s, 1] - ay
+            L2 = dx * dx + dy * dy
+            u_lo = max(int(math.floor(min(ax, ax + dx) - tau)), 0)
+            u_hi = min(int(math.ceil(max(ax, ax + dx) + tau)), w - 1)
+            v_lo = max(int(math.floor(min(ay, ay + dy) - tau)), b0)
+            v_hi = min(int(math.ceil(max(ay, ay + dy) + tau)), b1)
+            cs = chan[s]
+            for v in range(v_lo, v_hi + 1):
+                for u in range(u_lo, u_hi + 1):
+                    t = 0.0
+                    if L2 > 0.0:
+                        t = ((u - ax) * dx + (v - ay) * dy) / L2
+                        t = min(max(t, 0.0), 1.0)
+                    ex = u - (ax + t * dx)
+                    ey = v - (ay + t * dy)
+                    d = math.sqrt(ex * ex + ey * ey)
+                    if d >= tau:
+                        continue
+                    if d < dt[cs, v, u]:
+                        dt[cs, v, u] = d
+                    reach = min(int((tau - d) / lam) if lam > 0 else C, C // 2)
+                    for j in range(1, reach + 1):
+                        val = d + lam * j
+                        k = (cs + j) % C
+                        if val < dt[k, v, u]:
+                            dt[k, v, u] = val
+                        k = (cs - j) % C
+                        if val < dt[k, v, u]:
+                            dt[k, v, u] = val
 
 
 def segment_distance_tensor(seg: Segments, roi: tuple[int, int, int, int], *, n_channels: int = 16,
@@ -394,10 +410,9 @@ def segment_distance_tensor(seg: Segments, roi: tuple[int, int, int, int], *, n_
     shape = (max(int(round(h * scale)), 1), max(int(round(w * scale)), 1))
     tau = float(DEFAULT_TAU_PX * scale if tau_px is None else tau_px)
     lam = float(DEFAULT_LAMBDA_PX_PER_RAD * (np.pi / C) * scale if lambda_px is None else lambda_px)
-    dt = np.full((C,) + shape, tau, np.float32)
-    if len(seg):
-        org = np.array([u0, v0], np.float64)
-        g0 = (seg.uv0.astype(np.float64) - org + 0.5) * scale - 0.5
-        g1 = (seg.uv1.astype(np.float64) - org + 0.5) * scale - 0.5
-        _segment_dt(dt, g0, g1, channel_of(seg.theta_rad, C).astype(np.int64), lam, tau)
+    dt = np.empty((C,) + shape, np.float32)
+    org = np.array([u0, v0], np.float64)
+    g0 = (seg.uv0.astype(np.float64).reshape(-1, 2) - org + 0.5) * scale - 0.5
+    g1 = (seg.uv1.astype(np.float64).reshape(-1, 2) - org + 0.5) * scale - 0.5
+    _segment_dt(dt, g0, g1, channel_of(seg.theta_rad, C).astype(np.int64).reshape(-1), lam, tau)
     return DistanceTensor(dt, float(scale), (float(u0), float(v0)), tau, lam)

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from service.vision import threads
 from service.vision.bank import TemplateBank
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
@@ -290,13 +291,16 @@ def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFram
         return NO_EVIDENCE
     win = _window(frame, u0, v0, mask.shape[1], mask.shape[0])
     band = int(np.clip(BAND_FRACTION * np.sqrt(n_px / np.pi), BAND_MIN_PX, BAND_MAX_PX))
+    # The region test (its distance transforms release the GIL) on the second core meanwhile.
+    region_fut = threads.background().submit(_region, win, mask, band, hidden, explained)
     p, n = _outline(mask)
     if len(p) == 0:
+        region_fut.result()
         return NO_EVIDENCE
     u, v = p[:, 0] + u0, p[:, 1] + v0
     in_image = (u >= 1) & (u < W - 1) & (v >= 1) & (v < H - 1)
     colour_edge, polarity, coherence = _edge_and_polarity(win, p, n, in_image)
-    region, region_low, region_global = _region(win, mask, band, hidden, explained)
     shading_r2, shading_std = _shading(win, fid, bank, pose)
+    region, region_low, region_global = region_fut.result()
     return Evidence(colour_edge, polarity, region, region_low, region_global, coherence, shading_r2,
                     shading_std, float(in_image.mean()))
