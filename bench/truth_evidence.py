@@ -170,6 +170,11 @@ def main(argv=None) -> int:
         for k in FEATURES:
             cells = [f"{auc(column(truths[s], k), column(wrong, k), k == 'unexplained'):.2f}" for s in sets]
             print(f"| {k} | " + " | ".join(cells) + " |")
+        for tag, w in weights.items():
+            neg = np.array([verification_score(r["ev"], w) for r in wrong])
+            cells = [f"{auc(np.array([verification_score(r['ev'], w) for r in truths[s]]), neg):.2f}"
+                     for s in sets]
+            print(f"| verification score ({tag}) | " + " | ".join(cells) + " |")
     return 0
 
 
