@@ -108,7 +108,14 @@ def main(argv=None) -> int:
     ap.add_argument("--distance-given", action="store_true")
     ap.add_argument("--min-score", type=float, default=None)
     ap.add_argument("--every-image", type=int, default=1, help="every n-th image of each set (a first look)")
+    ap.add_argument("--weights", type=Path, default=None,
+                    help="JSON verdict weights (bench/fit_verdict.py --save) instead of the service's")
     a = ap.parse_args(argv)
+    if a.weights:  # the verdict reads its module's weights at every call
+        from service.vision.estimate import verdict
+
+        verdict.WEIGHTS.clear()
+        verdict.WEIGHTS.update(json.loads(a.weights.read_text()))
     rows = []
     dump = {}
     for name in a.sets.split(","):

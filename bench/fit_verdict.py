@@ -15,6 +15,7 @@ score is reported, found when the score reaches the threshold.
 from __future__ import annotations
 
 import argparse
+import json
 import pickle
 import sys
 from pathlib import Path
@@ -30,6 +31,7 @@ from service.vision.estimate.verdict import (  # noqa: E402
     LOWER_IS_BETTER,
     MIN_SCORE,
     MODEL_FEATURES,
+    WEIGHTS,
     feature_vector,
 )
 
@@ -122,16 +124,29 @@ def main(argv=None) -> int:
     ap.add_argument("--report", default="", help="comma-separated feature sets to report on")
     ap.add_argument("--use", default=",".join(MODEL_FEATURES), help="evidence the score may use")
     ap.add_argument("--min-score", type=float, default=None, help="operating point to report at")
+    ap.add_argument("--weights", default=None,
+                    help="'service' or a JSON file: judge with these weights instead of fitting")
+    ap.add_argument("--save", type=Path, default=None, help="write the fitted weights to this JSON file")
     a = ap.parse_args(argv)
     fit_rows = [r for s in a.fit.split(",") for r in load(s)]
     X, y = design(fit_rows)
-    use = [FEATURES.index(f) for f in a.use.split(",")]
-    signs = np.array([-1.0 if FEATURES[i] in LOWER_IS_BETTER else 1.0 for i in use])
-    w_use = fit_monotone(X[:, use], y, signs)
     w = np.zeros(len(FEATURES) + 1)
-    w[0] = w_use[0]
-    w[[i + 1 for i in use]] = w_use[1:]
-    print(f"fitted on {len(fit_rows)} hypotheses, {int(y.sum())} right")
+    if a.weights:
+        given = WEIGHTS if a.weights == "service" else json.loads(Path(a.weights).read_text())
+        w[0] = given["bias"]
+        for k, v in given.items():
+            if k in FEATURES:
+                w[FEATURES.index(k) + 1] = v
+    else:
+        use = [FEATURES.index(f) for f in a.use.split(",")]
+        signs = np.array([-1.0 if FEATURES[i] in LOWER_IS_BETTER else 1.0 for i in use])
+        w_use = fit_monotone(X[:, use], y, signs)
+        w[0] = w_use[0]
+        w[[i + 1 for i in use]] = w_use[1:]
+    print(f"{'judged' if a.weights else 'fitted'} on {len(fit_rows)} hypotheses, {int(y.sum())} right")
+    if a.save:
+        fitted = {f: round(float(v), 3) for f, v in zip(("bias",) + FEATURES, w, strict=True) if v != 0}
+        a.save.write_text(json.dumps(fitted))
     print("weights:", {f: round(float(v), 3) for f, v in zip(("bias",) + FEATURES, w, strict=True) if v != 0})
     print("\nOn the fit sets, per query (the best-scoring hypothesis is the answer):\n")
     print("| threshold | found | right | wrong | recall<5px | recall<20px | precision |")

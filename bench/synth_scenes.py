@@ -49,7 +49,7 @@ import os
 import shutil
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -66,6 +66,9 @@ except ImportError:
     from service.vision.camera import Intrinsics  # noqa: E402
     from service.vision.frames import Pose, axis_alpha_gamma_deg  # noqa: E402
     from service.vision.render import render  # noqa: E402
+
+from bench import synth_light  # noqa: E402
+from bench.synth_light import Look, ShadowMap, sample_look  # noqa: E402
 
 DATA_DIR = Path(os.environ.get("POSE_DATA_DIR", ROOT.parent / "shared" / "data"))
 MODELS_DIR = DATA_DIR / "models"
@@ -398,17 +401,65 @@ def shade_layer(mesh: Mesh, pose: Pose, K, w, h, colour, light, *, ambient=0.4, 
     m = fss >= 0
     col_ss = np.zeros(fss.shape + (3,), np.float32)
     col_ss[m] = face_col[fss[m]]
-    bh, bw = fss.shape[0] // s, fss.shape[1] // s
-
-    def blocks(x):
-        return x.reshape(bh, s, bw, s, *x.shape[2:]).swapaxes(1, 2).reshape(bh, bw, s * s, *x.shape[2:])
-
-    cnt = blocks(m).sum(axis=2)
+    cnt = _blocks(m, s).sum(axis=2)
     cov = cnt.astype(np.float32) / (s * s)
-    colour_px = blocks(col_ss).sum(axis=2) / np.maximum(cnt, 1)[..., None]
-    depth = blocks(r.depth_ss).min(axis=2)
+    colour_px = _blocks(col_ss, s).sum(axis=2) / np.maximum(cnt, 1)[..., None]
+    depth = _blocks(r.depth_ss, s).min(axis=2)
     return {"colour": colour_px, "cov": cov, "depth": depth, "origin": (r.roi_ss[1] // s, r.roi_ss[0] // s),
-            "mask": r.mask, "depth_mm": r.depth_mm}
+            "mask": r.mask, "depth_mm": r.depth_mm, "render": r}
+
+
+def _blocks(x, s):
+    """(s bh, s bw, ...) -> (bh, bw, s * s, ...): each pixel's sub-samples."""
+    bh, bw = x.shape[0] // s, x.shape[1] // s
+    return x.reshape(bh, s, bw, s, *x.shape[2:]).swapaxes(1, 2).reshape(bh, bw, s * s, *x.shape[2:])
+
+
+def relight(ly: dict, obj: dict, light, look: Look, smap: ShadowMap | None) -> None:
+    """Replace a layer's colours by the realistic look's: smooth normals, shadows, highlight, gamma."""
+    r, mesh, pose = ly["render"], obj["mesh"], obj["pose"]
+    m, P, f, w = synth_light.surface_points(r, mesh.V, mesh.F, pose)
+    n = synth_light.shading_normals(r, mesh.V, mesh.F, pose, f, w, look)
+    lit = smap.lit(P, n) if smap is not None else np.ones(len(P))
+    # the object's own highlight strength varies about the scene's
+    lk = replace(look, specular=look.specular * float(obj["spec"]) / 0.16)
+    col_ss = np.zeros(m.shape + (3,), np.float32)
+    col_ss[m] = synth_light.radiance(obj["colour"], n, P, light, lit, lk)
+    s = r.supersample
+    cnt = _blocks(m, s).sum(axis=2)
+    ly["colour"] = _blocks(col_ss, s).sum(axis=2) / np.maximum(cnt, 1)[..., None]
+
+
+def floor_shadow(floor_depth: np.ndarray, K: np.ndarray, light, look: Look, smap: ShadowMap) -> np.ndarray:
+    """(h, w) multiplier of the floor texture: the casters' shadows, a penumbra as wide as the light's
+    angular radius makes it at the median blocker-to-floor distance."""
+    h, w = floor_depth.shape
+    q = 2  # half resolution: the penumbra is blurred anyway
+    v, u = np.mgrid[0:h:q, 0:w:q].astype(np.float64)
+    z = floor_depth[::q, ::q].astype(np.float64)
+    P = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=-1).reshape(-1, 3)
+    n = floor_normal(floor_depth, K)
+    lit = smap.lit(P, np.broadcast_to(n, P.shape)).reshape(z.shape).astype(np.float32)
+    if (lit < 1).any() and look.light_radius_deg > 0:
+        gap = float(np.median(smap.blocker_gap_mm(P[lit.reshape(-1) < 1])))
+        sigma = gap * np.tan(np.radians(look.light_radius_deg)) * K[0, 0] / float(np.median(z)) / q
+        if sigma > 0.3:
+            lit = cv2.GaussianBlur(lit, (0, 0), sigma)
+    lit = cv2.resize(lit, (w, h), interpolation=cv2.INTER_LINEAR)
+    lam = float(n @ (np.asarray(light, float) / np.linalg.norm(light)))
+    return synth_light.floor_factor(lam, np.clip(lit, 0, 1), look).astype(np.float32)
+
+
+def floor_normal(floor_depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """The floor plane's unit normal (camera frame) facing the camera, from three of its pixels."""
+    h, w = floor_depth.shape
+    pts = []
+    for u, v in ((0, 0), (w - 1, 0), (0, h - 1)):
+        z = float(floor_depth[v, u])
+        pts.append(np.array([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z]))
+    n = np.cross(pts[1] - pts[0], pts[2] - pts[0])
+    n /= np.linalg.norm(n)
+    return -n if n @ pts[0] > 0 else n
 
 
 def sample_distractor(rng, K, w, h, models: list[str], target: str | None, near=None) -> dict:
@@ -444,17 +495,25 @@ def sample_distractor(rng, K, w, h, models: list[str], target: str | None, near=
 # --- the scene ----------------------------------------------------------------------------------
 
 def scene(seed: int, index: int, w: int, h: int, models: list[str], *, absent_frac: float = 0.25,
-          min_visible: float = 0.5, omit_target: bool = False, clean: bool = False) -> dict:
+          min_visible: float = 0.5, omit_target: bool = False, clean: bool = False,
+          look: str = "flat") -> dict:
     """One scene: ``{"image": (h, w, 3) uint8 BGR, "gt": dict, "visible_mask", "full_mask",
     "target_shadow"}``. ``omit_target`` draws the very same scene without painting the target (nor
-    its shadow); ``clean`` skips blur, noise and JPEG (both for tests)."""
+    its shadow); ``clean`` skips blur, noise and JPEG (both for tests).
+
+    ``look="real"``: the same scene (same geometry, colours and floor) shaded like a renderer: smooth
+    normals within a crease angle, Blinn-Phong highlights, a directional light whose shadow map casts
+    shadows onto the floor, onto other objects and onto the part itself, ambient light, gamma, and the
+    renderer's soft pixel filter (``synth_light``; its parameters are drawn from an rng of their own).
+    ``target_shadow`` is then None."""
     rng = np.random.default_rng([seed, index])
+    lk = sample_look(np.random.default_rng([seed, index, 2])) if look == "real" else None
     absent = bool(rng.uniform() < absent_frac)
     model = str(rng.choice(models))
     K = sample_K(rng, w, h)
     el, az = np.radians(rng.uniform(20, 70)), rng.uniform(0, 2 * np.pi)
     light = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), -np.sin(el)])  # towards the light
-    floor, _floor_depth, floor_desc = make_floor(rng, K, w, h, models, light, model)
+    floor, floor_depth, floor_desc = make_floor(rng, K, w, h, models, light, model)
     floor_mean = np.float32(floor.reshape(-1, 3).mean(axis=0))
 
     target = None
@@ -523,6 +582,14 @@ def scene(seed: int, index: int, w: int, h: int, models: list[str], *, absent_fr
     sh_all = np.maximum(sh_d, sh_t) if target is not None and not omit_target else sh_d
     img = floor * (1.0 - shadow_gain * np.clip(soft(sh_all), 0, 1))[..., None]
     target_shadow = soft(sh_t)
+    if lk is not None:  # the shadow map replaces the shifted silhouettes, under the look's light
+        light = np.asarray(lk.light)
+        objs = [d for d, _ in keep] + ([target] if target is not None and not omit_target else [])
+        smap = ShadowMap([(o["mesh"].V, o["mesh"].F, o["pose"]) for o in objs], light) if lk.shadows else None
+        for o, ly in list(keep) + ([(target, t_layer)] if target is not None and not omit_target else []):
+            relight(ly, o, light, lk, smap)
+        img = floor * (floor_shadow(floor_depth, K, light, lk, smap)[..., None] if smap is not None else 1.0)
+        target_shadow = None
 
     # composite far to near with a per-pixel z-test, coverage as alpha
     zbuf = np.full((h, w), np.inf, np.float32)
@@ -547,6 +614,8 @@ def scene(seed: int, index: int, w: int, h: int, models: list[str], *, absent_fr
     blur = float(post.uniform(0.5, 1.2)) if post.uniform() < 0.25 else None
     sigma = float(post.uniform(1.0, 4.0))
     jpeg = int(post.integers(70, 93)) if post.uniform() < 0.3 else None
+    if lk is not None:
+        blur = max(blur or 0.0, lk.blur_px)
     if not clean:
         if blur:
             img = cv2.GaussianBlur(img, (0, 0), blur)
@@ -567,6 +636,9 @@ def scene(seed: int, index: int, w: int, h: int, models: list[str], *, absent_fr
         gt |= {"mask_px": int(full.sum()), "visible_px": int(visible.sum()), "colour_mode": colour_mode}
     gt |= {"noise_sigma": round(sigma, 3), "jpeg_quality": jpeg, "blur_sigma": blur and round(blur, 3),
            "n_distractors": len(keep), "distractors": [d["kind"] for d, _ in keep], "floor": floor_desc}
+    if lk is not None:
+        gt["look"] = {k: round(v, 3) if isinstance(v, float) else v for k, v in vars(lk).items()} | {
+            "light": [round(x, 4) for x in lk.light]}
     return {"image": img, "gt": gt, "visible_mask": visible, "target_shadow": target_shadow,
             "full_mask": full if target is not None else None}
 
@@ -583,7 +655,7 @@ def model_meta(name: str) -> dict:
 
 
 def generate(out: Path, n: int, seed: int, size: tuple[int, int], models: list[str], absent_frac: float,
-             min_visible: float, quiet: bool = False) -> dict:
+             min_visible: float, quiet: bool = False, look: str = "flat") -> dict:
     w, h = size
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "models").mkdir(exist_ok=True)
@@ -594,7 +666,7 @@ def generate(out: Path, n: int, seed: int, size: tuple[int, int], models: list[s
     n_absent, vis = 0, []
     with open(out / "gt.jsonl", "w") as f:
         for i in range(1, n + 1):
-            s = scene(seed, i, w, h, models, absent_frac=absent_frac, min_visible=min_visible)
+            s = scene(seed, i, w, h, models, absent_frac=absent_frac, min_visible=min_visible, look=look)
             name = f"images/{i:0{digits}d}.png"
             cv2.imwrite(str(out / name), s["image"])
             f.write(json.dumps({"image": name} | s["gt"]) + "\n")
@@ -607,7 +679,7 @@ def generate(out: Path, n: int, seed: int, size: tuple[int, int], models: list[s
                 print(f"  {i}/{n}  {el / i:.2f} s/image", flush=True)
     dt = (time.perf_counter() - t0) / max(n, 1)
     meta = {"set": out.name, "generator": "bench/synth_scenes.py", "n_images": n, "seed": seed,
-            "size": [w, h], "absent_frac": absent_frac, "min_visible": min_visible,
+            "size": [w, h], "absent_frac": absent_frac, "min_visible": min_visible, "look": look,
             "visible_fraction": "target pixels not occluded / target pixels rendered alone, inside the image",
             "models": {m: model_meta(m) for m in models},
             "render_mean_s_per_image": {"total_s": round(dt, 3)}}
@@ -625,10 +697,14 @@ def main(argv=None) -> None:
     ap.add_argument("--absent-frac", type=float, default=0.25)
     ap.add_argument("--min-visible", type=float, default=0.5)
     ap.add_argument("--models", default=",".join(DEFAULT_MODELS))
+    ap.add_argument("--look", choices=("flat", "real"), default="flat",
+                    help="flat: Lambert per face (the older sets); real: smooth normals, highlights, "
+                         "shadow maps, gamma (bench/synth_light.py)")
     args = ap.parse_args(argv)
     w, h = (int(x) for x in args.size.lower().split("x"))
     models = [m.strip() for m in args.models.split(",") if m.strip()]
-    r = generate(args.out_dir, args.n, args.seed, (w, h), models, args.absent_frac, args.min_visible)
+    r = generate(args.out_dir, args.n, args.seed, (w, h), models, args.absent_frac, args.min_visible,
+                 look=args.look)
     print(f"synth_scenes: {r['n']} images ({r['absent']} absent) {w}x{h} seed {args.seed} -> {args.out_dir}, "
           f"{r['s_per_image']:.2f} s/image, mean visible fraction {r['visible_mean']:.2f}")
 
