@@ -48,6 +48,11 @@ REFINE_OCCLUDED_ANGLE_DEG = 0.3  # 30 % of the border hidden
 REFINE_OCCLUDED_TRANS_MM = 0.5
 REFINE_REAL_TRANS_MM = 0.2  # paper render 0001: |tx|, |ty| from gt perturbed by 1 deg / 2 mm
 REFINE_REAL_AXIS_DEG = 0.3  # ... and the axis direction
+# The refinement on segments detected early on a wider window (refine.start_roi_segments) against the same
+# refinement on its own ROI's: LSD's segments differ near the windows' rims and its detection threshold
+# with the window's size; a third of the paper render's tolerances above
+EARLY_SEGMENTS_TRANS_MM = 0.07
+EARLY_SEGMENTS_AXIS_DEG = 0.1
 REFINE_JAC_RTOL = 1e-3  # analytic Jacobian against central differences (relative to the column scale)
 REFINE_JAC_ROWS = 0.97  # fraction of rows that must agree (bilinear kinks make a few rows differ)
 REFINE_SAMPLE_ATOL = 1e-5  # sample_with_grad's value against chamfer.sample (float32 tensor)
