@@ -16,6 +16,7 @@ from service.vision.estimate.refine import (
     EARLY_MARGIN_PX,
     ROI_MARGIN_PX,
     PoseParams,
+    _project_jac,
     _roi,
     border_points,
     dt_residuals,
@@ -34,6 +35,7 @@ from tests.tolerances import (
     EARLY_SEGMENTS_AXIS_DEG,
     EARLY_SEGMENTS_TRANS_MM,
     REFINE_ANGLE_DEG,
+    REFINE_COMPILED_ATOL,
     REFINE_DEPTH_MM,
     REFINE_FREE_ANGLE_DEG,
     REFINE_JAC_ROWS,
@@ -315,6 +317,56 @@ def test_border_type_is_the_documented_one(tless_bank):
     b = border_points(tless_bank, TLESS_POSE, INTR, SIZE)
     assert isinstance(b, Border) and b.p_obj.shape == b.tan_obj.shape and b.p_obj.shape[1] == 3
     np.testing.assert_allclose(np.linalg.norm(b.tan_obj, axis=1), 1.0, atol=1e-9)
+
+
+def _dt_residuals_numpy(params, x, border, intr, dtt, with_jac):
+    """The "dt" residual in numpy steps: the border projected, the chamfer read-out, its chain rule."""
+    uv, theta, duv, dth = project_border(params, x, border, intr, with_jac)
+    val, gu, gv, gth = sample_with_grad(dtt, dtt.to_grid(uv), theta)
+    if not with_jac:
+        return val / dtt.scale, None
+    J = gu[:, None] * duv[:, 0] + gv[:, None] * duv[:, 1] + (gth / dtt.scale)[:, None] * dth
+    return val / dtt.scale, J
+
+
+def _line_residuals_numpy(params, x, border, intr, match, with_jac):
+    pc, Jp = params.points(x, border.p_obj[match.idx], with_jac)
+    uv, duv = _project_jac(pc, intr, Jp)
+    r = (match.normal * uv).sum(1) - match.offset
+    if not with_jac:
+        return r, None
+    return r, match.normal[:, 0, None] * duv[:, 0] + match.normal[:, 1, None] * duv[:, 1]
+
+
+@pytest.mark.parametrize("kind", ["free", "held_distance", "symmetric"])
+def test_compiled_residuals_equal_their_numpy_steps(kind, tless_bank, sprayer_bank):
+    bank, pose = (sprayer_bank, SPRAYER_POSE) if kind == "symmetric" else (tless_bank, TLESS_POSE)
+    img = synthetic(bank, pose)
+    start = perturb(pose, np.random.default_rng(8), 2.0, 3.0)
+    border = border_points(bank, start, INTR, SIZE)
+    seg = detect_segments(img, scale=1.0)
+    # A window smaller than the border's reach: some points read outside the grid (tau, zero gradient).
+    dtt = segment_distance_tensor(seg, (500, 300, 200, 250), n_channels=16)
+    params = PoseParams(start, bank.centre_obj, bank.symmetry_axis_obj,
+                        float(start.t_mm[2]) if kind == "held_distance" else None)
+    x = np.random.default_rng(9).normal(0.0, 1.0, params.n) * np.r_[np.full(params.nr, 0.01), np.ones(
+        params.n - params.nr)]
+    uv, th, _, _ = project_border(params, x, border, INTR, with_jac=False)
+    match = match_lines(uv, th, seg, gate_px=10.0)
+    assert len(match.idx) > 20
+    for with_jac in (True, False):
+        r, J = dt_residuals(params, x, border, INTR, dtt, with_jac)
+        r0, J0 = _dt_residuals_numpy(params, x, border, INTR, dtt, with_jac)
+        assert np.any(r0 == dtt.tau_px / dtt.scale) and np.any(r0 < dtt.tau_px / dtt.scale)
+        np.testing.assert_allclose(r, r0, rtol=0, atol=REFINE_COMPILED_ATOL)
+        r, Jl = line_residuals(params, x, border, INTR, match, with_jac)
+        r0, Jl0 = _line_residuals_numpy(params, x, border, INTR, match, with_jac)
+        np.testing.assert_allclose(r, r0, rtol=0, atol=REFINE_COMPILED_ATOL)
+        if with_jac:
+            np.testing.assert_allclose(J, J0, rtol=0, atol=REFINE_COMPILED_ATOL)
+            np.testing.assert_allclose(Jl, Jl0, rtol=0, atol=REFINE_COMPILED_ATOL)
+        else:
+            assert J is None and Jl is None
 
 
 # --- a real render ------------------------------------------------------------------------------

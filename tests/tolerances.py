@@ -55,6 +55,7 @@ EARLY_SEGMENTS_TRANS_MM = 0.07
 EARLY_SEGMENTS_AXIS_DEG = 0.1
 REFINE_JAC_RTOL = 1e-3  # analytic Jacobian against central differences (relative to the column scale)
 REFINE_JAC_ROWS = 0.97  # fraction of rows that must agree (bilinear kinks make a few rows differ)
+REFINE_COMPILED_ATOL = 1e-9  # compiled residual loops against their numpy steps (float64; sums reordered)
 REFINE_SAMPLE_ATOL = 1e-5  # sample_with_grad's value against chamfer.sample (float32 tensor)
 REFINE_SEGMENT_DT_ATOL = 1e-4  # exact segment DT3 against brute force, px
 OVERLAY_ON_BORDER_PX = 1.5  # refined-contour pixels lie this close to the rendered silhouette border
