@@ -20,7 +20,7 @@ from service.vision.bank import TemplateBank
 from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.chamfer import distance_tensor
 from service.vision.estimate.coarse import Hypothesis, SearchParams, coarse_search, poses_of
-from service.vision.estimate.edges import Segments, detect_segments, to_grey_u8, undistort_segments
+from service.vision.estimate.edges import Segments, detect_segments_in_bands, to_grey_u8, undistort_segments
 from service.vision.estimate.evidence import ColourFrame, colour_frame, evidence
 from service.vision.estimate.plane import (
     PLANE_TOLERANCE_MM,
@@ -210,7 +210,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
         # Not even the edges and one check fit: answer "deadline" now rather than late.
         empty = np.zeros((0, 2), np.float32)
         return [], Segments(empty, empty, np.zeros(0, np.float32), (h, w)), {"edges": 0.0, "coarse": 0.0}
-    seg = detect_segments(grey)
+    seg = detect_segments_in_bands(grey)
     if intr.dist is not None:
         # Straighten the edges once; everything after works in the ideal pinhole camera intr.K.
         seg = undistort_segments(seg, intr)
