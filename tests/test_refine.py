@@ -442,7 +442,7 @@ def test_symmetric_result_is_canonical_and_keeps_the_held_distance(sprayer_bank)
 
 def test_match_lines_is_the_brute_force_nearest_gated_segment():
     """Every border point gets the segment a plain loop over all segments picks: the nearest (endpoints
-    extended by 1 px) within the orientation and distance gates, the first one on a tie; the chunks'
+    extended by 1 px) within the orientation and distance gates, the first one on a tie; the per-point
     box test only skips segments beyond the gate."""
     rng = np.random.default_rng(7)
     p0 = rng.uniform(0, 400, (300, 2)).astype(np.float32)

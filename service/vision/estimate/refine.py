@@ -366,7 +366,7 @@ class LineMatch:
 
 
 def match_lines(uv: np.ndarray, theta: np.ndarray, seg: Segments, *, gate_px: float = LINE_GATE_PX,
-                gate_deg: float = LINE_MATCH_DEG, chunk: int = 128) -> LineMatch:
+                gate_deg: float = LINE_MATCH_DEG) -> LineMatch:
     """Nearest segment (point-to-segment distance, endpoints extended by 1 px) of orientation
     within ``gate_deg`` and distance within ``gate_px`` for each border point."""
     if len(seg) == 0 or len(uv) == 0:
@@ -378,35 +378,43 @@ def match_lines(uv: np.ndarray, theta: np.ndarray, seg: Segments, *, gate_px: fl
     dirn = d / L[:, None]
     st = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi)
     cos_gate = math.cos(math.radians(gate_deg))
-    # Each segment's box, widened by its 1 px extension and the gate (and a pixel to spare): a chunk of
-    # points (consecutive along the border, so close together) only compares segments whose box meets
-    # its own; the others lie beyond the gate of all its points. The same nearest segment in half the time.
+    # Each segment's box, widened by its 1 px extension and the gate (and a pixel to spare): a point only
+    # compares the segments whose box holds it; the others lie beyond its gate.
     reach = gate_px + 2.0
     lo = np.minimum(p0, p1) - reach
     hi = np.maximum(p0, p1) + reach
-    best_i = np.full(len(uv), -1, np.int64)
-    for s in range(0, len(uv), chunk):
-        q = uv[s:s + chunk]
-        near = np.flatnonzero((hi[:, 0] >= q[:, 0].min()) & (lo[:, 0] <= q[:, 0].max())
-                              & (hi[:, 1] >= q[:, 1].min()) & (lo[:, 1] <= q[:, 1].max()))
-        if len(near) == 0:
-            continue
-        rel = q[:, None, :] - p0[near][None]
-        dn = dirn[near]
-        tpar = np.einsum("msk,sk->ms", rel, dn)
-        tcl = np.clip(tpar, -1.0, L[near][None] + 1.0)
-        perp = rel - tcl[..., None] * dn[None]
-        dist = np.linalg.norm(perp, axis=2)
-        dth = np.abs(np.cos(theta[s:s + chunk, None] - st[near][None]))  # |cos| of the undirected difference
-        dist = np.where(dth >= cos_gate, dist, np.inf)
-        j = np.argmin(dist, axis=1)
-        ok = dist[np.arange(len(q)), j] <= gate_px
-        best_i[s:s + chunk] = np.where(ok, near[j], -1)
+    best_i = _nearest_segments(np.ascontiguousarray(uv, np.float64), np.asarray(theta, np.float64), p0, dirn,
+                               L, st, lo, hi, cos_gate, float(gate_px))
     idx = np.flatnonzero(best_i >= 0)
     j = best_i[idx]
     nrm = np.stack([-dirn[j, 1], dirn[j, 0]], 1)
     off = np.einsum("ij,ij->i", nrm, p0[j])
     return LineMatch(idx, nrm, off)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _nearest_segments(uv, theta, p0, dirn, L, st, lo, hi, cos_gate, gate_px):
+    """Per point, the index of the nearest segment within the gates (the first of equals), or -1."""
+    out = np.full(len(uv), -1, np.int64)
+    for m in range(len(uv)):
+        u, v = uv[m, 0], uv[m, 1]
+        best = np.inf
+        for k in range(len(p0)):
+            if not (hi[k, 0] >= u and lo[k, 0] <= u and hi[k, 1] >= v and lo[k, 1] <= v):
+                continue
+            if abs(math.cos(theta[m] - st[k])) < cos_gate:  # |cos| of the undirected difference
+                continue
+            r0, r1 = u - p0[k, 0], v - p0[k, 1]
+            t = min(max(r0 * dirn[k, 0] + r1 * dirn[k, 1], -1.0), L[k] + 1.0)
+            e0, e1 = r0 - t * dirn[k, 0], r1 - t * dirn[k, 1]
+            dist = math.sqrt(e0 * e0 + e1 * e1)
+            if dist < best:
+                best = dist
+                if dist <= gate_px:
+                    out[m] = k
+        if best > gate_px:
+            out[m] = -1
+    return out
 
 
 def line_residuals(params: PoseParams, x: np.ndarray, border: Border, intr: Intrinsics, match: LineMatch,
