@@ -40,7 +40,7 @@ from service.pipeline import estimate, warm_up  # noqa: E402
 PIECES = {
     "service.pipeline": ["to_grey_u8", "propose", "colour_frame", "undistort_image", "evidence", "decide",
                          "distinct_candidates", "_refine"],
-    "service.vision.estimate.edges": ["detect_segments"],
+    "service.vision.estimate.edges": ["detect_segments", "detect_segments_in_bands"],
     "service.vision.estimate.chamfer": ["distance_tensor", "segment_distance_tensor", "pooled_and_quantised"],
     "service.vision.estimate.coarse": ["_cached_level_a", "scan_level_a", "background_cost", "pick_peaks",
                                        "local_scan", "evaluate", "polish", "poses_of", "_scan_window",

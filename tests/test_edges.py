@@ -1,14 +1,28 @@
-"""Image edges: undistorting LSD segments against the geometry of the lens (known answers)."""
+"""Image edges: undistorting LSD segments against the geometry of the lens (known answers); LSD in
+two bands against LSD on the whole image."""
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
 
-from service.vision.estimate.edges import Segments, detect_segments, sample_segments, undistort_segments
+from service.vision.estimate.edges import (
+    Segments,
+    detect_segments,
+    detect_segments_in_bands,
+    sample_segments,
+    undistort_segments,
+)
 from service.vision.geometry.camera import Intrinsics, undistort_points
 from tests.lens import distort_image
-from tests.tolerances import ROUND_TRIP_ATOL, UNDISTORTED_EDGE_BIAS_PX, UNDISTORTED_EDGE_NEAR_PX
+from tests.tolerances import (
+    BANDS_COVER_DEG,
+    BANDS_COVER_PX,
+    BANDS_COVER_SHARE,
+    ROUND_TRIP_ATOL,
+    UNDISTORTED_EDGE_BIAS_PX,
+    UNDISTORTED_EDGE_NEAR_PX,
+)
 
 W, H = 1280, 960
 LENS = Intrinsics(1100.0, 1100.0, 643.0, 477.0, (-0.2, 0.0, 0.0, 0.0))
@@ -55,3 +69,32 @@ def test_a_straight_edge_seen_through_the_lens_is_straight_again():
     on_line = np.abs(offset) <= UNDISTORTED_EDGE_NEAR_PX
     assert on_line.mean() > 0.9
     assert abs(offset[on_line].mean()) <= UNDISTORTED_EDGE_BIAS_PX
+
+
+def _covered(a: Segments, b: Segments) -> float:
+    """Share of the points along ``a``'s segments (every px) within BANDS_COVER_PX of a segment of ``b``
+    whose orientation is within BANDS_COVER_DEG (brute force over b's sampled points)."""
+    from scipy.spatial import cKDTree
+
+    pa, ia = sample_segments(a, step_px=1.0)
+    pb, ib = sample_segments(b, step_px=0.25)  # 0.25 px apart: a point's nearest sample is its foot +-0.125
+    near = cKDTree(pb).query_ball_point(pa, BANDS_COVER_PX)
+    ok = 0
+    for k, js in enumerate(near):
+        d = np.abs(b.theta_rad[ib[js]] - a.theta_rad[ia[k]])
+        ok += bool(np.any(np.minimum(d, np.pi - d) <= np.radians(BANDS_COVER_DEG)))
+    return ok / len(pa)
+
+
+def test_lsd_in_two_bands_finds_the_whole_images_segments(data_dir):
+    """A cluttered render (hundreds of segments, many across the middle row): each detection's segments
+    lie on the other's."""
+    grey = cv2.imread(str(data_dir / "clutter" / "images" / "0002.png"), cv2.IMREAD_GRAYSCALE)
+    whole, bands = detect_segments(grey), detect_segments_in_bands(grey)
+    assert bands.image_shape == whole.image_shape == grey.shape
+    middle = grey.shape[0] / 2
+    crossing = (np.minimum(whole.uv0[:, 1], whole.uv1[:, 1]) < middle - 20) & (
+        np.maximum(whole.uv0[:, 1], whole.uv1[:, 1]) > middle + 20)
+    assert crossing.sum() >= 5  # the seam is exercised
+    assert _covered(whole, bands) >= BANDS_COVER_SHARE
+    assert _covered(bands, whole) >= BANDS_COVER_SHARE

@@ -12,13 +12,19 @@ import pytest
 from service.vision.estimate.chamfer import sample, sample_with_grad, segment_distance_tensor
 from service.vision.estimate.edges import Segments, detect_segments
 from service.vision.estimate.refine import (
+    EARLY_GRID_PX,
+    EARLY_MARGIN_PX,
+    ROI_MARGIN_PX,
     PoseParams,
+    _project_jac,
+    _roi,
     border_points,
     dt_residuals,
     line_residuals,
     match_lines,
     project_border,
     refine_pose,
+    start_roi_segments,
 )
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, R_from_rotvec, canonical_spin, rotation_angle_deg
@@ -26,7 +32,10 @@ from service.vision.geometry.render import render, render_shaded
 from service.vision.geometry.silhouette import Border
 from tests.lens import distort_image
 from tests.tolerances import (
+    EARLY_SEGMENTS_AXIS_DEG,
+    EARLY_SEGMENTS_TRANS_MM,
     REFINE_ANGLE_DEG,
+    REFINE_COMPILED_ATOL,
     REFINE_DEPTH_MM,
     REFINE_FREE_ANGLE_DEG,
     REFINE_JAC_ROWS,
@@ -310,6 +319,56 @@ def test_border_type_is_the_documented_one(tless_bank):
     np.testing.assert_allclose(np.linalg.norm(b.tan_obj, axis=1), 1.0, atol=1e-9)
 
 
+def _dt_residuals_numpy(params, x, border, intr, dtt, with_jac):
+    """The "dt" residual in numpy steps: the border projected, the chamfer read-out, its chain rule."""
+    uv, theta, duv, dth = project_border(params, x, border, intr, with_jac)
+    val, gu, gv, gth = sample_with_grad(dtt, dtt.to_grid(uv), theta)
+    if not with_jac:
+        return val / dtt.scale, None
+    J = gu[:, None] * duv[:, 0] + gv[:, None] * duv[:, 1] + (gth / dtt.scale)[:, None] * dth
+    return val / dtt.scale, J
+
+
+def _line_residuals_numpy(params, x, border, intr, match, with_jac):
+    pc, Jp = params.points(x, border.p_obj[match.idx], with_jac)
+    uv, duv = _project_jac(pc, intr, Jp)
+    r = (match.normal * uv).sum(1) - match.offset
+    if not with_jac:
+        return r, None
+    return r, match.normal[:, 0, None] * duv[:, 0] + match.normal[:, 1, None] * duv[:, 1]
+
+
+@pytest.mark.parametrize("kind", ["free", "held_distance", "symmetric"])
+def test_compiled_residuals_equal_their_numpy_steps(kind, tless_bank, sprayer_bank):
+    bank, pose = (sprayer_bank, SPRAYER_POSE) if kind == "symmetric" else (tless_bank, TLESS_POSE)
+    img = synthetic(bank, pose)
+    start = perturb(pose, np.random.default_rng(8), 2.0, 3.0)
+    border = border_points(bank, start, INTR, SIZE)
+    seg = detect_segments(img, scale=1.0)
+    # A window smaller than the border's reach: some points read outside the grid (tau, zero gradient).
+    dtt = segment_distance_tensor(seg, (500, 300, 200, 250), n_channels=16)
+    params = PoseParams(start, bank.centre_obj, bank.symmetry_axis_obj,
+                        float(start.t_mm[2]) if kind == "held_distance" else None)
+    x = np.random.default_rng(9).normal(0.0, 1.0, params.n) * np.r_[np.full(params.nr, 0.01), np.ones(
+        params.n - params.nr)]
+    uv, th, _, _ = project_border(params, x, border, INTR, with_jac=False)
+    match = match_lines(uv, th, seg, gate_px=10.0)
+    assert len(match.idx) > 20
+    for with_jac in (True, False):
+        r, J = dt_residuals(params, x, border, INTR, dtt, with_jac)
+        r0, J0 = _dt_residuals_numpy(params, x, border, INTR, dtt, with_jac)
+        assert np.any(r0 == dtt.tau_px / dtt.scale) and np.any(r0 < dtt.tau_px / dtt.scale)
+        np.testing.assert_allclose(r, r0, rtol=0, atol=REFINE_COMPILED_ATOL)
+        r, Jl = line_residuals(params, x, border, INTR, match, with_jac)
+        r0, Jl0 = _line_residuals_numpy(params, x, border, INTR, match, with_jac)
+        np.testing.assert_allclose(r, r0, rtol=0, atol=REFINE_COMPILED_ATOL)
+        if with_jac:
+            np.testing.assert_allclose(J, J0, rtol=0, atol=REFINE_COMPILED_ATOL)
+            np.testing.assert_allclose(Jl, Jl0, rtol=0, atol=REFINE_COMPILED_ATOL)
+        else:
+            assert J is None and Jl is None
+
+
 # --- a real render ------------------------------------------------------------------------------
 
 
@@ -322,6 +381,52 @@ def test_paper_render_0001_from_perturbed_gt(data_dir, sprayer_bank):
     res = refine_pose(sprayer_bank, start, img, intr, distance_mm=500.0)
     assert np.abs(res.pose.t_mm[:2] - gt.t_mm[:2]).max() <= REFINE_REAL_TRANS_MM
     assert axis_error_deg(sprayer_bank, res.pose, gt) <= REFINE_REAL_AXIS_DEG
+
+
+def _paper_0001(data_dir):
+    g = json.loads((data_dir / "paper" / "gt.jsonl").read_text().splitlines()[0])
+    img = cv2.imread(str(data_dir / "paper" / g["image"]), cv2.IMREAD_GRAYSCALE)
+    return img, Intrinsics.from_K(np.array(g["K"])), Pose(np.array(g["R"]), np.array(g["t_mm"]))
+
+
+def test_early_window_is_on_the_grid_and_covers_the_roi_of_a_nearby_pose(data_dir, sprayer_bank):
+    img, intr, gt = _paper_0001(data_dir)
+    h, w = img.shape
+    early = start_roi_segments(sprayer_bank, gt, img, intr)
+    early.segments.result()
+    u0, v0, ew, eh = early.roi
+    assert u0 % EARLY_GRID_PX == 0 and v0 % EARLY_GRID_PX == 0
+    assert (u0 + ew) % EARLY_GRID_PX == 0 or u0 + ew == w
+    assert (v0 + eh) % EARLY_GRID_PX == 0 or v0 + eh == h
+    wide = _roi(sprayer_bank, gt, intr, (w, h), ROI_MARGIN_PX + EARLY_MARGIN_PX, distorted=False)
+    assert early.covers(wide)
+    # A polish moves the window's sides by a few pixels (3 at most on the paper renders): 2 mm is ~4.5 px.
+    for dx in (-2.0, 2.0):
+        moved = Pose(gt.R, gt.t_mm + np.array([dx, dx, 0.0]))
+        assert early.covers(_roi(sprayer_bank, moved, intr, (w, h), ROI_MARGIN_PX, distorted=False))
+    far = Pose(gt.R, gt.t_mm + np.array([40.0, 0.0, 0.0]))
+    assert not early.covers(_roi(sprayer_bank, far, intr, (w, h), ROI_MARGIN_PX, distorted=False))
+
+
+def test_refinement_on_early_segments_matches_its_own_roi_segments(data_dir, sprayer_bank):
+    img, intr, gt = _paper_0001(data_dir)
+    start = perturb(gt, np.random.default_rng(70), 1.0, 2.0, keep_z=True)
+    unpolished = perturb(start, np.random.default_rng(71), 0.3, 0.5, keep_z=True)
+    early = start_roi_segments(sprayer_bank, unpolished, img, intr)
+    own = refine_pose(sprayer_bank, start, img, intr, distance_mm=500.0)
+    fast = refine_pose(sprayer_bank, start, img, intr, distance_mm=500.0, early=early)
+    assert np.abs(fast.pose.t_mm - own.pose.t_mm).max() <= EARLY_SEGMENTS_TRANS_MM
+    assert axis_error_deg(sprayer_bank, fast.pose, own.pose) <= EARLY_SEGMENTS_AXIS_DEG
+
+
+def test_early_segments_of_a_window_that_misses_the_roi_are_not_used(data_dir, sprayer_bank):
+    img, intr, gt = _paper_0001(data_dir)
+    start = perturb(gt, np.random.default_rng(70), 1.0, 2.0, keep_z=True)
+    elsewhere = start_roi_segments(sprayer_bank, Pose(gt.R, gt.t_mm + np.array([60.0, 0.0, 0.0])), img, intr)
+    own = refine_pose(sprayer_bank, start, img, intr, distance_mm=500.0)
+    other = refine_pose(sprayer_bank, start, img, intr, distance_mm=500.0, early=elsewhere)
+    np.testing.assert_array_equal(other.pose.R, own.pose.R)
+    np.testing.assert_array_equal(other.pose.t_mm, own.pose.t_mm)
 
 
 def test_symmetric_result_is_canonical_and_keeps_the_held_distance(sprayer_bank):
@@ -337,7 +442,7 @@ def test_symmetric_result_is_canonical_and_keeps_the_held_distance(sprayer_bank)
 
 def test_match_lines_is_the_brute_force_nearest_gated_segment():
     """Every border point gets the segment a plain loop over all segments picks: the nearest (endpoints
-    extended by 1 px) within the orientation and distance gates, the first one on a tie; the chunks'
+    extended by 1 px) within the orientation and distance gates, the first one on a tie; the per-point
     box test only skips segments beyond the gate."""
     rng = np.random.default_rng(7)
     p0 = rng.uniform(0, 400, (300, 2)).astype(np.float32)

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from service.vision import threads
 from service.vision.geometry.camera import Intrinsics, undistort_points
 
 DEFAULT_LSD_SCALE = 0.5  # LSD on the half-size image: ~2x faster, segments still sub-pixel
@@ -20,6 +21,12 @@ MIN_SEGMENT_PX = 4.0  # full-resolution length below which LSD segments are most
 # A straight segment of the distorted image is a curve of the ideal one: it is undistorted in pieces
 # at most this long, so every piece's chord stays on that curve to well under a pixel.
 SPLIT_PX = 16.0
+# ``detect_segments_in_bands``: the bands overlap by this (pixels of the image LSD runs on), so that a
+# segment cut at one band's edge is whole enough in the other's
+BAND_OVERLAP_PX = 16
+# LSD resamples its image by 0.8 (4 rows of 5) before it looks for segments: a band starting on a multiple of
+# 5 rows is resampled on the whole image's rows (another start found a sixth of its segments elsewhere)
+LSD_RESAMPLING_PERIOD = 5
 
 
 @dataclass(frozen=True)
@@ -94,9 +101,38 @@ def detect_segments(grey: np.ndarray, *, scale: float = DEFAULT_LSD_SCALE, blur_
     if scale != 1.0:
         img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
     lines = _lsd().detect(img)[0]
+    return _segments(lines, scale, u0, v0, (h, w), min_length_px)
+
+
+def detect_segments_in_bands(grey: np.ndarray, *, scale: float = DEFAULT_LSD_SCALE,
+                             min_length_px: float = MIN_SEGMENT_PX) -> Segments:
+    """``detect_segments`` of the whole image, its top and bottom halves (overlapping by
+    ``BAND_OVERLAP_PX`` or a little more) detected at once, the bottom on the background pool (OpenCV
+    releases the GIL). LSD's standard refinement applies no NFA test, so a band finds what the whole
+    image does but near its edges (and for the order its gradient bins seed regions in): segments
+    crossing the middle come out in two pieces, the overlap twice; their distance transform is the
+    same but near the pieces' ends."""
+    h, w = grey.shape[:2]
+    img = grey if scale == 1.0 else cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    mid = img.shape[0] // 2
+    start = (mid - BAND_OVERLAP_PX) // LSD_RESAMPLING_PERIOD * LSD_RESAMPLING_PERIOD
+    top, bottom = img[:mid + BAND_OVERLAP_PX], img[start:]
+    fut = threads.background().submit(lambda: _lsd().detect(bottom)[0])
+    a = _lsd().detect(top)[0]
+    b = fut.result()
+    parts = [x.reshape(-1, 4) for x in (a, b) if x is not None and len(x)]
+    if b is not None and len(b):
+        parts[-1] = parts[-1] + np.array([0, start, 0, start], np.float32)
+    lines = np.concatenate(parts) if parts else None
+    return _segments(lines, scale, 0, 0, (h, w), min_length_px)
+
+
+def _segments(lines: np.ndarray | None, scale: float, u0: int, v0: int, shape_hw: tuple[int, int],
+              min_length_px: float) -> Segments:
+    """LSD's lines (pixels of the image it ran on: the window at ``scale``) -> Segments of the full image."""
     if lines is None or len(lines) == 0:
         z = np.zeros((0, 2), np.float32)
-        return Segments(z, z.copy(), np.zeros(0, np.float32), (h, w))
+        return Segments(z, z.copy(), np.zeros(0, np.float32), shape_hw)
     xy = lines.reshape(-1, 4).astype(np.float32)
     # Pixel-centre convention: u_full = (u_scaled + 0.5) / scale - 0.5.
     p0 = (xy[:, :2] + 0.5) / scale - 0.5 + np.array([u0, v0], np.float32)
@@ -105,7 +141,7 @@ def detect_segments(grey: np.ndarray, *, scale: float = DEFAULT_LSD_SCALE, blur_
     p0, p1 = p0[keep], p1[keep]
     d = p1 - p0
     theta = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi).astype(np.float32)
-    return Segments(p0, p1, theta, (h, w))
+    return Segments(p0, p1, theta, shape_hw)
 
 
 def channel_of(theta_rad: np.ndarray, n_channels: int) -> np.ndarray:

@@ -34,13 +34,15 @@ The paper refines with Levenberg-Marquardt on matched point pairs kept under a m
 from __future__ import annotations
 
 import math
+from concurrent.futures import Future
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 
 from service.vision import threads
 from service.vision.bank import TemplateBank
-from service.vision.estimate.chamfer import DistanceTensor, sample_with_grad, segment_distance_tensor
+from service.vision.estimate.chamfer import DistanceTensor, segment_distance_tensor
 from service.vision.estimate.edges import Segments, detect_segments, undistort_segments
 from service.vision.estimate.interior import unexplained_edge_ratio
 from service.vision.estimate.lsq import LsqResult, least_squares
@@ -59,6 +61,12 @@ REEXTRACT_DEG = 1.0  # ... or the rotation has changed this much since the extra
 # The interior check, started in the background at the DT stage's pose, stands for a final pose whose
 # border lies within this of it (the check erodes the silhouette by interior.ERODE_PX = 5 px anyway).
 INTERIOR_REUSE_PX = 1.5
+# The ROI's segments can be detected early, on the background pool, round a pose the coarse search has
+# not polished yet (``start_roi_segments``): its window is grown by this and snapped outward to this grid,
+# so that the polished pose's window still lies inside it (on the paper renders the polish moved the
+# window's sides by 3 px at most; a window that does not fit is detected afresh).
+EARLY_MARGIN_PX = 8
+EARLY_GRID_PX = 32
 DT_SCALE = 1.0  # DT3 grid per full-resolution pixel (exact distances to segments at pixel centres)
 DT_TAU_PX = 12.0  # DT3 truncation for refinement (full-res px): the basin, not the coarse search
 DT_F_SCALE_PX = 4.0  # robust-loss scale of the DT stage (smaller scales converge much slower)
@@ -242,15 +250,108 @@ def project_border(params: PoseParams, x: np.ndarray, border: Border, intr: Intr
 def dt_residuals(params: PoseParams, x: np.ndarray, border: Border, intr: Intrinsics, dtt: DistanceTensor,
                  with_jac: bool = True):
     """The "dt" residual: directional chamfer distance (full-res px) per border point, and
-    its Jacobian (M, n)."""
-    uv, theta, duv, dth = project_border(params, x, border, intr, with_jac)
-    g = dtt.to_grid(uv)
-    val, gu, gv, gth = sample_with_grad(dtt, g, theta)
-    r = val / dtt.scale
+    its Jacobian (M, n): ``project_border`` and ``chamfer.sample_with_grad`` in one compiled loop (their
+    numpy steps on a few hundred points cost ~0.25 ms an evaluation, mostly call overhead)."""
+    if with_jac:
+        pose, JB, dz_dr = params._pose_jac(x)
+        centre, R = params.c, pose.R
+        offset = pose.R @ params.c + pose.t_mm
+    else:  # as ``PoseParams.points`` without a Jacobian: p R^T + t
+        pose = params.pose(x)
+        centre, R, offset = np.zeros(3), pose.R, pose.t_mm
+        JB, dz_dr = np.zeros((3, params.nr)), np.zeros(params.nr)
+    r, J = _dt_kernel(np.ascontiguousarray(border.p_obj, np.float64),
+                      np.ascontiguousarray(border.tan_obj, np.float64), TANGENT_STEP_MM,
+                      np.ascontiguousarray(R, np.float64), np.asarray(offset, np.float64),
+                      np.asarray(centre, np.float64), np.ascontiguousarray(JB, np.float64),
+                      np.asarray(dz_dr, np.float64), params.n, params.distance_mm is None,
+                      float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy), dtt.dt,
+                      float(dtt.origin_uv[0]), float(dtt.origin_uv[1]), float(dtt.scale), float(dtt.tau_px),
+                      with_jac)
+    return r, (J if with_jac else None)
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _point_uv(p, R, offset, centre, JB, dz_dr, n, free_z, fx, fy, cx, cy, with_jac, uv, duv):
+    """One object point: its pixel into ``uv`` (2,) and, ``with_jac``, d uv / dx into ``duv`` (2, n)."""
+    q0 = R[0, 0] * (p[0] - centre[0]) + R[0, 1] * (p[1] - centre[1]) + R[0, 2] * (p[2] - centre[2])
+    q1 = R[1, 0] * (p[0] - centre[0]) + R[1, 1] * (p[1] - centre[1]) + R[1, 2] * (p[2] - centre[2])
+    q2 = R[2, 0] * (p[0] - centre[0]) + R[2, 1] * (p[1] - centre[1]) + R[2, 2] * (p[2] - centre[2])
+    x, y, z = q0 + offset[0], q1 + offset[1], q2 + offset[2]
+    iz = 1.0 / z
+    uv[0] = fx * x * iz + cx
+    uv[1] = fy * y * iz + cy
     if not with_jac:
-        return r, None
-    # d grid / d uv = scale; r = val / scale.
-    J = gu[:, None] * duv[:, 0] + gv[:, None] * duv[:, 1] + (gth / dtt.scale)[:, None] * dth
+        return
+    nr = JB.shape[1]
+    au, av = fx * iz, fx * x * iz * iz
+    bu, bv = fy * iz, fy * y * iz * iz
+    for k in range(n):
+        if k < nr:  # d(exp(w) v)/dw = -[v]x J_l: column k is (J_l B)[:, k] x q
+            jx = JB[1, k] * q2 - JB[2, k] * q1
+            jy = JB[2, k] * q0 - JB[0, k] * q2
+            jz = JB[0, k] * q1 - JB[1, k] * q0 + dz_dr[k]
+        else:
+            jx = 1.0 if k == nr else 0.0
+            jy = 1.0 if k == nr + 1 else 0.0
+            jz = 1.0 if free_z and k == nr + 2 else 0.0
+        duv[0, k] = au * jx - av * jz
+        duv[1, k] = bu * jy - bv * jz
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _dt_kernel(P, T, h, R, offset, centre, JB, dz_dr, n, free_z, fx, fy, cx, cy, dt, ou, ov, scale, tau,
+               with_jac):
+    M = P.shape[0]
+    C, H, W = dt.shape
+    r = np.empty(M)
+    J = np.zeros((M, n)) if with_jac else np.zeros((0, n))
+    uv, ua, ub = np.empty(2), np.empty(2), np.empty(2)
+    duv, dua, dub = np.zeros((2, n)), np.zeros((2, n)), np.zeros((2, n))
+    pa, pb = np.empty(3), np.empty(3)
+    for i in range(M):
+        for k in range(3):
+            pa[k] = P[i, k] - h * T[i, k]
+            pb[k] = P[i, k] + h * T[i, k]
+        _point_uv(P[i], R, offset, centre, JB, dz_dr, n, free_z, fx, fy, cx, cy, with_jac, uv, duv)
+        _point_uv(pa, R, offset, centre, JB, dz_dr, n, free_z, fx, fy, cx, cy, with_jac, ua, dua)
+        _point_uv(pb, R, offset, centre, JB, dz_dr, n, free_z, fx, fy, cx, cy, with_jac, ub, dub)
+        d0, d1 = ub[0] - ua[0], ub[1] - ua[1]
+        theta = np.arctan2(d1, d0) % np.pi
+        # chamfer.sample_with_grad at the grid point
+        gu = (uv[0] - ou + 0.5) * scale - 0.5
+        gv = (uv[1] - ov + 0.5) * scale - 0.5
+        if not (gu >= 0 and gu <= W - 1 and gv >= 0 and gv <= H - 1):
+            r[i] = tau / scale
+            continue  # zero gradient outside the grid
+        uc, vc = min(gu, W - 1.0001), min(gv, H - 1.0001)
+        u0, v0 = int(np.floor(uc)), int(np.floor(vc))
+        fu, fv = uc - u0, vc - v0
+        cf = (theta * (C / np.pi)) % C
+        c0 = int(np.floor(cf)) % C
+        c1 = (c0 + 1) % C
+        fc = cf - np.floor(cf)
+        a, b = np.float64(dt[c0, v0, u0]), np.float64(dt[c0, v0, u0 + 1])
+        c, d = np.float64(dt[c0, v0 + 1, u0]), np.float64(dt[c0, v0 + 1, u0 + 1])
+        A0 = (1 - fv) * ((1 - fu) * a + fu * b) + fv * ((1 - fu) * c + fu * d)
+        Au0 = (1 - fv) * (b - a) + fv * (d - c)
+        Av0 = (1 - fu) * (c - a) + fu * (d - b)
+        a, b = np.float64(dt[c1, v0, u0]), np.float64(dt[c1, v0, u0 + 1])
+        c, d = np.float64(dt[c1, v0 + 1, u0]), np.float64(dt[c1, v0 + 1, u0 + 1])
+        A1 = (1 - fv) * ((1 - fu) * a + fu * b) + fv * ((1 - fu) * c + fu * d)
+        Au1 = (1 - fv) * (b - a) + fv * (d - c)
+        Av1 = (1 - fu) * (c - a) + fu * (d - b)
+        r[i] = ((1 - fc) * A0 + fc * A1) / scale
+        if not with_jac:
+            continue
+        g_u = (1 - fc) * Au0 + fc * Au1
+        g_v = (1 - fc) * Av0 + fc * Av1
+        g_th = (A1 - A0) * (C / np.pi) / scale
+        n2 = max(d0 * d0 + d1 * d1, 1e-12)
+        for k in range(n):
+            dth = (d0 * (dub[1, k] - dua[1, k]) - d1 * (dub[0, k] - dua[0, k])) / n2
+            # d grid / d uv = scale; r = val / scale
+            J[i, k] = g_u * duv[0, k] + g_v * duv[1, k] + g_th * dth
     return r, J
 
 
@@ -265,7 +366,7 @@ class LineMatch:
 
 
 def match_lines(uv: np.ndarray, theta: np.ndarray, seg: Segments, *, gate_px: float = LINE_GATE_PX,
-                gate_deg: float = LINE_MATCH_DEG, chunk: int = 128) -> LineMatch:
+                gate_deg: float = LINE_MATCH_DEG) -> LineMatch:
     """Nearest segment (point-to-segment distance, endpoints extended by 1 px) of orientation
     within ``gate_deg`` and distance within ``gate_px`` for each border point."""
     if len(seg) == 0 or len(uv) == 0:
@@ -277,30 +378,13 @@ def match_lines(uv: np.ndarray, theta: np.ndarray, seg: Segments, *, gate_px: fl
     dirn = d / L[:, None]
     st = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi)
     cos_gate = math.cos(math.radians(gate_deg))
-    # Each segment's box, widened by its 1 px extension and the gate (and a pixel to spare): a chunk of
-    # points (consecutive along the border, so close together) only compares segments whose box meets
-    # its own; the others lie beyond the gate of all its points. The same nearest segment in half the time.
+    # Each segment's box, widened by its 1 px extension and the gate (and a pixel to spare): a point only
+    # compares the segments whose box holds it; the others lie beyond its gate.
     reach = gate_px + 2.0
     lo = np.minimum(p0, p1) - reach
     hi = np.maximum(p0, p1) + reach
-    best_i = np.full(len(uv), -1, np.int64)
-    for s in range(0, len(uv), chunk):
-        q = uv[s:s + chunk]
-        near = np.flatnonzero((hi[:, 0] >= q[:, 0].min()) & (lo[:, 0] <= q[:, 0].max())
-                              & (hi[:, 1] >= q[:, 1].min()) & (lo[:, 1] <= q[:, 1].max()))
-        if len(near) == 0:
-            continue
-        rel = q[:, None, :] - p0[near][None]
-        dn = dirn[near]
-        tpar = np.einsum("msk,sk->ms", rel, dn)
-        tcl = np.clip(tpar, -1.0, L[near][None] + 1.0)
-        perp = rel - tcl[..., None] * dn[None]
-        dist = np.linalg.norm(perp, axis=2)
-        dth = np.abs(np.cos(theta[s:s + chunk, None] - st[near][None]))  # |cos| of the undirected difference
-        dist = np.where(dth >= cos_gate, dist, np.inf)
-        j = np.argmin(dist, axis=1)
-        ok = dist[np.arange(len(q)), j] <= gate_px
-        best_i[s:s + chunk] = np.where(ok, near[j], -1)
+    best_i = _nearest_segments(np.ascontiguousarray(uv, np.float64), np.asarray(theta, np.float64), p0, dirn,
+                               L, st, lo, hi, cos_gate, float(gate_px))
     idx = np.flatnonzero(best_i >= 0)
     j = best_i[idx]
     nrm = np.stack([-dirn[j, 1], dirn[j, 0]], 1)
@@ -308,16 +392,64 @@ def match_lines(uv: np.ndarray, theta: np.ndarray, seg: Segments, *, gate_px: fl
     return LineMatch(idx, nrm, off)
 
 
+@nb.njit(cache=True, error_model="numpy")
+def _nearest_segments(uv, theta, p0, dirn, L, st, lo, hi, cos_gate, gate_px):
+    """Per point, the index of the nearest segment within the gates (the first of equals), or -1."""
+    out = np.full(len(uv), -1, np.int64)
+    for m in range(len(uv)):
+        u, v = uv[m, 0], uv[m, 1]
+        best = np.inf
+        for k in range(len(p0)):
+            if not (hi[k, 0] >= u and lo[k, 0] <= u and hi[k, 1] >= v and lo[k, 1] <= v):
+                continue
+            if abs(math.cos(theta[m] - st[k])) < cos_gate:  # |cos| of the undirected difference
+                continue
+            r0, r1 = u - p0[k, 0], v - p0[k, 1]
+            t = min(max(r0 * dirn[k, 0] + r1 * dirn[k, 1], -1.0), L[k] + 1.0)
+            e0, e1 = r0 - t * dirn[k, 0], r1 - t * dirn[k, 1]
+            dist = math.sqrt(e0 * e0 + e1 * e1)
+            if dist < best:
+                best = dist
+                if dist <= gate_px:
+                    out[m] = k
+        if best > gate_px:
+            out[m] = -1
+    return out
+
+
 def line_residuals(params: PoseParams, x: np.ndarray, border: Border, intr: Intrinsics, match: LineMatch,
                    with_jac: bool = True):
-    """Signed distance (full-res px) of each matched border point to its segment's line."""
-    P = border.p_obj[match.idx]
-    pc, Jp = params.points(x, P, with_jac)
-    uv, duv = _project_jac(pc, intr, Jp)
-    r = (match.normal * uv).sum(1) - match.offset
-    if not with_jac:
-        return r, None
-    J = match.normal[:, 0, None] * duv[:, 0] + match.normal[:, 1, None] * duv[:, 1]
+    """Signed distance (full-res px) of each matched border point to its segment's line (one compiled
+    loop, as ``dt_residuals``)."""
+    P = np.ascontiguousarray(border.p_obj[match.idx], np.float64)
+    if with_jac:
+        pose, JB, dz_dr = params._pose_jac(x)
+        centre, offset = params.c, pose.R @ params.c + pose.t_mm
+    else:  # as ``PoseParams.points`` without a Jacobian: p R^T + t
+        pose = params.pose(x)
+        centre, offset = np.zeros(3), pose.t_mm
+        JB, dz_dr = np.zeros((3, params.nr)), np.zeros(params.nr)
+    r, J = _line_kernel(P, np.ascontiguousarray(pose.R, np.float64), np.asarray(offset, np.float64),
+                        np.asarray(centre, np.float64), np.ascontiguousarray(JB, np.float64),
+                        np.asarray(dz_dr, np.float64), params.n, params.distance_mm is None, float(intr.fx),
+                        float(intr.fy), float(intr.cx), float(intr.cy),
+                        np.ascontiguousarray(match.normal, np.float64), np.asarray(match.offset, np.float64),
+                        with_jac)
+    return r, (J if with_jac else None)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _line_kernel(P, R, offset, centre, JB, dz_dr, n, free_z, fx, fy, cx, cy, normal, line_offset, with_jac):
+    M = P.shape[0]
+    r = np.empty(M)
+    J = np.zeros((M, n)) if with_jac else np.zeros((0, n))
+    uv, duv = np.empty(2), np.zeros((2, n))
+    for i in range(M):
+        _point_uv(P[i], R, offset, centre, JB, dz_dr, n, free_z, fx, fy, cx, cy, with_jac, uv, duv)
+        r[i] = (normal[i, 0] * uv[0] + normal[i, 1] * uv[1]) - line_offset[i]
+        if with_jac:
+            for k in range(n):
+                J[i, k] = normal[i, 0] * duv[0, k] + normal[i, 1] * duv[1, k]
     return r, J
 
 
@@ -339,6 +471,34 @@ def _roi(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, margin: i
     if u1 - u0 < 8 or v1 - v0 < 8:
         return None
     return (u0, v0, u1 - u0 + 1, v1 - v0 + 1)
+
+
+@dataclass(frozen=True)
+class EarlySegments:
+    """LSD segments of a window of the image as taken, being detected on the background pool."""
+
+    roi: tuple[int, int, int, int]  # (u0, v0, w, h), pixels of the image as taken
+    segments: Future  # -> Segments (full-image coordinates, as taken)
+
+    def covers(self, roi: tuple[int, int, int, int]) -> bool:
+        u0, v0, w, h = roi
+        a0, b0, aw, bh = self.roi
+        return a0 <= u0 and b0 <= v0 and u0 + w <= a0 + aw and v0 + h <= b0 + bh
+
+
+def start_roi_segments(bank: TemplateBank, pose: Pose, grey: np.ndarray, intr: Intrinsics
+                       ) -> EarlySegments | None:
+    """Start detecting the full-resolution segments ``refine_pose`` will want for a pose near ``pose``:
+    its window grown by ``EARLY_MARGIN_PX`` and snapped outward to ``EARLY_GRID_PX`` (None: no window)."""
+    H, W = grey.shape[:2]
+    roi = _roi(bank, pose, intr, (W, H), ROI_MARGIN_PX + EARLY_MARGIN_PX, distorted=intr.dist is not None)
+    if roi is None:
+        return None
+    g = EARLY_GRID_PX
+    u0, v0 = roi[0] // g * g, roi[1] // g * g
+    u1, v1 = min(-(-(roi[0] + roi[2]) // g) * g, W), min(-(-(roi[1] + roi[3]) // g) * g, H)
+    win = (u0, v0, u1 - u0, v1 - v0)
+    return EarlySegments(win, threads.background().submit(detect_segments, grey, scale=1.0, roi=win))
 
 
 # --- the refinement -----------------------------------------------------------------------------
@@ -411,14 +571,17 @@ def _line_stage(border, pose, bank, distance_mm, ideal, seg, loss, f_scale, max_
     return params.pose(res.x), res, thr
 
 
-def _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px):
-    """ROI (ideal camera), its segments (ideal camera, full image coords) and DT3, or None."""
+def _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px, early=None):
+    """ROI (ideal camera), its segments (ideal camera, full image coords) and DT3, or None. ``early``:
+    segments being detected on a window (``start_roi_segments``), used if it covers the ROI."""
     H, W = grey.shape[:2]
     size = (W, H)
     distorted = intr.dist is not None
     roi_img = _roi(bank, pose0, intr, size, ROI_MARGIN_PX, distorted=distorted)
     if roi_img is None:
         return None
+    if seg is None and early is not None and early.covers(roi_img):
+        seg = early.segments.result()
     if seg is None:
         seg = detect_segments(grey, scale=1.0, roi=roi_img)
     if distorted:
@@ -438,11 +601,13 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
                 seg: Segments | None = None, *, distance_mm: float | None = None, n_channels: int = 16,
                 score_px: float = 3.0, loss: str = "soft_l1", max_iter: int = 30, residual: str = "dt+line",
                 dt_scale: float = DT_SCALE, tau_px: float = DT_TAU_PX, f_scale_px: float = 0.5,
-                dt_f_scale_px: float = DT_F_SCALE_PX) -> RefineResult:
+                dt_f_scale_px: float = DT_F_SCALE_PX, early: EarlySegments | None = None) -> RefineResult:
     """Refine ``pose0`` (T_cam_obj) against the edges of ``grey`` (H, W) uint8.
 
     ``seg``: LSD segments of the image at full resolution (None: detected here on the ROI around
-    the projected model). ``distance_mm``: hold the object origin's camera z at this value.
+    the projected model; ``early``: segments already being detected on a window, used instead when the
+    window covers that ROI, ``start_roi_segments``). ``distance_mm``: hold the object origin's camera
+    z at this value.
     ``loss``: soft_l1 | huber | cauchy | linear | median (the paper's eq. 18 threshold).
     ``residual``: "dt" (directional chamfer only), "line" (point-to-LSD-line only) or "dt+line"
     (dt to convergence, then line for the final iterations). ``max_iter``: function evaluations
@@ -463,7 +628,7 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     # A background thread overlaps the border rasterisation with LSD + DT, and the interior check
     # (unexplained_edge_ratio) with the line stage.
     fut = threads.background().submit(border_points, bank, pose0, ideal, size)
-    img = _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px)
+    img = _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px, early)
     border = fut.result()
     if img is None or len(border.p_obj) < 6:
         return RefineResult(reported(pose0), float("inf"), 0.0, 0, 0.0, False)
