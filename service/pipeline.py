@@ -29,7 +29,6 @@ from service.vision.estimate.plane import (
     plane_search,
     rest_gap_mm,
 )
-from service.vision.estimate.refine import EarlySegments, start_roi_segments
 from service.vision.estimate.roi import crop_segments, roi_mask
 from service.vision.estimate.roi import inside as roi_inside
 from service.vision.estimate.verdict import Verdict, decide
@@ -173,8 +172,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
             distance_range_mm: tuple[float, float] | None = None, params: SearchParams | None = None,
             roi_uv: np.ndarray | None = None, deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0,
             plane: Plane | None = None, several: bool = False,
-            deferred: list[Callable[[], list[PoseCandidate]]] | None = None,
-            on_best: Callable[[Pose], None] | None = None):
+            deferred: list[Callable[[], list[PoseCandidate]]] | None = None):
     """The proposal engine (the paper's method): LSD edges, their distance tensor and the coarse
     search -> (distinct candidates, lowest chamfer cost first; full-image segments; timing_ms with
     "edges" and "coarse").
@@ -195,10 +193,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     ``deferred``: a list to which the 6D search's second pass (``coarse_search``: the level-A peaks'
     other templates, ``SearchParams.templates_per_peak``) is appended as a callable returning its
     distinct candidates (none is appended when there is no second pass). Without it there is no
-    second pass: only the single-instance ``estimate`` runs it, when the first one's candidates fail.
-
-    ``on_best``: called with the pose of the 6D search's best placement before its polish
-    (``coarse_search``'s ``on_best``)."""
+    second pass: only the single-instance ``estimate`` runs it, when the first one's candidates fail."""
     rest = resting_rotations(bank) if plane is not None else None
     p = params or SEARCH_PARAMS
     threads.use_budget()
@@ -238,15 +233,9 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
         cands = [_candidate(bank, Pose(x.R, x.t), x.cost, x.score) for x in ph]
     else:
         later: list[Callable[[], list[Hypothesis]]] = []
-
-        def best_pose(hy: Hypothesis) -> None:
-            (R,), (t,) = poses_of(bank, [hy], intr.K, distance_mm)
-            on_best(Pose(R, t))
-
         hyps = coarse_search(bank, dtt_b, intr, (h, w), p, distance_mm=distance_mm, distance_range_mm=rng,
                              anchor_mask=anchor_mask, deadline=deadline, reserve_ms=reserve_ms,
-                             deferred=later, on_best=best_pose if on_best is not None else None) \
-            if deadline.allows(reserve_ms) else []
+                             deferred=later) if deadline.allows(reserve_ms) else []
 
         def to_candidates(hs: list[Hypothesis]) -> list[PoseCandidate]:
             if not hs:
@@ -327,25 +316,18 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     h, w = grey.shape
     # One instance: the search's second pass runs only when its first pass's candidates all fail.
     second: list[Callable[[], list[PoseCandidate]]] = []
-    early: list[EarlySegments] = []  # the refinement's segments round the best placement, detected meanwhile
-
-    def start_early(pose: Pose) -> None:
-        if refine_early := start_roi_segments(bank, pose, grey, intr):
-            early.append(refine_early)
-
     cands, _, timing = propose(bank, grey, intr, distance_mm=distance_mm, distance_range_mm=distance_range_mm,
                                params=p, roi_uv=roi_uv, deadline=deadline,
                                reserve_ms=_CHECK_MS.high + SEARCH_RESERVE_CHECKS * _CHECK_MS.value,
                                plane=plane, several=max_instances > 1,
-                               deferred=second if max_instances <= 1 else None, on_best=start_early)
+                               deferred=second if max_instances <= 1 else None)
     t0 = time.perf_counter()
     t_second = 0.0
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
     # The evidence reads pixels where the ideal camera projects the model: undistort the frame once.
     frame = colour_frame(undistort_image(image, intr))
     kw = dict(distance_mm=distance_mm, distance_range_mm=rng, min_score=min_score, n_channels=p.n_channels,
-              deadline=deadline, plane=plane, plane_tolerance_mm=plane_tolerance_mm,
-              early=early[0] if early else None)
+              deadline=deadline, plane=plane, plane_tolerance_mm=plane_tolerance_mm)
     if max_instances <= 1:
         checked = verify_candidates(bank, cands, grey, frame, intr, **kw)
         if second and not (checked and checked[0].verdict.found) and deadline.allows(_CHECK_MS.high):
@@ -395,13 +377,11 @@ def check_candidate(bank: TemplateBank, cand: PoseCandidate, grey: np.ndarray, f
                     distance_range_mm: tuple[float, float] | None, min_score: float | None,
                     n_channels: int, plane: Plane | None = None,
                     plane_tolerance_mm: float = PLANE_TOLERANCE_MM,
-                    others_depth_mm: np.ndarray | None = None, early: EarlySegments | None = None) -> Checked:
+                    others_depth_mm: np.ndarray | None = None) -> Checked:
     """One candidate refined, its evidence measured at the refined pose, and the verdict on it (with a
-    plane, also whether the refined pose rests on it; ``others_depth_mm``: see ``judge``; ``early``: see
-    ``refine_pose``)."""
+    plane, also whether the refined pose rests on it; ``others_depth_mm``: see ``judge``)."""
     t0 = time.perf_counter()
-    kept, unexplained = _refine(bank, cand, grey, intr, distance_mm=distance_mm, n_channels=n_channels,
-                                early=early)
+    kept, unexplained = _refine(bank, cand, grey, intr, distance_mm=distance_mm, n_channels=n_channels)
     c = judge(bank, Checked(cand, kept, decide(None)), frame, intr, edge_support=kept.score,
               unexplained=unexplained, distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
               plane_tolerance_mm=plane_tolerance_mm, others_depth_mm=others_depth_mm)
@@ -429,8 +409,7 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
                       intr: Intrinsics, *, distance_mm: float | None,
                       distance_range_mm: tuple[float, float] | None, min_score: float | None,
                       n_channels: int, deadline: Deadline = NO_DEADLINE, plane: Plane | None = None,
-                      plane_tolerance_mm: float = PLANE_TOLERANCE_MM, early: EarlySegments | None = None
-                      ) -> list[Checked]:
+                      plane_tolerance_mm: float = PLANE_TOLERANCE_MM) -> list[Checked]:
     """Refine and verify the best ``N_VERIFY`` candidates, best verification first. Stops at the first
     found one: the search ranks by chamfer cost (over the local background's), and on a clean frame
     the first is the truth; and before a check the ``deadline`` leaves no time for."""
@@ -440,7 +419,7 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
             break
         c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm,
                             distance_range_mm=distance_range_mm, min_score=min_score, n_channels=n_channels,
-                            plane=plane, plane_tolerance_mm=plane_tolerance_mm, early=early)
+                            plane=plane, plane_tolerance_mm=plane_tolerance_mm)
         out.append(c)
         if c.verdict.found:
             break
@@ -452,8 +431,7 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
                      intr: Intrinsics, *, max_instances: int, distance_mm: float | None,
                      distance_range_mm: tuple[float, float] | None, min_score: float | None,
                      n_channels: int, deadline: Deadline = NO_DEADLINE, plane: Plane | None = None,
-                     plane_tolerance_mm: float = PLANE_TOLERANCE_MM, early: EarlySegments | None = None
-                     ) -> tuple[list[Checked], list[Checked]]:
+                     plane_tolerance_mm: float = PLANE_TOLERANCE_MM) -> tuple[list[Checked], list[Checked]]:
     """Refine and verify candidates (best chamfer cost first) until ``max_instances`` distinct ones are
     found or the candidates run out -> (found, in the order found; rejected, best verification first).
     A candidate whose silhouette overlaps a found instance's by more than ``INSTANCE_IOU`` (IoU) is the
@@ -477,8 +455,7 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
         if not deadline.allows(_CHECK_MS.high):
             break
         c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm, n_channels=n_channels,
-                            others_depth_mm=scene.others if scene.found else None, early=early,
-                            **scene.judge_kw)
+                            others_depth_mm=scene.others if scene.found else None, **scene.judge_kw)
         if not c.verdict.found:
             scene.rejected.append(c)
         elif scene.distinct(c):
@@ -675,8 +652,7 @@ def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.nd
 
 
 def _refine(bank: TemplateBank, best: PoseCandidate, grey: np.ndarray, intr: Intrinsics, *,
-            distance_mm: float | None, n_channels: int, early: EarlySegments | None = None
-            ) -> tuple[RefinedPose, float]:
+            distance_mm: float | None, n_channels: int) -> tuple[RefinedPose, float]:
     """Refine a candidate -> (the kept pose, its unexplained-edge ratio ``interior.unexplained_edge_ratio``).
 
     ``refine_pose`` keeps the refined pose only if it verifies at least as well on the full-resolution
@@ -686,8 +662,7 @@ def _refine(bank: TemplateBank, best: PoseCandidate, grey: np.ndarray, intr: Int
     onto the truth was dropped for scoring under it (bench/rejected_truths.py, clutter2 0023)."""
     from service.vision.estimate.refine import refine_pose
 
-    r = refine_pose(bank, best.pose, grey, intr, None, distance_mm=distance_mm, n_channels=n_channels,
-                    early=early)
+    r = refine_pose(bank, best.pose, grey, intr, None, distance_mm=distance_mm, n_channels=n_channels)
     return RefinedPose(r.pose, float(r.cost), float(r.score), int(r.iterations), float(r.inlier_ratio)), \
         r.unexplained
 

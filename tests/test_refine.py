@@ -12,19 +12,14 @@ import pytest
 from service.vision.estimate.chamfer import sample, sample_with_grad, segment_distance_tensor
 from service.vision.estimate.edges import Segments, detect_segments
 from service.vision.estimate.refine import (
-    EARLY_GRID_PX,
-    EARLY_MARGIN_PX,
-    ROI_MARGIN_PX,
     PoseParams,
     _project_jac,
-    _roi,
     border_points,
     dt_residuals,
     line_residuals,
     match_lines,
     project_border,
     refine_pose,
-    start_roi_segments,
 )
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, R_from_rotvec, canonical_spin, rotation_angle_deg
@@ -32,8 +27,6 @@ from service.vision.geometry.render import render, render_shaded
 from service.vision.geometry.silhouette import Border
 from tests.lens import distort_image
 from tests.tolerances import (
-    EARLY_SEGMENTS_AXIS_DEG,
-    EARLY_SEGMENTS_TRANS_MM,
     REFINE_ANGLE_DEG,
     REFINE_COMPILED_ATOL,
     REFINE_DEPTH_MM,
@@ -381,52 +374,6 @@ def test_paper_render_0001_from_perturbed_gt(data_dir, sprayer_bank):
     res = refine_pose(sprayer_bank, start, img, intr, distance_mm=500.0)
     assert np.abs(res.pose.t_mm[:2] - gt.t_mm[:2]).max() <= REFINE_REAL_TRANS_MM
     assert axis_error_deg(sprayer_bank, res.pose, gt) <= REFINE_REAL_AXIS_DEG
-
-
-def _paper_0001(data_dir):
-    g = json.loads((data_dir / "paper" / "gt.jsonl").read_text().splitlines()[0])
-    img = cv2.imread(str(data_dir / "paper" / g["image"]), cv2.IMREAD_GRAYSCALE)
-    return img, Intrinsics.from_K(np.array(g["K"])), Pose(np.array(g["R"]), np.array(g["t_mm"]))
-
-
-def test_early_window_is_on_the_grid_and_covers_the_roi_of_a_nearby_pose(data_dir, sprayer_bank):
-    img, intr, gt = _paper_0001(data_dir)
-    h, w = img.shape
-    early = start_roi_segments(sprayer_bank, gt, img, intr)
-    early.segments.result()
-    u0, v0, ew, eh = early.roi
-    assert u0 % EARLY_GRID_PX == 0 and v0 % EARLY_GRID_PX == 0
-    assert (u0 + ew) % EARLY_GRID_PX == 0 or u0 + ew == w
-    assert (v0 + eh) % EARLY_GRID_PX == 0 or v0 + eh == h
-    wide = _roi(sprayer_bank, gt, intr, (w, h), ROI_MARGIN_PX + EARLY_MARGIN_PX, distorted=False)
-    assert early.covers(wide)
-    # A polish moves the window's sides by a few pixels (3 at most on the paper renders): 2 mm is ~4.5 px.
-    for dx in (-2.0, 2.0):
-        moved = Pose(gt.R, gt.t_mm + np.array([dx, dx, 0.0]))
-        assert early.covers(_roi(sprayer_bank, moved, intr, (w, h), ROI_MARGIN_PX, distorted=False))
-    far = Pose(gt.R, gt.t_mm + np.array([40.0, 0.0, 0.0]))
-    assert not early.covers(_roi(sprayer_bank, far, intr, (w, h), ROI_MARGIN_PX, distorted=False))
-
-
-def test_refinement_on_early_segments_matches_its_own_roi_segments(data_dir, sprayer_bank):
-    img, intr, gt = _paper_0001(data_dir)
-    start = perturb(gt, np.random.default_rng(70), 1.0, 2.0, keep_z=True)
-    unpolished = perturb(start, np.random.default_rng(71), 0.3, 0.5, keep_z=True)
-    early = start_roi_segments(sprayer_bank, unpolished, img, intr)
-    own = refine_pose(sprayer_bank, start, img, intr, distance_mm=500.0)
-    fast = refine_pose(sprayer_bank, start, img, intr, distance_mm=500.0, early=early)
-    assert np.abs(fast.pose.t_mm - own.pose.t_mm).max() <= EARLY_SEGMENTS_TRANS_MM
-    assert axis_error_deg(sprayer_bank, fast.pose, own.pose) <= EARLY_SEGMENTS_AXIS_DEG
-
-
-def test_early_segments_of_a_window_that_misses_the_roi_are_not_used(data_dir, sprayer_bank):
-    img, intr, gt = _paper_0001(data_dir)
-    start = perturb(gt, np.random.default_rng(70), 1.0, 2.0, keep_z=True)
-    elsewhere = start_roi_segments(sprayer_bank, Pose(gt.R, gt.t_mm + np.array([60.0, 0.0, 0.0])), img, intr)
-    own = refine_pose(sprayer_bank, start, img, intr, distance_mm=500.0)
-    other = refine_pose(sprayer_bank, start, img, intr, distance_mm=500.0, early=elsewhere)
-    np.testing.assert_array_equal(other.pose.R, own.pose.R)
-    np.testing.assert_array_equal(other.pose.t_mm, own.pose.t_mm)
 
 
 def test_symmetric_result_is_canonical_and_keeps_the_held_distance(sprayer_bank):

@@ -51,12 +51,6 @@ REFINE_OCCLUDED_ANGLE_DEG = 0.3  # 30 % of the border hidden
 REFINE_OCCLUDED_TRANS_MM = 0.5
 REFINE_REAL_TRANS_MM = 0.2  # paper render 0001: |tx|, |ty| from gt perturbed by 1 deg / 2 mm
 REFINE_REAL_AXIS_DEG = 0.3  # ... and the axis direction
-# The refinement on segments detected early on a wider window (refine.start_roi_segments) against the same
-# refinement on its own ROI's: LSD resamples its window by 0.8 (4 rows of 5), so windows starting on other
-# rows or columns mod 5 find slightly different segments (an ROI margin of 31 or 33 px instead of 30 moved
-# paper-nodist's mean errors by up to 0.04 mm / 0.05 deg); a third of the paper render's tolerances above
-EARLY_SEGMENTS_TRANS_MM = 0.07
-EARLY_SEGMENTS_AXIS_DEG = 0.1
 REFINE_JAC_RTOL = 1e-3  # analytic Jacobian against central differences (relative to the column scale)
 REFINE_JAC_ROWS = 0.97  # fraction of rows that must agree (bilinear kinks make a few rows differ)
 REFINE_COMPILED_ATOL = 1e-9  # compiled residual loops against their numpy steps (float64; sums reordered)

@@ -996,8 +996,7 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
                   image_shape: tuple[int, int], p: SearchParams, *, distance_mm: float | None,
                   distance_range_mm: tuple[float, float], anchor_mask: np.ndarray | None = None,
                   deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0,
-                  deferred: list[Callable[[], list[Hypothesis]]] | None = None,
-                  on_best: Callable[[Hypothesis], None] | None = None) -> list[Hypothesis]:
+                  deferred: list[Callable[[], list[Hypothesis]]] | None = None) -> list[Hypothesis]:
     """Ranked, polished, mutually distinct hypotheses (best first). ``dtt_b`` is the DT3 at
     ``fine_scale``; level A's grid is min-pooled from it. ``anchor_mask`` (full-resolution (h, w)
     bool): level A places the reference point only there (``scan_level_a``).
@@ -1011,10 +1010,7 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
 
     Anytime: each unit of work (a chunk of level-A anchors, a peak's local scan, a polish) starts only
     while the ``deadline`` leaves more than ``reserve_ms`` (the caller's time to verify a result); what
-    was reached by then is returned, hypotheses left unpolished with their level-B costs.
-
-    ``on_best``: called with the first pass's best level-B hypothesis (unpolished) before its polish,
-    so that the caller can start work round it meanwhile (``refine.start_roi_segments``)."""
+    was reached by then is returned, hypotheses left unpolished with their level-B costs."""
     K = intr.K
     dtt_a, dt_q, tau_q = pooled_and_quantised(dtt_b, p.level_scale, p.rank_tau_px * dtt_b.scale)
     z_ref, scales = (distance_mm, np.array([1.0])) if distance_mm is not None else \
@@ -1045,7 +1041,7 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
     if not starts:
         return []
     state = _LevelB(bank, dtt_b, dt_q, tau_q, K, p, distance_mm, bg, deadline, reserve_ms)
-    out = state.run(starts, on_best)
+    out = state.run(starts)
     if p.templates_per_peak <= 1:
         return out
 
@@ -1081,8 +1077,7 @@ class _LevelB:
             return np.ones(len(hs))
         return _bg_at(self.bg, np.array([x.uv for x in hs]), self.p.level_scale)
 
-    def run(self, starts: list[Hypothesis], on_best: Callable[[Hypothesis], None] | None = None
-            ) -> list[Hypothesis]:
+    def run(self, starts: list[Hypothesis]) -> list[Hypothesis]:
         p, bank, K, dtt_b, deadline = self.p, self.bank, self.K, self.dtt_b, self.deadline
         scanned: list[Hypothesis] = []
         deadline.new_loop()
@@ -1102,8 +1097,6 @@ class _LevelB:
         cost_b, score_b = evaluate(bank, np.array([h.view for h in scanned]), Rs, ts, K, dtt_b, p.fine_points,
                                    p.score_px, p.rank_tau_px)
         order = np.argsort(cost_b / self.bg_of(scanned))[:p.n_polish]
-        if on_best is not None:
-            on_best(scanned[order[0]])
         neighbours = view_neighbours(bank)
         out = []
         deadline.new_loop()

@@ -34,7 +34,6 @@ The paper refines with Levenberg-Marquardt on matched point pairs kept under a m
 from __future__ import annotations
 
 import math
-from concurrent.futures import Future
 from dataclasses import dataclass
 
 import numba as nb
@@ -61,12 +60,6 @@ REEXTRACT_DEG = 1.0  # ... or the rotation has changed this much since the extra
 # The interior check, started in the background at the DT stage's pose, stands for a final pose whose
 # border lies within this of it (the check erodes the silhouette by interior.ERODE_PX = 5 px anyway).
 INTERIOR_REUSE_PX = 1.5
-# The ROI's segments can be detected early, on the background pool, round a pose the coarse search has
-# not polished yet (``start_roi_segments``): its window is grown by this and snapped outward to this grid,
-# so that the polished pose's window still lies inside it (on the paper renders the polish moved the
-# window's sides by 3 px at most; a window that does not fit is detected afresh).
-EARLY_MARGIN_PX = 8
-EARLY_GRID_PX = 32
 DT_SCALE = 1.0  # DT3 grid per full-resolution pixel (exact distances to segments at pixel centres)
 DT_TAU_PX = 12.0  # DT3 truncation for refinement (full-res px): the basin, not the coarse search
 DT_F_SCALE_PX = 4.0  # robust-loss scale of the DT stage (smaller scales converge much slower)
@@ -473,34 +466,6 @@ def _roi(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, margin: i
     return (u0, v0, u1 - u0 + 1, v1 - v0 + 1)
 
 
-@dataclass(frozen=True)
-class EarlySegments:
-    """LSD segments of a window of the image as taken, being detected on the background pool."""
-
-    roi: tuple[int, int, int, int]  # (u0, v0, w, h), pixels of the image as taken
-    segments: Future  # -> Segments (full-image coordinates, as taken)
-
-    def covers(self, roi: tuple[int, int, int, int]) -> bool:
-        u0, v0, w, h = roi
-        a0, b0, aw, bh = self.roi
-        return a0 <= u0 and b0 <= v0 and u0 + w <= a0 + aw and v0 + h <= b0 + bh
-
-
-def start_roi_segments(bank: TemplateBank, pose: Pose, grey: np.ndarray, intr: Intrinsics
-                       ) -> EarlySegments | None:
-    """Start detecting the full-resolution segments ``refine_pose`` will want for a pose near ``pose``:
-    its window grown by ``EARLY_MARGIN_PX`` and snapped outward to ``EARLY_GRID_PX`` (None: no window)."""
-    H, W = grey.shape[:2]
-    roi = _roi(bank, pose, intr, (W, H), ROI_MARGIN_PX + EARLY_MARGIN_PX, distorted=intr.dist is not None)
-    if roi is None:
-        return None
-    g = EARLY_GRID_PX
-    u0, v0 = roi[0] // g * g, roi[1] // g * g
-    u1, v1 = min(-(-(roi[0] + roi[2]) // g) * g, W), min(-(-(roi[1] + roi[3]) // g) * g, H)
-    win = (u0, v0, u1 - u0, v1 - v0)
-    return EarlySegments(win, threads.background().submit(detect_segments, grey, scale=1.0, roi=win))
-
-
 # --- the refinement -----------------------------------------------------------------------------
 
 
@@ -571,17 +536,14 @@ def _line_stage(border, pose, bank, distance_mm, ideal, seg, loss, f_scale, max_
     return params.pose(res.x), res, thr
 
 
-def _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px, early=None):
-    """ROI (ideal camera), its segments (ideal camera, full image coords) and DT3, or None. ``early``:
-    segments being detected on a window (``start_roi_segments``), used if it covers the ROI."""
+def _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px):
+    """ROI (ideal camera), its segments (ideal camera, full image coords) and DT3, or None."""
     H, W = grey.shape[:2]
     size = (W, H)
     distorted = intr.dist is not None
     roi_img = _roi(bank, pose0, intr, size, ROI_MARGIN_PX, distorted=distorted)
     if roi_img is None:
         return None
-    if seg is None and early is not None and early.covers(roi_img):
-        seg = early.segments.result()
     if seg is None:
         seg = detect_segments(grey, scale=1.0, roi=roi_img)
     if distorted:
@@ -601,13 +563,11 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
                 seg: Segments | None = None, *, distance_mm: float | None = None, n_channels: int = 16,
                 score_px: float = 3.0, loss: str = "soft_l1", max_iter: int = 30, residual: str = "dt+line",
                 dt_scale: float = DT_SCALE, tau_px: float = DT_TAU_PX, f_scale_px: float = 0.5,
-                dt_f_scale_px: float = DT_F_SCALE_PX, early: EarlySegments | None = None) -> RefineResult:
+                dt_f_scale_px: float = DT_F_SCALE_PX) -> RefineResult:
     """Refine ``pose0`` (T_cam_obj) against the edges of ``grey`` (H, W) uint8.
 
     ``seg``: LSD segments of the image at full resolution (None: detected here on the ROI around
-    the projected model; ``early``: segments already being detected on a window, used instead when the
-    window covers that ROI, ``start_roi_segments``). ``distance_mm``: hold the object origin's camera
-    z at this value.
+    the projected model). ``distance_mm``: hold the object origin's camera z at this value.
     ``loss``: soft_l1 | huber | cauchy | linear | median (the paper's eq. 18 threshold).
     ``residual``: "dt" (directional chamfer only), "line" (point-to-LSD-line only) or "dt+line"
     (dt to convergence, then line for the final iterations). ``max_iter``: function evaluations
@@ -628,7 +588,7 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     # A background thread overlaps the border rasterisation with LSD + DT, and the interior check
     # (unexplained_edge_ratio) with the line stage.
     fut = threads.background().submit(border_points, bank, pose0, ideal, size)
-    img = _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px, early)
+    img = _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px)
     border = fut.result()
     if img is None or len(border.p_obj) < 6:
         return RefineResult(reported(pose0), float("inf"), 0.0, 0, 0.0, False)
