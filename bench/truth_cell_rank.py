@@ -8,10 +8,12 @@ at the scales within 0.75 depth steps of the true depth) at the anchors within `
 truth's reference point; their best cost, over the local background as the search ranks
 (``SearchParams.bg_norm``), against every other anchor's best. ``rank`` = how many other anchors rank
 before it: level A's ``n_peaks`` could only start level B from the truth's cell where it is below about
-``n_peaks`` (peak suppression aside).
+``n_peaks`` (peak suppression aside). A truth cell over level A's acceptance bound (``accept_frac``)
+ranks after every anchor.
 
 Each configuration ``w:d`` scans level A on ``contrast.Contrast``'s blend (1 - w) DT3 + w contrast cost
-with the contrast taken ``d`` full-res px either side of the outline; ``0:8`` is the chamfer cost alone.
+with the contrast taken ``d`` full-res px either side of the outline (``w:d:0``: not normalised by the
+local mean contrast); ``0:8`` is the chamfer cost alone.
 
     python bench/truth_cell_rank.py --set clutter2 [--every 3] [--configs 0:8,0.5:8,1:8] [--distance-given]
 """
@@ -49,7 +51,10 @@ def truth_templates(bank, tpl, R_ray: np.ndarray, gt: Pose) -> np.ndarray:
     Rt = R_ray.T @ gt.R
     if bank.symmetry_axis_obj is not None:
         a_t = Rt @ np.asarray(bank.symmetry_axis_obj, float)
-        ang = np.degrees(np.arccos(np.clip(axes[:, 0] @ a_t, -1, 1)))
+        # level A keeps one of each mirror pair: the axis mirrored through the image plane has the same
+        # outline (up to perspective), and level B tries it
+        cos = np.maximum(axes[:, 0] @ a_t, axes[:, 0] @ (a_t * np.array([1.0, 1.0, -1.0])))
+        ang = np.degrees(np.arccos(np.clip(cos, -1, 1)))
         return np.flatnonzero(ang <= TOL_SYM_DEG)
     tr = np.einsum("tij,ij->t", axes, Rt)
     return np.flatnonzero(np.degrees(np.arccos(np.clip((tr - 1) / 2, -1, 1))) <= TOL_ANY_DEG)
@@ -76,8 +81,8 @@ def truth_rank(g: dict, set_dir: Path, configs: list[tuple[float, float]], dista
     r_bg = int(coarse.BG_WINDOW_EXTENT * tpl.extent_px * float(np.median(scales)))
     bg = coarse.background_cost(dtt_a, r_bg) if p.bg_norm else np.ones(dtt_a.dt.shape[1:])
     out = []
-    for w, d in configs:
-        cp = contrast.ContrastParams(weight=w, d_px=d)
+    for w, d, *norm in configs:
+        cp = contrast.ContrastParams(weight=w, d_px=d, normalise=not norm or norm[0] != 0)
         con = contrast.Contrast(image, p.n_channels, p.level_scale, cp) if w > 0 else None
         lac = (lambda q, tq, con=con: con.level_a(q, tq, r_bg)) if con is not None else None
         au, av, tile, cost, _, _ = coarse.scan_level_a(dtt_a, tpl, scales, grey.shape, p, level_a_cost=lac)
@@ -89,6 +94,8 @@ def truth_rank(g: dict, set_dir: Path, configs: list[tuple[float, float]], dista
         dt_q, tau_q = quantised(dtt_a, dtt_a.tau_px)
         if lac is not None:
             dt_q = lac(dt_q, tau_q)
+        # level A's own acceptance: a template averaging over accept_frac x tau is never a peak
+        accept_q = int(p.accept_frac * tau_q) * off_u.shape[3]
         best = np.inf
         for di in range(len(scales)):
             z = tpl.z_ref_mm[tile[near]][:, tok] / scales[di]
@@ -97,12 +104,13 @@ def truth_rank(g: dict, set_dir: Path, configs: list[tuple[float, float]], dista
                 continue
             ou, ov = off_u[:, di:di + 1][:, :, tok], off_v[:, di:di + 1][:, :, tok]
             c, _ = coarse._scan_templates(dt_q, tau_q, ou, ov, tpl.chan[tok], au[near], av[near], tile[near],
-                                          np.full(len(near), 10 ** 9, np.int64))
+                                          np.full(len(near), accept_q, np.int64))
             c = np.where(ok_z, c / DT_QUANT, np.inf) / bg[av[near], au[near]][:, None]
             best = min(best, float(c.min()))
         rank = cost / bg[av, au]
         far = np.setdiff1d(np.arange(len(au)), near)
-        out.append(int(np.sum(np.isfinite(rank[far]) & (rank[far] < best))))
+        # not accepted: ranks after every anchor that is
+        out.append(int(np.sum(np.isfinite(rank[far]) & (rank[far] < best))) if np.isfinite(best) else len(au))
     return out
 
 
@@ -110,7 +118,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--set", default="clutter2")
     ap.add_argument("--every", type=int, default=1)
-    ap.add_argument("--configs", default="0:8,0.5:8,1:8", help="w:d,... (w = 0: chamfer alone)")
+    ap.add_argument("--configs", default="0:8,0.5:8,1:8",
+                    help="w:d[:0],... (w = 0: chamfer alone; :0 contrast not normalised by its surroundings)")
     ap.add_argument("--distance-given", action="store_true")
     a = ap.parse_args(argv)
     set_dir = Path(a.set) if Path(a.set).is_dir() else DATA_DIR / a.set
@@ -118,7 +127,7 @@ def main(argv=None) -> int:
     gts = [g for g in read_gt(set_dir) if not g.get("absent") and g.get("visible_fraction", 1) >= 0.5]
     gts = gts[::a.every]
     ranks = []
-    print("image model | " + " ".join(f"{w:g}:{d:g}" for w, d in configs))
+    print("image model | " + " ".join(":".join(f"{x:g}" for x in c) for c in configs))
     for g in gts:
         r = truth_rank(g, set_dir, configs, a.distance_given)
         ranks.append(r)
@@ -126,8 +135,9 @@ def main(argv=None) -> int:
     R = np.array(ranks)
     print(f"\n| {a.set} ({len(gts)}{', distance given' if a.distance_given else ''}) | rank p50 | "
           "in first 12 | in first 30 | in first 80 |\n|---|---|---|---|---|")
-    for k, (w, d) in enumerate(configs):
-        name = "chamfer (DT3) alone" if w == 0 else f"(1 - {w:g}) DT3 + {w:g} contrast, d {d:g} px"
+    for k, (w, d, *norm) in enumerate(configs):
+        name = "chamfer (DT3) alone" if w == 0 else f"(1 - {w:g}) DT3 + {w:g} contrast, d {d:g} px" + \
+            (", not normalised" if norm and norm[0] == 0 else "")
         r = R[:, k]
         print(f"| {name} | {np.median(r):.0f} | {int(np.sum(r < 12))} | {int(np.sum(r < 30))} | "
               f"{int(np.sum(r < 80))} |")
