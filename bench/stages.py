@@ -114,6 +114,7 @@ def run(a) -> None:
                 bg_norm=SEARCH_PARAMS.bg_norm if a.bg_norm is None else a.bg_norm == "on",
                 templates_per_peak=a.templates_per_peak or SEARCH_PARAMS.templates_per_peak,
                 template_peaks=a.template_peaks or SEARCH_PARAMS.template_peaks)
+    coarse.CONTRAST_TEMPLATES = a.contrast_templates
     tot = {"n": 0, "peak": 0, "inB": 0, "inP": 0, "inP1": 0, "inP5": 0, "cheap": 0, "oracleB": 0}
     cov_all, search_ms, ranks_a, ranks_c = [], [], [], []
     cp = contrast.ContrastParams(weight=a.contrast_weight, weight_b=a.contrast_weight_b, d_px=a.contrast_d,
@@ -216,7 +217,7 @@ def run(a) -> None:
           f"templates/peak {p.templates_per_peak} at {p.template_peaks} peaks "
           f"dist {'given' if a.distance_given else 'not given'}: n={n} "
           f"contrast w {a.contrast_weight} / {a.contrast_weight_b} d {a.contrast_d} norm {a.contrast_norm} "
-          f"extra {a.contrast_extra}: "
+          f"extra {a.contrast_extra} templates {a.contrast_templates}: "
           f"cov mean {np.mean(cov_all):.2f} | truth's level-A rank p50 {np.median(ranks_a):.0f} "
           f"(second scan {np.median(ranks_c):.0f}) | peak near truth {tot['peak']} | "
           f"truth after level B {tot['inB']} | "
@@ -252,6 +253,8 @@ def main(argv=None) -> int:
                     help="level B ranks by (1 - w) chamfer + w tau contrast cost")
     ap.add_argument("--contrast-d", type=float, default=contrast.CONTRAST_D_PX)
     ap.add_argument("--contrast-norm", choices=["on", "off"], default="on")
+    ap.add_argument("--contrast-templates", action=argparse.BooleanOptionalAction, default=True,
+                    help="with --contrast-extra: its peaks' other distinct templates (on the blend) too")
     ap.add_argument("--contrast-extra", type=int, default=0,
                     help="0: the blend replaces level A's ranking; k: k extra peaks from it (second pass)")
     run(ap.parse_args(argv))

@@ -698,7 +698,7 @@ def distinct_templates(order: np.ndarray, axes: np.ndarray, k: int, min_deg: flo
 
 def peak_starts(bank: TemplateBank, tpl: LevelATemplates, scales: np.ndarray, dtt_a: DistanceTensor,
                 au: np.ndarray, av: np.ndarray, cost_a: np.ndarray, t_a: np.ndarray, peaks: list[int],
-                image_shape, p: SearchParams) -> list[list[Hypothesis]]:
+                image_shape, p: SearchParams, level_a_cost: Callable | None = None) -> list[list[Hypothesis]]:
     """Per level-A peak, level B's extra starts: its best ``templates_per_peak - 1`` templates distinct
     from each other and from the peak's own level-A template ``t_a[peak]`` (``distinct_templates``),
     each scored at the peak's anchor and the anchors within ``template_anchor_reach`` strides of it and
@@ -709,6 +709,8 @@ def peak_starts(bank: TemplateBank, tpl: LevelATemplates, scales: np.ndarray, dt
         return [[] for _ in peaks]
     C, hl, wl = dtt_a.dt.shape
     dt_q, tau_q = quantised(dtt_a, dtt_a.tau_px)
+    if level_a_cost is not None:  # the templates ranked as ``scan_level_a`` ranked them (``cost_a``)
+        dt_q = level_a_cost(dt_q, tau_q)
     off_u, off_v = scaled_offsets(tpl, scales)
     r = p.template_anchor_reach * p.anchor_stride
     g = np.arange(-r, r + 1, p.anchor_stride)
@@ -1080,6 +1082,11 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
     return sorted(out + second(), key=lambda h: h.rank_cost)
 
 
+# Each contrast peak's other distinct templates start level B too (``peak_starts`` on the blend): clutter2
+# truth in the proposals 4 -> 6 of 30 with them, 4 without (``bench/stages.py --contrast-extra 12``).
+CONTRAST_TEMPLATES = True
+
+
 def _contrast_pass(bank, dtt_b, dtt_a, tpl, scales, image_shape, K, p, distance_mm, anchor_mask, deadline,
                    reserve_ms, contrast, lac, bg, peaks, au, av, radius, r_bg, n_extra, start_of
                    ) -> list[Hypothesis]:
@@ -1100,7 +1107,12 @@ def _contrast_pass(bank, dtt_b, dtt_a, tpl, scales, image_shape, K, p, distance_
     dtt_c = contrast.fine_tensor(dtt_b, tau_fine, r_bg / p.level_scale) if contrast.weight_b > 0 else dtt_b
     dt_qc, tau_qc = quantised(dtt_c, tau_fine)
     state = _LevelB(bank, dtt_c, dt_qc, tau_qc, K, p, distance_mm, bg, deadline, reserve_ms)
-    return state.run([start_of(a, t2, d2) for a in extra])
+    starts = [start_of(a, t2, d2) for a in extra]
+    if CONTRAST_TEMPLATES:
+        others = peak_starts(bank, tpl, scales, dtt_a, au, av, cost2, t2, extra, image_shape, p, lac)
+        for rank in range(p.templates_per_peak - 1):
+            starts += [o[rank] for o in others if len(o) > rank]
+    return state.run(starts)
 
 
 class _LevelB:

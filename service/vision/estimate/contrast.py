@@ -102,7 +102,9 @@ class Contrast:
 
     def _score(self, radius_px: float) -> np.ndarray:
         if self.score is None:
-            self.score = contrast_score(self.image, self.n_channels, self.cp, radius_px)
+            from service.vision.estimate.colour_edges import colour_u8  # any depth or BGRA, as uint8 BGR
+
+            self.score = contrast_score(colour_u8(self.image), self.n_channels, self.cp, radius_px)
         return self.score
 
     def level_a(self, dt_q: np.ndarray, tau_q: int, radius_lvl: int) -> np.ndarray:
