@@ -35,7 +35,7 @@ from bench.accuracy import DATA_DIR, gt_bank, load_model_info, read_gt, read_met
 from bench.hypotheses import read_colour  # noqa: E402
 from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, SEARCH_PARAMS  # noqa: E402
 from service.vision.bank import view_dirs_obj  # noqa: E402
-from service.vision.estimate import coarse  # noqa: E402
+from service.vision.estimate import coarse, contrast  # noqa: E402
 from service.vision.estimate.chamfer import distance_tensor, pooled_distance_tensor  # noqa: E402
 from service.vision.estimate.edges import detect_segments, to_grey_u8  # noqa: E402
 from service.vision.estimate.refine import border_points, verify  # noqa: E402
@@ -50,19 +50,23 @@ class Observer:
     """Wraps coarse.scan_level_a / pick_peaks / local_scan to keep what they return."""
 
     def __init__(self):
-        self.anchors = None
-        self.peaks: list[int] = []
+        self.anchors = None  # the first level-A scan's (the DT3's, or the blend's when it replaces it)
+        self.anchors_all: list[tuple] = []  # every level-A scan (a second: the contrast blend's)
+        self.peaks: list[int] = []  # every peak picked (with contrast extra peaks: both scans')
         self.scans: list[tuple] = []
         self._orig = (coarse.scan_level_a, coarse.pick_peaks, coarse.local_scan)
 
     def __enter__(self):
         def scan_level_a(*a, **k):
-            self.anchors = self._orig[0](*a, **k)
-            return self.anchors
+            out = self._orig[0](*a, **k)
+            self.anchors_all.append(out)
+            self.anchors = self.anchors_all[0]
+            return out
 
         def pick_peaks(*a, **k):
-            self.peaks = self._orig[1](*a, **k)
-            return self.peaks
+            out = self._orig[1](*a, **k)
+            self.peaks = self.peaks + out
+            return out
 
         def local_scan(bank, h, *a, **k):
             hyp, q = self._orig[2](bank, h, *a, **k)
@@ -110,8 +114,11 @@ def run(a) -> None:
                 bg_norm=SEARCH_PARAMS.bg_norm if a.bg_norm is None else a.bg_norm == "on",
                 templates_per_peak=a.templates_per_peak or SEARCH_PARAMS.templates_per_peak,
                 template_peaks=a.template_peaks or SEARCH_PARAMS.template_peaks)
+    coarse.CONTRAST_TEMPLATES = a.contrast_templates
     tot = {"n": 0, "peak": 0, "inB": 0, "inP": 0, "inP1": 0, "inP5": 0, "cheap": 0, "oracleB": 0}
-    cov_all, search_ms = [], []
+    cov_all, search_ms, ranks_a, ranks_c = [], [], [], []
+    cp = contrast.ContrastParams(weight=a.contrast_weight, weight_b=a.contrast_weight_b, d_px=a.contrast_d,
+                                 normalise=a.contrast_norm == "on")
     print("q image model size vis cov | A rank/n peak | B in rank | P in rank")
     for qi, g in enumerate(gts):
         bank = gt_bank(set_dir, g["model"])
@@ -129,19 +136,28 @@ def run(a) -> None:
         c_uv = project(gt.apply(bank.centre_obj[None]), K)[0]
         size = K[0, 0] * bank.diameter_mm / float(gt.apply(bank.centre_obj[None])[0, 2])
         t0 = time.perf_counter()
+        con = contrast.Contrast(image, p.n_channels, p.level_scale, cp) if a.contrast_weight > 0 else None
         with Observer() as ob:
             hyps = coarse.coarse_search(bank, dtt, intr, grey.shape, p, distance_mm=dist,
-                                        distance_range_mm=DEFAULT_DISTANCE_RANGE_MM)
+                                        distance_range_mm=DEFAULT_DISTANCE_RANGE_MM, contrast=con,
+                                        extra_peaks=a.contrast_extra)
         search_ms.append(1000 * (time.perf_counter() - t0))
         au, av, _, cost, _, _ = ob.anchors
         uf = (au + 0.5) / p.level_scale - 0.5
         vf = (av + 0.5) / p.level_scale - 0.5
         dd = np.hypot(uf - c_uv[0], vf - c_uv[1])
-        order = np.argsort(np.where(np.isfinite(cost), cost, np.inf))
-        rank_of = np.empty(len(order), int)
-        rank_of[order] = np.arange(len(order))
-        near = np.flatnonzero((dd <= NEAR_PX) & np.isfinite(cost))
-        a_rank = int(rank_of[near].min()) if len(near) else -1
+
+        def truth_rank(cost, dd=dd):
+            order = np.argsort(np.where(np.isfinite(cost), cost, np.inf))
+            rank_of = np.empty(len(order), int)
+            rank_of[order] = np.arange(len(order))
+            near = np.flatnonzero((dd <= NEAR_PX) & np.isfinite(cost))
+            return int(rank_of[near].min()) if len(near) else -1
+
+        a_rank = truth_rank(cost)
+        c_rank = truth_rank(ob.anchors_all[-1][3]) if len(ob.anchors_all) > 1 else a_rank
+        ranks_a.append(a_rank if a_rank >= 0 else len(cost))
+        ranks_c.append(c_rank if c_rank >= 0 else len(cost))
         peak = any(dd[i] <= p.local_radius_px for i in ob.peaks)
         scanned = [s for s in ob.scans if s[1] is not None]
         m_b = mspd_of(bank, [s[1] for s in scanned], K, dist, g, info)
@@ -188,7 +204,7 @@ def run(a) -> None:
         tot["inP1"] += bool(p_in) and p_in[0] == 0
         tot["inP5"] += bool(p_in) and p_in[0] < 5
         print(f"{qi:3d} {g['image'][-8:]} {g['model']:7s} {size:5.0f} {g.get('visible_fraction', 1):.2f} "
-              f"{cov:.2f} | {a_rank:5d}/{int(np.isfinite(cost).sum()):5d} {int(peak)} | "
+              f"{cov:.2f} | {a_rank:5d}/{int(np.isfinite(cost).sum()):5d} c {c_rank:5d} {int(peak)} | "
               f"{int(bool(b_in))} {b_rank:3d}/{len(scanned):2d} | "
               f"{int(bool(p_in))} {p_in[0] if p_in else -1:2d}/{len(hyps):2d}  "
               f"best {min(m_p, default=np.inf):6.1f} | "
@@ -200,7 +216,10 @@ def run(a) -> None:
           f"polish {a.n_polish} bg_norm {p.bg_norm} "
           f"templates/peak {p.templates_per_peak} at {p.template_peaks} peaks "
           f"dist {'given' if a.distance_given else 'not given'}: n={n} "
-          f"cov mean {np.mean(cov_all):.2f} | peak near truth {tot['peak']} | "
+          f"contrast w {a.contrast_weight} / {a.contrast_weight_b} d {a.contrast_d} norm {a.contrast_norm} "
+          f"extra {a.contrast_extra} templates {a.contrast_templates}: "
+          f"cov mean {np.mean(cov_all):.2f} | truth's level-A rank p50 {np.median(ranks_a):.0f} "
+          f"(second scan {np.median(ranks_c):.0f}) | peak near truth {tot['peak']} | "
           f"truth after level B {tot['inB']} | "
           f"in proposals {tot['inP']} (first {tot['inP1']}, top5 {tot['inP5']}) | "
           f"truth cheaper than every proposal {tot['cheap']} | "
@@ -228,6 +247,16 @@ def main(argv=None) -> int:
                     help="SearchParams.templates_per_peak (default: the service's)")
     ap.add_argument("--template-peaks", type=int, default=None,
                     help="SearchParams.template_peaks (default: the service's)")
+    ap.add_argument("--contrast-weight", type=float, default=0.0,
+                    help="level A scans (1 - w) DT3 + w oriented contrast cost (contrast.py); 0: off")
+    ap.add_argument("--contrast-weight-b", type=float, default=0.0,
+                    help="level B ranks by (1 - w) chamfer + w tau contrast cost")
+    ap.add_argument("--contrast-d", type=float, default=contrast.CONTRAST_D_PX)
+    ap.add_argument("--contrast-norm", choices=["on", "off"], default="on")
+    ap.add_argument("--contrast-templates", action=argparse.BooleanOptionalAction, default=True,
+                    help="with --contrast-extra: its peaks' other distinct templates (on the blend) too")
+    ap.add_argument("--contrast-extra", type=int, default=0,
+                    help="0: the blend replaces level A's ranking; k: k extra peaks from it (second pass)")
     run(ap.parse_args(argv))
     return 0
 

@@ -392,15 +392,19 @@ def level_a_templates(bank: TemplateBank, intr: Intrinsics, image_shape: tuple[i
 
 def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, image_shape, p: SearchParams,
                  anchor_mask: np.ndarray | None = None, deadline: Deadline = NO_DEADLINE,
-                 reserve_ms: float = 0.0):
+                 reserve_ms: float = 0.0, level_a_cost: Callable | None = None):
     """Level A's scan. ``anchor_mask``: (h, w) bool full-resolution, where the reference point may be
     placed (a region of interest): anchors elsewhere are not scanned at all. With a ``deadline`` the
     anchors are scanned in chunks of whole blocks (``_block_chunks``), the blocks with the most edge
     pixels round one of their anchors first, until it leaves
     less than ``LEVEL_A_RESERVE_FACTOR`` x ``reserve_ms``; unscanned anchors cost inf (each anchor's
-    result does not depend on the others', so a scan that finishes is the unchunked one)."""
+    result does not depend on the others', so a scan that finishes is the unchunked one).
+    ``level_a_cost``: (quantised DT3, tau_q) -> the (H, W, C) uint8 tensor scanned instead (a blend with
+    other evidence, ``contrast.py``); the edge count still reads the DT3."""
     C, hl, wl = dtt.dt.shape
     dt_q, tau_q = quantised(dtt, dtt.tau_px)
+    if level_a_cost is not None:
+        dt_q = level_a_cost(dt_q, tau_q)
     au, av = np.meshgrid(np.arange(0, wl, p.anchor_stride), np.arange(0, hl, p.anchor_stride))
     au, av = au.ravel().astype(np.int32), av.ravel().astype(np.int32)
     if anchor_mask is not None:
@@ -694,7 +698,7 @@ def distinct_templates(order: np.ndarray, axes: np.ndarray, k: int, min_deg: flo
 
 def peak_starts(bank: TemplateBank, tpl: LevelATemplates, scales: np.ndarray, dtt_a: DistanceTensor,
                 au: np.ndarray, av: np.ndarray, cost_a: np.ndarray, t_a: np.ndarray, peaks: list[int],
-                image_shape, p: SearchParams) -> list[list[Hypothesis]]:
+                image_shape, p: SearchParams, level_a_cost: Callable | None = None) -> list[list[Hypothesis]]:
     """Per level-A peak, level B's extra starts: its best ``templates_per_peak - 1`` templates distinct
     from each other and from the peak's own level-A template ``t_a[peak]`` (``distinct_templates``),
     each scored at the peak's anchor and the anchors within ``template_anchor_reach`` strides of it and
@@ -705,6 +709,8 @@ def peak_starts(bank: TemplateBank, tpl: LevelATemplates, scales: np.ndarray, dt
         return [[] for _ in peaks]
     C, hl, wl = dtt_a.dt.shape
     dt_q, tau_q = quantised(dtt_a, dtt_a.tau_px)
+    if level_a_cost is not None:  # the templates ranked as ``scan_level_a`` ranked them (``cost_a``)
+        dt_q = level_a_cost(dt_q, tau_q)
     off_u, off_v = scaled_offsets(tpl, scales)
     r = p.template_anchor_reach * p.anchor_stride
     g = np.arange(-r, r + 1, p.anchor_stride)
@@ -996,7 +1002,8 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
                   image_shape: tuple[int, int], p: SearchParams, *, distance_mm: float | None,
                   distance_range_mm: tuple[float, float], anchor_mask: np.ndarray | None = None,
                   deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0,
-                  deferred: list[Callable[[], list[Hypothesis]]] | None = None) -> list[Hypothesis]:
+                  deferred: list[Callable[[], list[Hypothesis]]] | None = None,
+                  contrast=None, extra_peaks: int = 0) -> list[Hypothesis]:
     """Ranked, polished, mutually distinct hypotheses (best first). ``dtt_b`` is the DT3 at
     ``fine_scale``; level A's grid is min-pooled from it. ``anchor_mask`` (full-resolution (h, w)
     bool): level A places the reference point only there (``scan_level_a``).
@@ -1010,7 +1017,11 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
 
     Anytime: each unit of work (a chunk of level-A anchors, a peak's local scan, a polish) starts only
     while the ``deadline`` leaves more than ``reserve_ms`` (the caller's time to verify a result); what
-    was reached by then is returned, hypotheses left unpolished with their level-B costs."""
+    was reached by then is returned, hypotheses left unpolished with their level-B costs.
+
+    ``contrast`` (``contrast.Contrast``): level A scans its blend of DT3 and oriented contrast instead
+    of the DT3, and level B its blend at ``fine_scale`` (``weight_b`` > 0). With ``extra_peaks`` > 0
+    the first pass is unchanged and the second pass adds ``_contrast_pass``'s hypotheses."""
     K = intr.K
     dtt_a, dt_q, tau_q = pooled_and_quantised(dtt_b, p.level_scale, p.rank_tau_px * dtt_b.scale)
     z_ref, scales = (distance_mm, np.array([1.0])) if distance_mm is not None else \
@@ -1022,43 +1033,87 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
                                LEVEL_A_RESERVE_FACTOR * reserve_ms)
         if tpl is None:
             return []
+    r_bg = int(BG_WINDOW_EXTENT * tpl.extent_px * float(np.median(scales)))
+    lac = None if contrast is None else (lambda q, tq: contrast.level_a(q, tq, r_bg))
     au, av, tile, cost, t, d = scan_level_a(dtt_a, tpl, scales, image_shape, p, anchor_mask, deadline,
-                                            reserve_ms)
-    radius = PEAK_RADIUS_EXTENT * tpl.extent_px * float(np.median(scales))
-    bg = background_cost(dtt_a, int(BG_WINDOW_EXTENT * tpl.extent_px * float(np.median(scales)))) \
-        if p.bg_norm else None
+                                            reserve_ms, None if extra_peaks else lac)
+    radius = max(PEAK_RADIUS_EXTENT * tpl.extent_px * float(np.median(scales)), MIN_PEAK_RADIUS_PX)
+    bg = background_cost(dtt_a, r_bg) if p.bg_norm else None
     rank_a = cost / bg[av, au] if bg is not None else cost
-    peaks = pick_peaks(au, av, rank_a, p.n_peaks, max(radius, MIN_PEAK_RADIUS_PX))
+    peaks = pick_peaks(au, av, rank_a, p.n_peaks, radius)
     n_phi = len(tpl.phis_deg)
-    starts: list[Hypothesis] = []
-    for a in peaks:
+
+    def start_of(a, t, d) -> Hypothesis:
         ti = int(t[a])
-        view = int(tpl.views[ti // n_phi])
-        phi = float(tpl.phis_deg[ti % n_phi])
         uv = np.array([(au[a] + 0.5) / p.level_scale - 0.5, (av[a] + 0.5) / p.level_scale - 0.5])
-        z = float(tpl.z_ref_mm[tile[a], ti] / scales[d[a]])
-        starts.append(Hypothesis(view, phi, z, uv))
+        return Hypothesis(int(tpl.views[ti // n_phi]), float(tpl.phis_deg[ti % n_phi]),
+                          float(tpl.z_ref_mm[tile[a], ti] / scales[d[a]]), uv)
+
+    starts = [start_of(a, t, d) for a in peaks]
     if not starts:
         return []
+    if contrast is not None and not extra_peaks and contrast.weight_b > 0:
+        # level B on the blend too (its own tensors: the DT3 itself stays what refinement reads)
+        dtt_b = contrast.fine_tensor(dtt_b, p.rank_tau_px * dtt_b.scale, r_bg / p.level_scale)
+        dt_q, tau_q = quantised(dtt_b, p.rank_tau_px * dtt_b.scale)
     state = _LevelB(bank, dtt_b, dt_q, tau_q, K, p, distance_mm, bg, deadline, reserve_ms)
     out = state.run(starts)
-    if p.templates_per_peak <= 1:
+    if p.templates_per_peak <= 1 and not (extra_peaks and lac is not None):
         return out
 
     def second() -> list[Hypothesis]:
-        # Each peak's second distinct template first, then each one's third, ...: the deadline reaches
-        # every peak's best alternative before any peak's next.
-        extra = peak_starts(bank, tpl, scales, dtt_a, au, av, cost, t, peaks[:p.template_peaks], image_shape,
-                            p)
+        found: list[Hypothesis] = []
+        if extra_peaks and lac is not None:
+            found = _contrast_pass(bank, dtt_b, dtt_a, tpl, scales, image_shape, K, p, distance_mm,
+                                   anchor_mask, deadline, reserve_ms, contrast, lac, bg, peaks, au, av,
+                                   radius, r_bg, extra_peaks, start_of)
         more: list[Hypothesis] = []
-        for rank in range(p.templates_per_peak - 1):
-            more += [s[rank] for s in extra if len(s) > rank]
-        return state.run(more)
+        if p.templates_per_peak > 1:
+            # Each peak's second distinct template first, then each one's third, ...: the deadline
+            # reaches every peak's best alternative before any peak's next.
+            extra = peak_starts(bank, tpl, scales, dtt_a, au, av, cost, t, peaks[:p.template_peaks],
+                                image_shape, p)
+            for rank in range(p.templates_per_peak - 1):
+                more += [s[rank] for s in extra if len(s) > rank]
+        return sorted(found + state.run(more), key=lambda h: h.rank_cost)
 
     if deferred is not None:
         deferred.append(second)
         return out
     return sorted(out + second(), key=lambda h: h.rank_cost)
+
+
+# Each contrast peak's other distinct templates start level B too (``peak_starts`` on the blend): clutter2
+# truth in the proposals 4 -> 6 of 30 with them, 4 without (``bench/stages.py --contrast-extra 12``).
+CONTRAST_TEMPLATES = True
+
+
+def _contrast_pass(bank, dtt_b, dtt_a, tpl, scales, image_shape, K, p, distance_mm, anchor_mask, deadline,
+                   reserve_ms, contrast, lac, bg, peaks, au, av, radius, r_bg, n_extra, start_of
+                   ) -> list[Hypothesis]:
+    """Level A rescanned on ``lac``'s blend of DT3 and contrast: its best ``n_extra`` peaks farther than
+    ``radius`` from every one of ``peaks`` (the anchors are the first scan's: the edge count that
+    selects them reads the DT3 alone), each searched by level B on the blend at ``fine_scale``
+    (``contrast.fine_tensor``) in a level B of their own: not gated by the first pass's best cost."""
+    au2, av2, _, cost2, t2, d2 = scan_level_a(dtt_a, tpl, scales, image_shape, p, anchor_mask, deadline,
+                                              reserve_ms, lac)
+    assert np.array_equal(au2, au) and np.array_equal(av2, av)
+    rank2 = cost2 / bg[av, au] if bg is not None else cost2
+    taken = np.array([[au[a], av[a]] for a in peaks], float).reshape(-1, 2)
+    far = np.all(np.hypot(au[:, None] - taken[None, :, 0], av[:, None] - taken[None, :, 1]) > radius, axis=1)
+    extra = pick_peaks(au, av, np.where(far, rank2, np.inf), n_extra, radius)
+    if not extra:
+        return []
+    tau_fine = p.rank_tau_px * dtt_b.scale
+    dtt_c = contrast.fine_tensor(dtt_b, tau_fine, r_bg / p.level_scale) if contrast.weight_b > 0 else dtt_b
+    dt_qc, tau_qc = quantised(dtt_c, tau_fine)
+    state = _LevelB(bank, dtt_c, dt_qc, tau_qc, K, p, distance_mm, bg, deadline, reserve_ms)
+    starts = [start_of(a, t2, d2) for a in extra]
+    if CONTRAST_TEMPLATES:
+        others = peak_starts(bank, tpl, scales, dtt_a, au, av, cost2, t2, extra, image_shape, p, lac)
+        for rank in range(p.templates_per_peak - 1):
+            starts += [o[rank] for o in others if len(o) > rank]
+    return state.run(starts)
 
 
 class _LevelB:
