@@ -104,7 +104,7 @@ def _window_offsets_serial(p_rel, theta, Rv, zc, depth_f, ray, fx, fy, cx, cy, s
 
 
 @pytest.mark.parametrize("n_threads", [1, 2])
-def test_window_offsets_per_template_items_equal_the_template_loop(n_threads):
+def test_window_offsets_equal_the_template_loop(n_threads):
     from service.vision.estimate.coarse import _window_offsets
     from service.vision.geometry.frames import R_from_rotvec
 

@@ -797,19 +797,18 @@ class Window:
     stride: int
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(cache=True)
 def _window_offsets(p_rel, theta, Rv, zc, depth_f, ray, fx, fy, cx, cy, s, c0u, c0v, phis_rad, n_channels):
     """Templates of a local-scan window: (1, D, T, P) int16 fine-grid offsets from the window centre
     (c0u, c0v) and (T, P) int32 channels, for the Tv views' points ``p_rel`` (relative to the
     reference point) rotated by ``Rv`` (T = Tp * Tv, phi-major) and placed at depth ``zc * depth_f``
-    on the unit-z ray ``ray``. Compiled: numpy's temporaries cost more than the scan itself; one
-    template per work item (each writes only its own)."""
+    on the unit-z ray ``ray``. Compiled: numpy's temporaries cost more than the scan itself."""
     Tv, P = theta.shape[0], theta.shape[1]
     T, D = Rv.shape[0], depth_f.shape[0]
     off_u = np.empty((1, D, T, P), np.int16)
     off_v = np.empty((1, D, T, P), np.int16)
     chan = np.empty((T, P), np.int32)
-    for t in nb.prange(T):
+    for t in range(T):
         iv = t % Tv
         phi = phis_rad[t // Tv]
         R = Rv[t]
