@@ -3,6 +3,7 @@ without refinement, compare within named tolerances; blank and unrelated images 
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import replace
 
 import numba
@@ -353,6 +354,40 @@ def test_shared_bound_scan_does_not_depend_on_the_threads(seed):
     finally:
         numba.set_num_threads(threads)
     assert max(reported) > 1  # later rounds beat earlier ones: the bound moved between rounds
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_serial_rounds_and_blocks_give_the_parallel_kernels_answer(seed):
+    """The small rounds and block tables that run on the calling thread (no parallel region to start)
+    give exactly the answer of the same kernel run all in parallel, and of the serial reference."""
+    from service.vision.estimate.coarse import (
+        LEVEL_B_SENTINEL_POINTS,
+        _block_lower_bounds,
+        _scan_bounded,
+        _window_bounds,
+    )
+
+    dt, tau_q, off_u, off_v, chan, au, av, gu, gv, stride = _window_case(seed)
+    n = LEVEL_B_SENTINEL_POINTS
+    bounds = [(np.zeros((0, 0, 0), np.int64), np.zeros(0, np.int32)),
+              _window_bounds(dt, tau_q, off_u, off_v, chan, au, av, gu, gv, stride)]
+    for accept in (8, tau_q):
+        want = _shared_scan_reference(dt, tau_q, off_u, off_v, chan, au, av, accept, n)
+        for (lower, block), serial_round in itertools.product(bounds, (0, 4, len(au))):
+            got = _scan_bounded(dt, tau_q, off_u, off_v, chan, au, av, np.zeros(len(au), np.int32),
+                                np.int64(accept), n, True, lower, block, serial_round)
+            for g_, w_ in zip(got, want, strict=True):
+                np.testing.assert_array_equal(g_, w_)
+    rng = np.random.default_rng(seed)
+    pooled = rng.integers(0, 256, (80, 90, chan.max() + 1)).astype(np.uint8)
+    bu, bv = rng.integers(20, 60, 6).astype(np.int32), rng.integers(20, 50, 6).astype(np.int32)
+    pu0, pv0 = -3, -5  # the region's origin: offsets index pooled relative to it
+    y = bv[:, None, None, None] + off_v[0][None, :, :, :n] - pv0  # (B, D, T, n)
+    x = bu[:, None, None, None] + off_u[0][None, :, :, :n] - pu0
+    want = pooled[y, x, chan[None, None, :, :n]].astype(np.int64).sum(-1)
+    for serial_blocks in (0, len(bu)):
+        got = _block_lower_bounds(pooled, pu0, pv0, off_u, off_v, chan, bu, bv, n, serial_blocks)
+        np.testing.assert_array_equal(got, want)
 
 
 @pytest.mark.parametrize("seed", [0, 1])

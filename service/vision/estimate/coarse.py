@@ -171,11 +171,21 @@ _NO_BLOCKS = np.zeros(0, np.int32)
 # With a shared bound, ``_scan_bounded`` scans its anchors in rounds of 1, 2, 4, ... anchors: each round's
 # anchors prune against the best total of the rounds before it (its start), never against each other's.
 SHARED_FIRST_ROUND = 1
+# Rounds of at most this many anchors, and block-bound tables of at most ``SERIAL_BLOCKS`` blocks, run on
+# the calling thread: with the OpenMP threads asleep between kernels (OMP_WAIT_POLICY, vision/__init__.py)
+# a parallel region waits for a woken thread, longer when the other core runs the frame's background
+# work, and a level-B window's rounds and tables are too small to pay for it. A level-B window (<= 169
+# anchors: rounds up to 64; 16 blocks) thus runs serially; level A's one round of every anchor does not.
+# Paper frames, one process alternating frame by frame (bench/launches.py --ab 5), coarse p50 serial vs
+# parallel: distance given 17.6 vs 20.3 ms, 17.8 vs 19.9, 18.3 vs 21.2; not given 75.7 vs 84.5, 65.9 vs
+# 68.4. Only small rounds (<= 16) serial gained about half as much (18.9 vs 20.1 ms).
+SERIAL_ROUND = 64
+SERIAL_BLOCKS = 16
 
 
 @nb.njit(parallel=True, cache=True)
 def _scan_bounded(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, anchor_tile, accept, n_sentinel,
-                  shared, lower, anchor_block):
+                  shared, lower, anchor_block, serial_round=SERIAL_ROUND):
     """For every anchor, the best (template, scale) by mean DT3 over template points.
 
     dt: (H, W, C) uint8 (DT3 in 1/DT_QUANT pixels, pixel-major so a template's neighbouring points
@@ -197,6 +207,9 @@ def _scan_bounded(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, anchor_ti
     A template whose bound already fails the partial-sum or the sentinel test is skipped without
     reading the tensor: the test would fail on its own sum too, so the result is exactly the
     unbounded scan's (same best, same ties), only cheaper.
+
+    A round of at most ``serial_round`` anchors runs serially: an anchor's result depends only on its
+    round's start, so the answer is the same.
     """
     A = anchors_u.shape[0]
     P = off_u.shape[3]
@@ -208,10 +221,16 @@ def _scan_bounded(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, anchor_ti
     size = SHARED_FIRST_ROUND if shared else A
     while start < A:
         stop = min(A, start + size)
-        for a in nb.prange(start, stop):
-            best_sum[a], best_t[a], best_d[a] = _scan_anchor(dt, tau_q, off_u, off_v, chan, anchors_u[a],
-                                                             anchors_v[a], anchor_tile[a], bound, n_sentinel,
-                                                             lower, anchor_block, a)
+        if stop - start <= serial_round:
+            for a in range(start, stop):
+                best_sum[a], best_t[a], best_d[a] = _scan_anchor(dt, tau_q, off_u, off_v, chan, anchors_u[a],
+                                                                 anchors_v[a], anchor_tile[a], bound,
+                                                                 n_sentinel, lower, anchor_block, a)
+        else:
+            for a in nb.prange(start, stop):
+                best_sum[a], best_t[a], best_d[a] = _scan_anchor(dt, tau_q, off_u, off_v, chan, anchors_u[a],
+                                                                 anchors_v[a], anchor_tile[a], bound,
+                                                                 n_sentinel, lower, anchor_block, a)
         for a in range(start, stop):  # the next round's bound, from this round's anchors in order
             if best_t[a] >= 0 and best_sum[a] < bound:
                 bound = best_sum[a]
@@ -274,22 +293,31 @@ def _scan_anchor(dt, tau_q, off_u, off_v, chan, ua, va, j, start, n_sentinel, lo
 
 
 @nb.njit(parallel=True, cache=True)
-def _block_lower_bounds(pooled, pu0, pv0, off_u, off_v, chan, block_u, block_v, n_points):
+def _block_lower_bounds(pooled, pu0, pv0, off_u, off_v, chan, block_u, block_v, n_points,
+                        serial_blocks=SERIAL_BLOCKS):
     """(B, D, T) int64: per block of anchors and template, the sum over its first ``n_points`` points of
-    ``pooled`` (the DT3 min-pooled over the block's anchor offsets, region origin (pu0, pv0))."""
-    B = block_u.shape[0]
-    D = off_u.shape[1]
-    T = off_u.shape[2]
-    out = np.empty((B, D, T), np.int64)
-    for b in nb.prange(B):
-        for d in range(D):
-            for t in range(T):
-                acc = 0
-                for i in range(n_points):
-                    acc += pooled[block_v[b] + off_v[0, d, t, i] - pv0, block_u[b] + off_u[0, d, t, i] - pu0,
-                                  chan[t, i]]
-                out[b, d, t] = acc
+    ``pooled`` (the DT3 min-pooled over the block's anchor offsets, region origin (pu0, pv0)). At most
+    ``serial_blocks`` blocks run on the calling thread (see ``SERIAL_ROUND``)."""
+    n_blocks = block_u.shape[0]
+    out = np.empty((n_blocks, off_u.shape[1], off_u.shape[2]), np.int64)
+    if n_blocks <= serial_blocks:
+        for b in range(n_blocks):
+            _block_bound(pooled, pu0, pv0, off_u, off_v, chan, block_u[b], block_v[b], n_points, out[b])
+    else:
+        for b in nb.prange(n_blocks):
+            _block_bound(pooled, pu0, pv0, off_u, off_v, chan, block_u[b], block_v[b], n_points, out[b])
     return out
+
+
+@nb.njit(cache=True, inline="always")
+def _block_bound(pooled, pu0, pv0, off_u, off_v, chan, bu, bv, n_points, out):
+    """``_block_lower_bounds`` for one block (anchor origin (``bu``, ``bv``)) into ``out`` (D, T)."""
+    for d in range(off_u.shape[1]):
+        for t in range(off_u.shape[2]):
+            acc = 0
+            for i in range(n_points):
+                acc += pooled[bv + off_v[0, d, t, i] - pv0, bu + off_u[0, d, t, i] - pu0, chan[t, i]]
+            out[d, t] = acc
 
 
 def _pooled_region(dt, tau_q, u0, v0, u1, v1, shift, n_shift):
