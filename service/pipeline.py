@@ -341,7 +341,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
                                reserve_ms=_CHECK_MS.high + SEARCH_RESERVE_CHECKS * _CHECK_MS.value,
                                plane=plane, several=max_instances > 1,
                                deferred=second if max_instances <= 1 else None,
-                               colour=ideal if np.ndim(ideal) == 3 else None)
+                               colour=ideal)
     t0 = time.perf_counter()
     t_second = 0.0
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)

@@ -93,10 +93,6 @@ class Contrast:
         self.score: np.ndarray | None = None
 
     @property
-    def weight(self) -> float:
-        return self.cp.weight
-
-    @property
     def weight_b(self) -> float:
         return self.cp.weight_b
 

@@ -240,24 +240,30 @@ def project_border(params: PoseParams, x: np.ndarray, border: Border, intr: Intr
     return uv, theta, duv, dth
 
 
+def _kernel_pose(params: PoseParams, x: np.ndarray, with_jac: bool):
+    """The compiled residual loops' pose (``_point_uv``): (R, offset, centre, JB, dz_dr), an object point
+    p mapping to R (p - centre) + offset; with ``with_jac`` the rotation Jacobian's pieces of
+    ``PoseParams._pose_jac``, else zeros (as ``PoseParams.points`` without a Jacobian: p R^T + t)."""
+    if with_jac:
+        pose, JB, dz_dr = params._pose_jac(x)
+        centre, offset = params.c, pose.R @ params.c + pose.t_mm
+    else:
+        pose = params.pose(x)
+        centre, offset = np.zeros(3), pose.t_mm
+        JB, dz_dr = np.zeros((3, params.nr)), np.zeros(params.nr)
+    return (np.ascontiguousarray(pose.R, np.float64), np.asarray(offset, np.float64),
+            np.asarray(centre, np.float64), np.ascontiguousarray(JB, np.float64),
+            np.asarray(dz_dr, np.float64))
+
+
 def dt_residuals(params: PoseParams, x: np.ndarray, border: Border, intr: Intrinsics, dtt: DistanceTensor,
                  with_jac: bool = True):
     """The "dt" residual: directional chamfer distance (full-res px) per border point, and
     its Jacobian (M, n): ``project_border`` and ``chamfer.sample_with_grad`` in one compiled loop (their
     numpy steps on a few hundred points cost ~0.25 ms an evaluation, mostly call overhead)."""
-    if with_jac:
-        pose, JB, dz_dr = params._pose_jac(x)
-        centre, R = params.c, pose.R
-        offset = pose.R @ params.c + pose.t_mm
-    else:  # as ``PoseParams.points`` without a Jacobian: p R^T + t
-        pose = params.pose(x)
-        centre, R, offset = np.zeros(3), pose.R, pose.t_mm
-        JB, dz_dr = np.zeros((3, params.nr)), np.zeros(params.nr)
     r, J = _dt_kernel(np.ascontiguousarray(border.p_obj, np.float64),
                       np.ascontiguousarray(border.tan_obj, np.float64), TANGENT_STEP_MM,
-                      np.ascontiguousarray(R, np.float64), np.asarray(offset, np.float64),
-                      np.asarray(centre, np.float64), np.ascontiguousarray(JB, np.float64),
-                      np.asarray(dz_dr, np.float64), params.n, params.distance_mm is None,
+                      *_kernel_pose(params, x, with_jac), params.n, params.distance_mm is None,
                       float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy), dtt.dt,
                       float(dtt.origin_uv[0]), float(dtt.origin_uv[1]), float(dtt.scale), float(dtt.tau_px),
                       with_jac)
@@ -415,17 +421,8 @@ def line_residuals(params: PoseParams, x: np.ndarray, border: Border, intr: Intr
     """Signed distance (full-res px) of each matched border point to its segment's line (one compiled
     loop, as ``dt_residuals``)."""
     P = np.ascontiguousarray(border.p_obj[match.idx], np.float64)
-    if with_jac:
-        pose, JB, dz_dr = params._pose_jac(x)
-        centre, offset = params.c, pose.R @ params.c + pose.t_mm
-    else:  # as ``PoseParams.points`` without a Jacobian: p R^T + t
-        pose = params.pose(x)
-        centre, offset = np.zeros(3), pose.t_mm
-        JB, dz_dr = np.zeros((3, params.nr)), np.zeros(params.nr)
-    r, J = _line_kernel(P, np.ascontiguousarray(pose.R, np.float64), np.asarray(offset, np.float64),
-                        np.asarray(centre, np.float64), np.ascontiguousarray(JB, np.float64),
-                        np.asarray(dz_dr, np.float64), params.n, params.distance_mm is None, float(intr.fx),
-                        float(intr.fy), float(intr.cx), float(intr.cy),
+    r, J = _line_kernel(P, *_kernel_pose(params, x, with_jac), params.n, params.distance_mm is None,
+                        float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy),
                         np.ascontiguousarray(match.normal, np.float64), np.asarray(match.offset, np.float64),
                         with_jac)
     return r, (J if with_jac else None)
