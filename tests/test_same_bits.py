@@ -112,3 +112,20 @@ def test_window_grid_is_nearest_first_with_row_order_ties():
     want = sorted(((du, dv) for dv in range(-4, 5, 2) for du in range(-4, 5, 2)),
                   key=lambda p: p[0] ** 2 + p[1] ** 2)
     assert list(zip(gu.tolist(), gv.tolist(), strict=True)) == want
+
+
+def test_rasterise_roi_writes_the_given_face_ids():
+    import trimesh
+
+    from service.vision.geometry.camera import Intrinsics
+    from service.vision.geometry.frames import Pose, Rx
+    from service.vision.geometry.render import rasterise_roi
+
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=30.0)
+    V, F = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
+    pose, intr = Pose(Rx(20.0), np.array([5.0, -3.0, 300.0])), Intrinsics(800.0, 800.0, 319.5, 239.5)
+    depth, fid, uv0 = rasterise_roi(V, F, pose, intr, (640, 480))
+    ids = (7 * np.arange(len(F)) + 3).astype(np.int32)
+    depth2, fid2, uv02 = rasterise_roi(V, F, pose, intr, (640, 480), face_ids=ids)
+    assert uv02 == uv0 and np.array_equal(depth2, depth) and (fid >= 0).sum() > 1000
+    assert np.array_equal(fid2, np.where(fid >= 0, 7 * fid + 3, -1))

@@ -131,7 +131,7 @@ def face_ids_roi(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, m
 
     A closed mesh's back faces are hidden behind its front faces (``MeshTopology.closed``): only the
     front ones are rasterised (half the triangles; the ROI is the whole mesh's projection either way)
-    when ``FRONT_FACES_ONLY``, and their ids mapped back to the mesh's."""
+    when ``FRONT_FACES_ONLY``, each pixel given its face's index in the whole mesh (``face_ids``)."""
     topo = mesh_topology(bank.vertices_mm, bank.faces) if FRONT_FACES_ONLY else None
     if topo is None or not topo.closed:
         invz, fid, origin = rasterise_roi(bank.vertices_mm, bank.faces, pose, intr, image_size,
@@ -139,9 +139,7 @@ def face_ids_roi(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, m
         return fid, invz, origin
     front = np.flatnonzero(topo.front_facing(pose)).astype(np.int32)
     invz, fid, origin = rasterise_roi(topo.vertices, topo.faces[front], pose, intr, image_size,
-                                      margin_px=margin_px, inverse_depth=True)
-    on = fid >= 0
-    fid[on] = front[fid[on]]
+                                      margin_px=margin_px, inverse_depth=True, face_ids=front)
     return fid, invz, origin
 
 
