@@ -13,6 +13,8 @@ nogil           the vision kernels release the GIL (``nogil=True``; off: recompi
 prefetch        the refinement's image side and border traced during the polish (``pipeline.PREFETCH``)
 front_faces     the evidence rasterises a closed mesh's front faces only (``evidence.FRONT_FACES_ONLY``)
 fast_evaluate   the coarse search's ``evaluate``: one matmul, a compiled read-out (``coarse.FAST_EVALUATE``)
+numba1          numba's parallel kernels on one thread (the calling one; the background pool unchanged):
+                B is one thread, A the budget (not a code path of the service: a measurement)
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from bench.repeat import fingerprint  # noqa: E402
 from bench.speed import frames  # noqa: E402
 from service import pipeline  # noqa: E402
 from service.pipeline import estimate, warm_up  # noqa: E402
+from service.vision import threads  # noqa: E402
 from service.vision.estimate import coarse, evidence  # noqa: E402
 
 NOGIL_MODULES = ("service.vision.estimate.coarse", "service.vision.estimate.chamfer",
@@ -64,7 +67,15 @@ def _flag(attr: str, module=pipeline):
     return set_
 
 
-SWITCHES = {"interior_later": _flag("INTERIOR_LATER"), "nogil": _nogil, "prefetch": _flag("PREFETCH"),
+_USE_BUDGET = threads.use_budget
+
+
+def _numba1(on: bool) -> None:
+    threads.use_budget = (lambda: numba.set_num_threads(1)) if on else _USE_BUDGET
+
+
+SWITCHES = {"numba1": _numba1,
+            "interior_later": _flag("INTERIOR_LATER"), "nogil": _nogil, "prefetch": _flag("PREFETCH"),
             "front_faces": _flag("FRONT_FACES_ONLY", evidence),
             "fast_evaluate": _flag("FAST_EVALUATE", coarse)}
 
