@@ -54,7 +54,7 @@ def orientation_relax(dt: np.ndarray, lambda_px: float) -> np.ndarray:
     return dt
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _relax_rows(dt, lam):  # row by row, the (C, W) slab stays in cache: numpy's full-image passes took 9 ms
     """A pixel whose channels are all equal (away from every edge: all at the truncation) keeps them
     (lam >= 0): each row is relaxed between its first and last other pixel only. A clean paper render
@@ -88,7 +88,7 @@ def _relax_rows(dt, lam):  # row by row, the (C, W) slab stays in cache: numpy's
                     a[x] = min(a[x], b[x] + lam)
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def truncated_edt(edges, tau_px):
     """(C, H, W) uint8 edge masks -> (C, H, W) float32 Euclidean distance to the nearest edge pixel of
     the same channel, capped at ``tau_px``.
@@ -214,6 +214,104 @@ def sample(dtt: DistanceTensor, uv_grid: np.ndarray, theta_rad: np.ndarray) -> n
     return np.where(k.inside, val, dtt.tau_px)
 
 
+def sample_mean(dtt: DistanceTensor, uv_full: np.ndarray, theta_rad: np.ndarray, *, tau_px: float,
+                score_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of (M, P) points (full-resolution uv (M, P, 2), orientation (M, P)): the mean of ``sample``'s
+    distance (full-resolution px) capped at ``tau_px``, and the fraction of points within ``score_px``;
+    compiled, the same bits as ``sample`` and numpy's mean (pairwise sum) over each row (P <= 512)."""
+    uv = np.ascontiguousarray(uv_full, np.float64)
+    theta = np.ascontiguousarray(theta_rad, np.float64)
+    if theta.ndim != 2 or theta.shape[1] > 512:
+        val = sample(dtt, dtt.to_grid(uv), theta) / dtt.scale
+        return np.minimum(val, tau_px).mean(axis=1), (val <= score_px).mean(axis=1)
+    return _sample_mean(uv, theta, dtt.dt, float(dtt.origin_uv[0]), float(dtt.origin_uv[1]), float(dtt.scale),
+                        float(dtt.tau_px), float(tau_px), float(score_px))
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _pw_block(a, lo, n):
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[lo + i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    while i < n - (n % 8):
+        r0 += a[lo + i]
+        r1 += a[lo + i + 1]
+        r2 += a[lo + i + 2]
+        r3 += a[lo + i + 3]
+        r4 += a[lo + i + 4]
+        r5 += a[lo + i + 5]
+        r6 += a[lo + i + 6]
+        r7 += a[lo + i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _pw2(a, lo, n):
+    if n <= 128:
+        return _pw_block(a, lo, n)
+    n2 = n // 2
+    n2 -= n2 % 8
+    return _pw_block(a, lo, n2) + _pw_block(a, lo + n2, n - n2)
+
+
+@nb.njit(cache=True, nogil=True)
+def _pairwise(a, lo, n):
+    """numpy's pairwise sum of a[lo:lo + n] (its add.reduce on a contiguous row), for n <= 512."""
+    if n <= 256:
+        return _pw2(a, lo, n)
+    n2 = n // 2
+    n2 -= n2 % 8
+    return _pw2(a, lo, n2) + _pw2(a, lo + n2, n - n2)
+
+
+@nb.njit(cache=True, nogil=True)
+def _sample_mean(uv, theta, dt, ou, ov, scale, tau_dt, tau_px, score_px):
+    """``sample_mean``'s loop: numpy's operations on each point in the same order (bit for bit)."""
+    M, P = theta.shape
+    C, h, w = dt.shape
+    cost = np.empty(M)
+    score = np.empty(M)
+    vals = np.empty(P)
+    for m in range(M):
+        n_ok = 0
+        for i in range(P):
+            th = theta[m, i]
+            gu = (uv[m, i, 0] - ou + 0.5) * scale - 0.5
+            gv = (uv[m, i, 1] - ov + 0.5) * scale - 0.5
+            if gu >= 0 and gu <= w - 1 and gv >= 0 and gv <= h - 1:
+                uc = min(max(gu, 0.0), w - 1.0001)
+                vc = min(max(gv, 0.0), h - 1.0001)
+                u0 = int(math.floor(uc))
+                v0 = int(math.floor(vc))
+                cf = (th * (C / np.pi)) % C
+                c0 = int(math.floor(cf)) % C
+                c1 = (c0 + 1) % C
+                fu, fv, fc = uc - u0, vc - v0, cf - math.floor(cf)
+                b0 = ((1 - fv) * ((1 - fu) * dt[c0, v0, u0] + fu * dt[c0, v0, u0 + 1])
+                      + fv * ((1 - fu) * dt[c0, v0 + 1, u0] + fu * dt[c0, v0 + 1, u0 + 1]))
+                b1 = ((1 - fv) * ((1 - fu) * dt[c1, v0, u0] + fu * dt[c1, v0, u0 + 1])
+                      + fv * ((1 - fu) * dt[c1, v0 + 1, u0] + fu * dt[c1, v0 + 1, u0 + 1]))
+                val = (1 - fc) * b0 + fc * b1
+            else:
+                val = tau_dt
+            val = val / scale
+            n_ok += val <= score_px
+            vals[i] = min(val, tau_px)
+        cost[m] = _pairwise(vals, 0, P) / P
+        score[m] = n_ok / P
+    return cost, score
+
+
 def sample_with_grad(dtt: DistanceTensor, uv_grid: np.ndarray, theta_rad: np.ndarray):
     """``sample`` and its partial derivatives: (val, d/du, d/dv, d/dtheta), grid units; outside the
     grid: tau, zero gradient. Separate from ``sample`` so the coarse search does not pay for them."""
@@ -253,7 +351,7 @@ def pooled_distance_tensor(dtt: DistanceTensor, scale: float) -> DistanceTensor:
     return DistanceTensor(pooled, scale, dtt.origin_uv, dtt.tau_px / f, dtt.lambda_px / f)
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _min_pool(dt, f):  # numpy's strided min over (C, h, f, w, f) took 50 ms at 640 x 480 x 16
     C, H, W = dt.shape
     hh, ww = H // f, W // f
@@ -276,7 +374,7 @@ def quantised(dtt: DistanceTensor, tau_px: float) -> tuple[np.ndarray, int]:
     return _quantise_hwc(dtt.dt, np.float32(DT_QUANT), np.float32(tau_q)), tau_q
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _quantise_hwc(dt, factor, tau_q):  # numpy's transposed copy alone took 13 ms at 640 x 480 x 16
     C, H, W = dt.shape
     out = np.empty((H, W, C), np.uint8)
@@ -299,7 +397,7 @@ def pooled_and_quantised(dtt: DistanceTensor, scale: float, tau_px: float
     return DistanceTensor(pooled, scale, dtt.origin_uv, dtt.tau_px / f, dtt.lambda_px / f), q, tau_q
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _pool_quantise(dt, f, factor, tau_q):
     """``_min_pool(dt, f)`` and ``_quantise_hwc(dt, factor, tau_q)`` together, band of f rows by band.
 

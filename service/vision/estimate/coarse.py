@@ -31,6 +31,7 @@ corners too.
 from __future__ import annotations
 
 import concurrent.futures
+import functools
 import math
 import threading
 from collections.abc import Callable
@@ -57,6 +58,7 @@ from service.vision.estimate.chamfer import (
     pooled_and_quantised,
     quantised,
     sample,
+    sample_mean,
 )
 from service.vision.geometry.camera import Intrinsics, project, ray_rotation, ray_rotations
 from service.vision.geometry.frames import Rz
@@ -183,7 +185,7 @@ SERIAL_ROUND = 64
 SERIAL_BLOCKS = 16
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _scan_bounded(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, anchor_tile, accept, n_sentinel,
                   shared, lower, anchor_block, serial_round=SERIAL_ROUND):
     """For every anchor, the best (template, scale) by mean DT3 over template points.
@@ -266,7 +268,7 @@ def _placement_total(dt, tau_q, off_u, off_v, chan, j, d, t, ua, va, best, n_sen
     return acc
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _scan_anchor(dt, tau_q, off_u, off_v, chan, ua, va, j, start, n_sentinel, lower, anchor_block, a):
     """``_scan_bounded`` at one anchor (``ua``, ``va``; tile ``j``; index ``a`` into ``anchor_block``),
     from the best total ``start`` -> (best total, its template, its scale index; -1, -1 when nothing
@@ -292,7 +294,7 @@ def _scan_anchor(dt, tau_q, off_u, off_v, chan, ua, va, j, start, n_sentinel, lo
     return best, bt, bd
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _block_lower_bounds(pooled, pu0, pv0, off_u, off_v, chan, block_u, block_v, n_points,
                         serial_blocks=SERIAL_BLOCKS):
     """(B, D, T) int64: per block of anchors and template, the sum over its first ``n_points`` points of
@@ -480,7 +482,7 @@ def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, 
 LEVEL_A_BLOCK_ANCHORS = 4  # level A's block bounds: blocks of 4 x 4 anchors of one tile (2 and 8: slower)
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _scan_blocks(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, block_start, block_u, block_v,
                  block_tile, pooled, pu0, pv0, accept, n_sentinel):
     """``_scan`` without a shared bound (each anchor its own best), anchors grouped in blocks: anchors
@@ -551,9 +553,7 @@ def _scan_level_a_blocks(dt_q, tau_q, off_u, off_v, chan, au, av, tile, accept, 
     if A == 0:
         return np.full(0, np.inf), np.full(0, -1, np.int32), np.full(0, -1, np.int32)
     span = stride * LEVEL_A_BLOCK_ANCHORS
-    key = np.stack([tile, av // span, au // span], 1)
-    uniq, block = np.unique(key, axis=0, return_inverse=True)
-    block = block.ravel()
+    uniq, block = _block_ids(tile, av // span, au // span)
     order = np.argsort(block, kind="stable")
     start = np.searchsorted(block[order], np.arange(len(uniq) + 1)).astype(np.int64)
     bt = uniq[:, 0].astype(np.int32)
@@ -568,6 +568,16 @@ def _scan_level_a_blocks(dt_q, tau_q, off_u, off_v, chan, au, av, tile, accept, 
     di = np.empty(A, np.int32)
     cost[order], ti[order], di[order] = c, t, d
     return cost, ti, di
+
+
+def _block_ids(tile: np.ndarray, bv: np.ndarray, bu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(np.stack([tile, bv, bu], 1), axis=0, return_inverse=True)`` of non-negative integers
+    (the distinct (tile, block row, block column) triples in lexicographic order, (B, 3) int64, and each
+    anchor's index among them): one integer key per anchor instead of numpy's row sort (~1 ms a frame)."""
+    t, v, u = (np.asarray(x, np.int64) for x in (tile, bv, bu))
+    nv, nu = int(v.max()) + 1, int(u.max()) + 1
+    keys, inverse = np.unique((t * nv + v) * nu + u, return_inverse=True)
+    return np.stack([keys // (nv * nu), keys // nu % nv, keys % nu], 1), inverse.ravel()
 
 
 def _level_a_pooled(dt_q, tau_q, off_u, off_v, au, av, stride):
@@ -590,8 +600,7 @@ def _block_chunks(au, av, tile, count, stride) -> list[np.ndarray]:
     if len(au) == 0:
         return []
     span = stride * LEVEL_A_BLOCK_ANCHORS
-    _, block = np.unique(np.stack([tile, av // span, au // span], 1), axis=0, return_inverse=True)
-    block = block.ravel()
+    _, block = _block_ids(tile, av // span, au // span)
     top = np.zeros(int(block.max()) + 1, count.dtype)
     np.maximum.at(top, block, count)
     # blocks by their best anchor's count, then each block's anchors by count: the old per-anchor order
@@ -618,7 +627,7 @@ def scaled_offsets(tpl: LevelATemplates, scales: np.ndarray) -> tuple[np.ndarray
                        lambda: (_scale_offsets(tpl.off_u, sc), _scale_offsets(tpl.off_v, sc)))
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _scale_offsets(off, scales):
     J, T, P = off.shape
     D = scales.shape[0]
@@ -668,7 +677,7 @@ def pick_peaks(au, av, cost, n_peaks: int, radius_lvl: float) -> list[int]:
     return chosen
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def _scan_templates(dt, tau_q, off_u, off_v, chan, anchors_u, anchors_v, anchor_tile, bound_q):
     """Every template's cost at each anchor, not only the best one's (``_scan``'s arguments).
 
@@ -798,18 +807,41 @@ def evaluate(bank: TemplateBank, views: np.ndarray, Rs: np.ndarray, ts: np.ndarr
              ) -> tuple[np.ndarray, np.ndarray]:
     """Mean directional chamfer cost (full-res px, each point's truncated at ``tau_px``) and support
     score of M posed templates."""
-    idx_all, prev_all, nxt_all = border_triplets(bank, n_points)
     views = np.asarray(views, np.int64)
+    if not FAST_EVALUATE:
+        idx_all, prev_all, nxt_all = border_triplets(bank, n_points)
 
-    def proj(ii):
-        # matmul: 10x faster than einsum here
-        return project(bank.p_obj[ii].astype(np.float64) @ Rs.transpose(0, 2, 1) + ts[:, None, :], K)
+        def proj(ii):
+            # matmul: 10x faster than einsum here
+            return project(bank.p_obj[ii].astype(np.float64) @ Rs.transpose(0, 2, 1) + ts[:, None, :], K)
 
-    uv = proj(idx_all[views])
-    d = proj(nxt_all[views]) - proj(prev_all[views])
+        uv = proj(idx_all[views])
+        d = proj(nxt_all[views]) - proj(prev_all[views])
+        theta = np.mod(np.arctan2(d[..., 1], d[..., 0]), np.pi)
+        val = sample(dtt, dtt.to_grid(uv), theta) / dtt.scale
+        return np.minimum(val, tau_px).mean(axis=1), (val <= score_px).mean(axis=1)
+    # The points, their successors and predecessors in one matmul and one projection (each row's
+    # product is the separate matmuls' bit for bit), the read-out and the means compiled (sample_mean).
+    p_obj, tri = _evaluate_tables(bank, n_points)
+    P = tri.shape[1] // 3
+    uv = project(p_obj[tri[views]] @ Rs.transpose(0, 2, 1) + ts[:, None, :], K)
+    d = uv[:, P:2 * P] - uv[:, 2 * P:]
     theta = np.mod(np.arctan2(d[..., 1], d[..., 0]), np.pi)
-    val = sample(dtt, dtt.to_grid(uv), theta) / dtt.scale
-    return np.minimum(val, tau_px).mean(axis=1), (val <= score_px).mean(axis=1)
+    return sample_mean(dtt, uv[:, :P], theta, tau_px=tau_px, score_px=score_px)
+
+
+FAST_EVALUATE = True
+_EVALUATE_TABLES = Memo(8)
+
+
+def _evaluate_tables(bank: TemplateBank, n_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """The bank's border points as float64 (V, 3) and, per template, ``border_triplets``' points, then
+    their successors, then their predecessors: (N, 3 * n_points). Made once per bank and count."""
+    def make():
+        idx, prv, nxt = border_triplets(bank, n_points)
+        return bank.p_obj.astype(np.float64), np.ascontiguousarray(np.concatenate([idx, nxt, prv], axis=1))
+
+    return _EVALUATE_TABLES.get(bank, n_points, make)
 
 
 @dataclass(frozen=True)
@@ -825,7 +857,7 @@ class Window:
     stride: int
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _window_offsets(p_rel, theta, Rv, zc, depth_f, ray, fx, fy, cx, cy, s, c0u, c0v, phis_rad, n_channels):
     """Templates of a local-scan window: (1, D, T, P) int16 fine-grid offsets from the window centre
     (c0u, c0v) and (T, P) int32 channels, for the Tv views' points ``p_rel`` (relative to the
@@ -885,6 +917,33 @@ def _window_bounds(dt_q, tau_q, off_u, off_v, chan, au, av, gu, gv, stride):
     return _block_lower_bounds(pooled, u0, v0, off_u, off_v, chan, bu, bv, n), block
 
 
+_WINDOW_TABLES = Memo(8)
+
+
+def _window_tables(bank: TemplateBank, n_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per bank and point count, made once: each template's ``border_triplets`` points in
+    ``spread_order`` (N, P), and the bank's border points relative to its centre (V, 3) and their
+    orientations (V,), float64 (what ``_window_offsets`` reads, gathered per window)."""
+    def make():
+        idx = border_triplets(bank, n_points)[0]
+        return (np.ascontiguousarray(idx[:, spread_order(idx.shape[1])]),
+                bank.p_obj.astype(np.float64) - bank.centre_obj, bank.theta_rad.astype(np.float64))
+
+    return _WINDOW_TABLES.get(bank, n_points, make)
+
+
+@functools.lru_cache(maxsize=16)
+def _window_grid(radius: int, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """A window's grid offsets (du, dv) from its centre, ``stride`` apart within ``radius``, nearest the
+    centre first (a tight bound early; ties in row order); made once per radius and stride (read-only)."""
+    g = np.arange(-radius, radius + 1, stride)
+    gu, gv = np.meshgrid(g, g)
+    near_first = np.argsort(gu.ravel() ** 2 + gv.ravel() ** 2, kind="stable")
+    gu, gv = gu.ravel()[near_first], gv.ravel()[near_first]
+    gu.flags.writeable = gv.flags.writeable = False
+    return gu, gv
+
+
 def _scan_window(bank: TemplateBank, win: Window, z_mm: float, dt_q: np.ndarray, tau_q: int,
                  accept_q: int, dtt: DistanceTensor, K: np.ndarray, n_points: int, *,
                  distance_mm: float | None) -> tuple[Hypothesis | None, float, tuple[int, int, int, int]]:
@@ -892,24 +951,21 @@ def _scan_window(bank: TemplateBank, win: Window, z_mm: float, dt_q: np.ndarray,
     fine-grid px, (view index, phi index, du, dv) within the window) or (None, inf, ...) when nothing
     beats ``accept_q``. Templates are projected exactly along the window centre's viewing ray."""
     views, phis = win.views, win.phis_deg
-    idx = border_triplets(bank, n_points)[0][views]  # (Tv, P)
-    idx = idx[:, spread_order(idx.shape[1])]
+    spread, p_rel, theta = _window_tables(bank, n_points)
+    idx = spread[views]  # (Tv, P)
     d, R_ray = ray_rotation(win.centre, K)
     Rv = (R_ray @ np.stack([Rz(f) for f in phis])[:, None] @ bank.R_tpl_obj[views][None]).reshape(-1, 3, 3)
     zc = (distance_mm + (Rv @ bank.centre_obj)[:, 2]) if distance_mm is not None else np.full(len(Rv), z_mm)
     s = dtt.scale
     c0 = np.rint((win.centre + 0.5) * s - 0.5)  # the window centre on the fine grid
     off_u, off_v, chan = _window_offsets(
-        bank.p_obj[idx].astype(np.float64) - bank.centre_obj, bank.theta_rad[idx].astype(np.float64), Rv, zc,
+        p_rel[idx], theta[idx], Rv, zc,
         np.asarray(win.depth_f, np.float64), d / d[2], K[0, 0], K[1, 1], K[0, 2], K[1, 2], s, c0[0], c0[1],
         np.deg2rad(np.asarray(phis, np.float64)), dtt.n_channels)
-    g = np.arange(-win.radius, win.radius + 1, win.stride)
-    gu, gv = np.meshgrid(g, g)
-    near_first = np.argsort(gu.ravel() ** 2 + gv.ravel() ** 2, kind="stable")  # a tight bound early
-    au = (c0[0] + gu.ravel()[near_first]).astype(np.int32)
-    av = (c0[1] + gv.ravel()[near_first]).astype(np.int32)
-    lower, block = _window_bounds(dt_q, tau_q, off_u, off_v, chan, au, av, gu.ravel()[near_first],
-                                  gv.ravel()[near_first], win.stride)
+    gu, gv = _window_grid(win.radius, win.stride)
+    au = (c0[0] + gu).astype(np.int32)
+    av = (c0[1] + gv).astype(np.int32)
+    lower, block = _window_bounds(dt_q, tau_q, off_u, off_v, chan, au, av, gu, gv, win.stride)
     cost, t, dk = _scan_bounded(dt_q, tau_q, off_u, off_v, chan, au, av, np.zeros(len(au), np.int32),
                                 np.int64(accept_q), LEVEL_B_SENTINEL_POINTS, True, lower, block)
     a = int(np.argmin(cost))
@@ -1030,7 +1086,8 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
                   distance_range_mm: tuple[float, float], anchor_mask: np.ndarray | None = None,
                   deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0,
                   deferred: list[Callable[[], list[Hypothesis]]] | None = None,
-                  contrast=None, extra_peaks: int = 0) -> list[Hypothesis]:
+                  contrast=None, extra_peaks: int = 0,
+                  on_polished: Callable[[Hypothesis], None] | None = None) -> list[Hypothesis]:
     """Ranked, polished, mutually distinct hypotheses (best first). ``dtt_b`` is the DT3 at
     ``fine_scale``; level A's grid is min-pooled from it. ``anchor_mask`` (full-resolution (h, w)
     bool): level A places the reference point only there (``scan_level_a``).
@@ -1048,7 +1105,11 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
 
     ``contrast`` (``contrast.Contrast``): level A scans its blend of DT3 and oriented contrast instead
     of the DT3, and level B its blend at ``fine_scale`` (``weight_b`` > 0). With ``extra_peaks`` > 0
-    the first pass is unchanged and the second pass adds ``_contrast_pass``'s hypotheses."""
+    the first pass is unchanged and the second pass adds ``_contrast_pass``'s hypotheses.
+
+    ``on_polished``: called with the first pass's first polished hypothesis (the best before the
+    polish, most often the best after it) while the others are still to polish: a caller can start
+    work on it ahead (``pipeline.PREFETCH``)."""
     K = intr.K
     dtt_a, dt_q, tau_q = pooled_and_quantised(dtt_b, p.level_scale, p.rank_tau_px * dtt_b.scale)
     z_ref, scales = (distance_mm, np.array([1.0])) if distance_mm is not None else \
@@ -1084,7 +1145,9 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
         dtt_b = contrast.fine_tensor(dtt_b, p.rank_tau_px * dtt_b.scale, r_bg / p.level_scale)
         dt_q, tau_q = quantised(dtt_b, p.rank_tau_px * dtt_b.scale)
     state = _LevelB(bank, dtt_b, dt_q, tau_q, K, p, distance_mm, bg, deadline, reserve_ms)
+    state.on_polished = on_polished
     out = state.run(starts)
+    state.on_polished = None
     if p.templates_per_peak <= 1 and not (extra_peaks and lac is not None):
         return out
 
@@ -1153,6 +1216,7 @@ class _LevelB:
         self.bank, self.dtt_b, self.dt_q, self.tau_q, self.K, self.p = bank, dtt_b, dt_q, tau_q, K, p
         self.distance_mm, self.bg, self.deadline, self.reserve_ms = distance_mm, bg, deadline, reserve_ms
         self.best_q = np.inf  # the best cost so far (over its background with bg_norm)
+        self.on_polished: Callable[[Hypothesis], None] | None = None  # see coarse_search
 
     def bg_of(self, hs: list[Hypothesis]) -> np.ndarray:
         if self.bg is None or not hs:
@@ -1187,6 +1251,8 @@ class _LevelB:
                 out.append(polish(bank, scanned[i], dtt_b, K, p, distance_mm=self.distance_mm,
                                   neighbours=neighbours, step_phi_deg=p.local_phi_step_deg / 2,
                                   step_uv_px=1.0 / dtt_b.scale, step_z=p.depth_step / 4))
+                if self.on_polished is not None and len(out) == 1:
+                    self.on_polished(out[0])
             else:
                 h = scanned[i]
                 h.cost, h.score = float(cost_b[i]), float(score_b[i])

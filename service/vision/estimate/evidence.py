@@ -27,6 +27,7 @@ from service.vision.bank import TemplateBank
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
 from service.vision.geometry.render import face_normals_cam, rasterise_roi
+from service.vision.geometry.silhouette import mesh_topology
 
 BAND_FRACTION = 0.12  # region band width as a fraction of the silhouette's equivalent radius ...
 BAND_MIN_PX, BAND_MAX_PX = 3, 14  # ... within these bounds
@@ -126,10 +127,23 @@ def face_ids_roi(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, m
                  ) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
     """Visible face index (h_r, w_r) int32 (-1 off the model) at ``pose`` in the image ROI of its
     projection widened by ``margin_px``, 1 / depth there (1/mm, 0 off the model), and the ROI's
-    top-left pixel (u0, v0)."""
-    invz, fid, origin = rasterise_roi(bank.vertices_mm, bank.faces, pose, intr, image_size,
-                                      margin_px=margin_px, inverse_depth=True)
+    top-left pixel (u0, v0).
+
+    A closed mesh's back faces are hidden behind its front faces (``MeshTopology.closed``): only the
+    front ones are rasterised (half the triangles; the ROI is the whole mesh's projection either way)
+    when ``FRONT_FACES_ONLY``, each pixel given its face's index in the whole mesh (``face_ids``)."""
+    topo = mesh_topology(bank.vertices_mm, bank.faces) if FRONT_FACES_ONLY else None
+    if topo is None or not topo.closed:
+        invz, fid, origin = rasterise_roi(bank.vertices_mm, bank.faces, pose, intr, image_size,
+                                          margin_px=margin_px, inverse_depth=True)
+        return fid, invz, origin
+    front = np.flatnonzero(topo.front_facing(pose)).astype(np.int32)
+    invz, fid, origin = rasterise_roi(topo.vertices, topo.faces[front], pose, intr, image_size,
+                                      margin_px=margin_px, inverse_depth=True, face_ids=front)
     return fid, invz, origin
+
+
+FRONT_FACES_ONLY = True
 
 
 def _outline(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

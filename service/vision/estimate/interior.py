@@ -47,7 +47,7 @@ def model_edges(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size
     return fid >= 0, crease, origin
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _creases(fid, invz, faces, normals, cos_max, step_mm):  # numpy's (h, w, 3) temporaries took 10 ms
     """Pixels whose right or lower neighbour (both on the model) shows a face bent by more than
     acos(cos_max) (either winding; ``normals`` need not be unit length), or a face sharing no vertex

@@ -34,7 +34,8 @@ The paper refines with Levenberg-Marquardt on matched point pairs kept under a m
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numba as nb
 import numpy as np
@@ -86,8 +87,10 @@ class RefineResult:
     inlier_ratio: float  # 0..1 fraction of border points counted as inliers at the end
     converged: bool  # the solver stopped on a tolerance and the refined pose was kept
     # image edges inside the returned pose's silhouette that the model does not explain, per unit of
-    # perimeter (interior.unexplained_edge_ratio on the full-resolution ROI segments)
+    # perimeter (interior.unexplained_edge_ratio on the full-resolution ROI segments); nan with
+    # ``refine_pose``'s ``interior_later``: ``unexplained_later()`` gives it then
     unexplained: float = 0.0
+    unexplained_later: Callable[[], float] | None = field(default=None, repr=False, compare=False)
 
 
 # --- border points at a pose --------------------------------------------------------------------
@@ -298,7 +301,7 @@ def _point_uv(p, R, offset, centre, JB, dz_dr, n, free_z, fx, fy, cx, cy, with_j
         duv[1, k] = bu * jy - bv * jz
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", nogil=True)
 def _dt_kernel(P, T, h, R, offset, centre, JB, dz_dr, n, free_z, fx, fy, cx, cy, dt, ou, ov, scale, tau,
                with_jac):
     M = P.shape[0]
@@ -391,7 +394,7 @@ def match_lines(uv: np.ndarray, theta: np.ndarray, seg: Segments, *, gate_px: fl
     return LineMatch(idx, nrm, off)
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", nogil=True)
 def _nearest_segments(uv, theta, p0, dirn, L, st, lo, hi, cos_gate, gate_px):
     """Per point, the index of the nearest segment within the gates (the first of equals), or -1."""
     out = np.full(len(uv), -1, np.int64)
@@ -428,7 +431,7 @@ def line_residuals(params: PoseParams, x: np.ndarray, border: Border, intr: Intr
     return r, (J if with_jac else None)
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", nogil=True)
 def _line_kernel(P, R, offset, centre, JB, dz_dr, n, free_z, fx, fy, cx, cy, normal, line_offset, with_jac):
     M = P.shape[0]
     r = np.empty(M)
@@ -556,11 +559,45 @@ def _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px):
     return roi, seg_roi, dtt
 
 
+class Prefetched:
+    """The refinement's first inputs for a start pose, made on the background pool ahead of
+    ``refine_pose`` (while the caller still searches): its image side (the ROI's full-resolution LSD
+    segments and their DT3, ``_image_side``) and the border traced at the start pose. ``refine_pose``
+    uses them only for exactly that start pose (every bit of R and t), image object and settings, so
+    the answer is the one it would make itself; otherwise they are dropped."""
+
+    def __init__(self, bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrinsics, n_channels: int):
+        self.bank, self.pose0, self.grey, self.intr, self.n_channels = bank, pose0, grey, intr, n_channels
+        size = (grey.shape[1], grey.shape[0])
+        pool = threads.background()
+        self.image_side = pool.submit(self._image_side)
+        self.border = pool.submit(border_points, bank, pose0, intr.pinhole(), size)
+
+    def _image_side(self):
+        threads.use_budget()  # the segment DT's numba threads, on this pool thread
+        return _image_side(self.bank, self.pose0, self.grey, self.intr, None, self.n_channels, DT_SCALE,
+                           DT_TAU_PX)
+
+    def matches(self, bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrinsics, n_channels: int,
+                dt_scale: float, tau_px: float) -> bool:
+        return (bank is self.bank and grey is self.grey and intr == self.intr
+                and n_channels == self.n_channels
+                and dt_scale == DT_SCALE and tau_px == DT_TAU_PX
+                and np.array_equal(np.asarray(pose0.R), np.asarray(self.pose0.R))
+                and np.array_equal(np.asarray(pose0.t_mm), np.asarray(self.pose0.t_mm)))
+
+    def drop(self) -> None:
+        """Not needed after all: cancel what has not started."""
+        self.image_side.cancel()
+        self.border.cancel()
+
+
 def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrinsics,
                 seg: Segments | None = None, *, distance_mm: float | None = None, n_channels: int = 16,
                 score_px: float = 3.0, loss: str = "soft_l1", max_iter: int = 30, residual: str = "dt+line",
                 dt_scale: float = DT_SCALE, tau_px: float = DT_TAU_PX, f_scale_px: float = 0.5,
-                dt_f_scale_px: float = DT_F_SCALE_PX) -> RefineResult:
+                dt_f_scale_px: float = DT_F_SCALE_PX, interior_later: bool = False,
+                prefetched: Prefetched | None = None) -> RefineResult:
     """Refine ``pose0`` (T_cam_obj) against the edges of ``grey`` (H, W) uint8.
 
     ``seg``: LSD segments of the image at full resolution (None: detected here on the ROI around
@@ -570,6 +607,13 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     (dt to convergence, then line for the final iterations). ``max_iter``: function evaluations
     per least-squares run. The pose returned is ``pose0`` (canonicalised) with ``converged=False``
     when the refined pose does not keep the verification score.
+
+    ``interior_later``: the interior check (``unexplained``, running on the background pool) is not
+    waited for: ``unexplained`` is nan and ``unexplained_later()`` waits for it (the caller's evidence
+    runs meanwhile instead of the calling thread idling; the same value).
+
+    ``prefetched``: ``Prefetched`` inputs, used when they were made for exactly these arguments (the
+    same result either way).
     """
     if loss not in LOSSES:
         raise ValueError(f"loss must be one of {LOSSES}.")
@@ -584,8 +628,15 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     ideal = intr.pinhole()
     # A background thread overlaps the border rasterisation with LSD + DT, and the interior check
     # (unexplained_edge_ratio) with the line stage.
-    fut = threads.background().submit(border_points, bank, pose0, ideal, size)
-    img = _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px)
+    if seg is None and prefetched is not None and prefetched.matches(bank, pose0, grey, intr, n_channels,
+                                                                     dt_scale, tau_px):
+        fut = prefetched.border
+        img = prefetched.image_side.result()
+    else:
+        if prefetched is not None:
+            prefetched.drop()
+        fut = threads.background().submit(border_points, bank, pose0, ideal, size)
+        img = _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px)
     border = fut.result()
     if img is None or len(border.p_obj) < 6:
         return RefineResult(reported(pose0), float("inf"), 0.0, 0, 0.0, False)
@@ -623,6 +674,12 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
             return interior.result()
         return unexplained_edge_ratio(bank, p, ideal, seg_roi, size)
 
+    def result(p: Pose, cost: float, score: float, iters: int, inliers: float, conv: bool) -> RefineResult:
+        if interior_later:
+            return RefineResult(reported(p), cost, score, iters, inliers, conv, float("nan"),
+                                lambda: interior_at(p))
+        return RefineResult(reported(p), cost, score, iters, inliers, conv, interior_at(p))
+
     if residual in ("line", "dt+line"):
         kind = "line"
         gate = LINE_GATE_PX if residual == "dt+line" else max(LINE_GATE_PX, 2 * score_px)
@@ -646,8 +703,7 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     # sampled at different densities score a few tenths of a percent apart.
     score0, cost0, capped0 = verify(border, pose0, ideal, dtt, score_px=score_px)
     if last is None or score1 <= 0.0 or score1 < score0 - SCORE_SLACK or capped1 > capped0 + 1e-9:
-        return RefineResult(reported(pose0), cost0, score0, iterations, score0, False,
-                            interior_at(pose0))
+        return result(pose0, cost0, score0, iterations, score0, False)
     r = np.abs(last.fun)
     inl_thr = thr if thr is not None else (score_px if kind == "dt" else 1.0)
     inl = r <= inl_thr
@@ -655,5 +711,4 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     cost = float(r[inl].mean()) if inl.any() else cost1
     # The interior check reads the pose as refined: spinning a revolved part changes no pixel of it,
     # but moves the border points that interior_at compares.
-    return RefineResult(reported(pose), cost, score1, iterations, inlier_ratio,
-                        bool(converged), interior_at(pose))
+    return result(pose, cost, score1, iterations, inlier_ratio, bool(converged))

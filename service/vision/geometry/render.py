@@ -38,8 +38,9 @@ def _clip_span(a, r, eps, lo, hi):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _zbuffer(uv, z, faces, invz, fid, eps):  # pragma: no cover - compiled
-    """Rasterise triangles into ``invz`` (H, W) float32 (init 0) and ``fid`` (H, W) int32 (init -1).
+def _zbuffer(uv, z, faces, ids, invz, fid, eps):  # pragma: no cover - compiled
+    """Rasterise triangles into ``invz`` (H, W) float32 (init 0) and ``fid`` (H, W) int32 (init -1):
+    a pixel's id is ``ids[f]`` of its nearest triangle ``faces[f]`` (ties: the first).
 
     uv (V, 2) float64 in buffer pixel coordinates; z (V,) float64 camera depth, mm. ``invz`` gets
     1 / depth of the nearest surface (perspective-correct: 1/z is affine in the image).
@@ -103,7 +104,7 @@ def _zbuffer(uv, z, faces, invz, fid, eps):  # pragma: no cover - compiled
                 iz = iza * u + izb
                 if iz > invz[v, u]:
                     invz[v, u] = iz
-                    fid[v, u] = f
+                    fid[v, u] = ids[f]
 
 
 @dataclass
@@ -158,8 +159,11 @@ def face_normals_cam(vertices_mm: np.ndarray, faces: np.ndarray, R: np.ndarray,
 
 
 def rasterise_roi(vertices_mm, faces, pose: Pose, K_or_intr, image_size, *, margin_px: int = 2,
-                  align: int = 1, inverse_depth: bool = False):
+                  align: int = 1, inverse_depth: bool = False, face_ids: np.ndarray | None = None):
     """Z-buffer inside the ROI of the projected vertices (no full-image buffers).
+
+    ``face_ids``: (F,) int32, the id written for each of ``faces`` (default: its index), e.g. the
+    mesh's own face indices when ``faces`` is a subset of them.
 
     ``align``: the ROI's origin and size are multiples of it (image size must be too).
 
@@ -191,7 +195,8 @@ def rasterise_roi(vertices_mm, faces, pose: Pose, K_or_intr, image_size, *, marg
     invz = np.zeros((v1 - v0 + 1, u1 - u0 + 1), np.float32)
     fid = np.full(invz.shape, -1, np.int32)
     uv_roi = np.ascontiguousarray(uv - np.array([u0, v0], float))
-    _zbuffer(uv_roi, z, F, invz, fid, _EDGE_EPS)
+    ids = np.arange(len(F), dtype=np.int32) if face_ids is None else np.ascontiguousarray(face_ids, np.int32)
+    _zbuffer(uv_roi, z, F, ids, invz, fid, _EDGE_EPS)
     if inverse_depth:
         return invz, fid, (u0, v0)
     with np.errstate(divide="ignore"):
