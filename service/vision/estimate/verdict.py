@@ -20,7 +20,9 @@ import numpy as np
 # The evidence every verdict reports (each a fraction in [0, 1] but ``unexplained``, which may exceed 1,
 # and ``shading_std``, in grey levels).
 FEATURES = ("edge_support", "unexplained", "colour_edge", "polarity", "region", "region_low", "region_global",
-            "coherence", "shading_r2", "shading_std")
+            "coherence", "shading_r2", "shading_std",
+            # the visible part's (``evidence``: what an occluder in front of the part does not spoil)
+            "visible", "shading_r2_robust", "region_visible", "region_best", "colour_edge_visible")
 # Evidence the verification score may use, and which of it counts against a pose.
 MODEL_FEATURES = ("edge_support", "unexplained", "colour_edge", "region_low", "region_global", "coherence",
                   "shading_r2")
@@ -89,7 +91,8 @@ def decide(ev: dict | None, *, z_mm: float | None = None,
     if ev is None:
         return Verdict(False, 0.0, "no_candidate")
     score = verification_score(ev, weights)
-    evidence = {k: float(ev[k]) for k in FEATURES} | {"in_image": float(ev.get("in_image", 1.0))}
+    # (evidence dicts made before the visible part's evidence existed lack it: reported as given)
+    evidence = {k: float(ev[k]) for k in FEATURES if k in ev} | {"in_image": float(ev.get("in_image", 1.0))}
     if distance_range_mm is not None and z_mm is not None and not (
             distance_range_mm[0] <= z_mm <= distance_range_mm[1]):
         return Verdict(False, score, "outside_distance_range", evidence | {"z_mm": float(z_mm)})
