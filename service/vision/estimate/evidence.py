@@ -91,6 +91,7 @@ ROBUST_START = 0.5
 ROBUST_K = 3.0
 ROBUST_MIN_LEVELS = 8.0
 ROBUST_ITERS = 6
+ROBUST_MAX_PIXELS = 3000
 REGION_BEST = 5  # sectors of REGION_SECTORS: a covered side (up to 3 of 8) does not count
 # Another found part hides a pixel of this one where its surface is nearer by more than this (mm):
 # rasterised depths of touching parts differ by less along their contact.
@@ -347,6 +348,9 @@ def _robust_shading(win: _Window, fid: np.ndarray, bank: TemplateBank, pose: Pos
     vi, ui = np.nonzero(inner[::2, ::2])
     if len(vi) < MIN_SHADING_PIXELS:
         return None
+    if len(vi) > ROBUST_MAX_PIXELS:  # evenly thinned: the fit and the inlier share need a few thousand
+        keep = np.linspace(0, len(vi) - 1, ROBUST_MAX_PIXELS).astype(np.int64)
+        vi, ui = vi[keep], ui[keep]
     vi, ui = 2 * vi, 2 * ui
     c = win.bgr[vi, ui].astype(np.float64)
     seen = np.zeros(len(bank.faces), bool)
@@ -355,18 +359,16 @@ def _robust_shading(win: _Window, fid: np.ndarray, bank: TemplateBank, pose: Pos
     normals = np.zeros((len(bank.faces), 3))
     normals[visible_faces] = face_normals_cam(bank.vertices_mm, bank.faces[visible_faces], pose.R, pose.t_mm)
     A = _normal_design(normals[fid[vi, ui]])
-    # Two starts, the one with the smaller median residual over all pixels kept (least median of
-    # squares: a count of inliers would reward the threshold an occluder inflates): all pixels (a part in
-    # full view: a plain fit already explains it), and the half nearest the median colour (an occluder's
-    # colours pull a plain fit between the two; the median is the part's while it shows more than half).
+    # Two starts: all pixels (a part in full view: a plain fit already explains it), and the half
+    # nearest the median colour (an occluder's colours pull a plain fit between the two; the median is
+    # the part's while it shows more than half). The fit that explains more pixels within the SMALLER of
+    # the two thresholds is kept: each fit's own threshold would reward the one an occluder inflates, and
+    # the smaller median residual picks a constant fit to a mostly uniform part's plain faces (r2 0).
     d0 = np.linalg.norm(c - np.median(c, axis=0), axis=1)
-    best = None
-    for inl in (np.ones(len(c), bool), d0 <= np.quantile(d0, ROBUST_START)):
-        coef, tau = _trimmed_fit(A, c, inl)
-        med = float(np.median(np.linalg.norm(c - A @ coef, axis=1)))
-        if best is None or med < best[0]:
-            best = (med, coef, tau)
-    _, coef, tau = best
+    fits = [_trimmed_fit(A, c, inl) for inl in (np.ones(len(c), bool), d0 <= np.quantile(d0, ROBUST_START))]
+    tau_c = min(t for _, t in fits)
+    counts = [int((np.linalg.norm(c - A @ cf, axis=1) <= tau_c).sum()) for cf, _ in fits]
+    coef, tau = fits[int(np.argmax(counts))]
     res = np.linalg.norm(c - A @ coef, axis=1)
     inl = res <= tau
     if inl.sum() < MIN_SHADING_PIXELS:
@@ -384,15 +386,7 @@ def _visible_evidence(win: _Window, mask: np.ndarray, fid: np.ndarray, band_px: 
     the robust fit calls the part's."""
     if fit is None:
         return 0.0, 0.0, 0.0
-    m8 = mask.astype(np.uint8)
-    bv, bu = np.nonzero(mask & (cv2.distanceTransform(m8, cv2.DIST_L2, 3) <= band_px))
-    outlier = np.zeros_like(mask)
-    outlier[bv, bu] = ~fit.inlier_at(win, fid, bv, bu)
-    if hidden is not None:
-        outlier |= hidden
-    _, _, region_visible = _region(win, mask, band_px, outlier,
-                                   explained if explained is not None else np.zeros_like(mask))
-    region_best = _region_best(win, mask, band_px, hidden, explained)
+    region_visible, region_best = _visible_region(win, mask, fid, band_px, fit, hidden, explained)
     q = np.rint(p - POLARITY_OFFSET_PX * n).astype(int)
     h, w = mask.shape
     ok = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
@@ -415,9 +409,11 @@ def _edge_support(win: _Window, p: np.ndarray, n: np.ndarray) -> np.ndarray:
     return ((mag >= EDGE_MIN_GRADIENT) & (along >= np.cos(np.radians(EDGE_ANGLE_DEG)) * mag)).any(axis=1)
 
 
-def _region_best(win: _Window, mask: np.ndarray, band_px: int, hidden: np.ndarray | None,
-                 explained: np.ndarray | None) -> float:
-    """Mean separability of the best ``REGION_BEST`` judged sectors (all of them when fewer)."""
+def _visible_region(win: _Window, mask: np.ndarray, fid: np.ndarray, band_px: int, fit: ColourFit,
+                    hidden: np.ndarray | None, explained: np.ndarray | None) -> tuple[float, float]:
+    """(region_visible, region_best) from one histogram pass over the bands (as ``_region`` makes them):
+    the whole inside band's inliers against the outside band, and the mean of the best ``REGION_BEST``
+    judged sectors (inside band against outside band, as ``_region`` judges them)."""
     m8 = mask.astype(np.uint8)
     inner = mask & (cv2.distanceTransform(m8, cv2.DIST_L2, 3) <= band_px)
     outer = ~mask & (cv2.distanceTransform(1 - m8, cv2.DIST_L2, 3) <= band_px)
@@ -430,15 +426,20 @@ def _region_best(win: _Window, mask: np.ndarray, band_px: int, hidden: np.ndarra
     bv, bu = np.nonzero(inner | outer)
     angle = np.arctan2(bv - v_mean, bu - u_mean) + np.pi
     sector = np.minimum((angle * (REGION_SECTORS / (2 * np.pi))).astype(int), REGION_SECTORS - 1)
+    is_in = inner[bv, bu]
+    # class 0: inside and explained by the fit, 1: inside but not, 2: outside
+    cls = np.full(len(bv), 2, np.int64)
+    cls[is_in] = np.where(fit.inlier_at(win, fid, bv[is_in], bu[is_in]), 0, 1)
     nb = REGION_BINS ** 3
-    key = (2 * sector + ~inner[bv, bu]) * nb + win.quantised_at(bv, bu)
-    hist = np.bincount(key, minlength=2 * REGION_SECTORS * nb).reshape(REGION_SECTORS, 2, nb)
-    counts = hist.sum(axis=2)
-    seps = [_tv(hist[s, 0], hist[s, 1]) for s in range(REGION_SECTORS)
-            if counts[s, 0] >= MIN_REGION_PIXELS and counts[s, 1] >= MIN_REGION_PIXELS]
-    if not seps:
-        return 0.0
-    return float(np.sort(seps)[::-1][:REGION_BEST].mean())
+    key = (3 * sector + cls) * nb + win.quantised_at(bv, bu)
+    hist = np.bincount(key, minlength=3 * REGION_SECTORS * nb).reshape(REGION_SECTORS, 3, nb)
+    inside = hist[:, 0] + hist[:, 1]
+    seps = [_tv(inside[s], hist[s, 2]) for s in range(REGION_SECTORS)
+            if inside[s].sum() >= MIN_REGION_PIXELS and hist[s, 2].sum() >= MIN_REGION_PIXELS]
+    region_best = float(np.sort(seps)[::-1][:REGION_BEST].mean()) if seps else 0.0
+    both = hist.sum(axis=0)
+    ok = both[0].sum() >= MIN_REGION_PIXELS and both[2].sum() >= MIN_REGION_PIXELS
+    return (_tv(both[0], both[2]) if ok else 0.0), region_best
 
 
 def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFrame,
