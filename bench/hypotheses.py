@@ -8,6 +8,9 @@ evidence (refined or not) so a verdict can be fitted without re-running the sear
 Usage:
   python bench/hypotheses.py proposals --set clutter [--limit N] [--data DIR]
   python bench/hypotheses.py recall --set clutter          # is the truth among the proposals at all?
+  python bench/hypotheses.py features --set clutter        # each hypothesis refined and checked
+  python bench/hypotheses.py truths --set clutter          # the same from near the ground truth
+  python bench/hypotheses.py reevidence --set clutter      # the colour evidence again at the refined poses
 """
 
 from __future__ import annotations
@@ -143,13 +146,35 @@ def features(set_dir: Path, recs: list[dict], *, max_refine: int = 12) -> list[d
     return rows
 
 
+def reevidence(set_dir: Path, rows: list[dict]) -> list[dict]:
+    """The feature rows with the colour evidence recomputed at their refined poses (``R1`` / ``t1``):
+    no search, no refinement, so a change of ``evidence`` is measured in seconds; ``edge_support`` and
+    ``unexplained`` (the refinement's) are kept."""
+    from service.vision.estimate.evidence import colour_frame, evidence
+    from service.vision.geometry.camera import undistort_image
+
+    gts = {(g["image"], g["model"]): g for g in read_gt(set_dir)}
+    frames: dict = {}
+    out = []
+    for r in rows:
+        g = gts[(r["image"], r["model"])]
+        intr = Intrinsics.from_K(np.asarray(g["K"], float))
+        if r["image"] not in frames:
+            frames.clear()
+            frames[r["image"]] = colour_frame(undistort_image(read_colour(set_dir / r["image"]), intr))
+        ev = evidence(gt_bank(set_dir, g["model"]), Pose(np.asarray(r["R1"]), np.asarray(r["t1"])), intr,
+                      frames[r["image"]]).as_dict()
+        out.append(r | {"ev": r["ev"] | ev})
+    return out
+
+
 def cache_path(set_name: str, tag: str) -> Path:
     return OUT / f"{Path(set_name).name}-{tag}.pkl"
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("cmd", choices=["proposals", "recall", "features", "truths"])
+    ap.add_argument("cmd", choices=["proposals", "recall", "features", "truths", "reevidence"])
     ap.add_argument("--set", required=True)
     ap.add_argument("--data", type=Path, default=None)
     ap.add_argument("--limit", type=int, default=None)
@@ -165,6 +190,14 @@ def main(argv=None) -> int:
         recs = proposals(set_dir, limit=a.limit, distance_given=a.distance_given, params=wide)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(pickle.dumps(recs))
+    if a.cmd == "reevidence":  # both feature files of the set, rewritten in place
+        for suffix in ("-features.pkl", "-truth-features.pkl"):
+            fpath = path.with_name(path.stem + suffix)
+            if fpath.exists():
+                rows = reevidence(set_dir, pickle.loads(fpath.read_bytes()))
+                fpath.write_bytes(pickle.dumps(rows))
+                print(f"{len(rows)} rows re-evidenced -> {fpath}")
+        return 0
     recs = pickle.loads(path.read_bytes())
     if a.cmd in ("features", "truths"):
         rows = features(set_dir, recs if a.cmd == "features" else truth_hypotheses(recs))

@@ -492,11 +492,93 @@ def sample_distractor(rng, K, w, h, models: list[str], target: str | None, near=
             "ambient": rng.uniform(0.3, 0.5), "spec": rng.uniform(0.0, 0.3)}
 
 
+# Target visible fractions drawn by ``--occlusion clutter``: a quarter of the targets keep the scene's
+# own occlusion (mostly none), the rest get an occluder hiding them down to U(0.5, 0.9) visible, so the
+# set's visible fractions spread like the Blender clutter sets' (0.5-1.0, median 0.72-0.77).
+OCCLUDE_P = 0.75
+OCCLUDE_VISIBLE = (0.5, 0.9)
+OCCLUDER_BISECT = 8  # steps of the bisection on the occluder's offset from the target's centre
+
+
+def _visible(full: np.ndarray, t_depth: np.ndarray, layers) -> np.ndarray:
+    occ = np.full(full.shape, np.inf, np.float32)
+    for ly in layers:
+        np.minimum(occ, np.where(ly["mask"], ly["depth_mm"], np.inf), out=occ)
+    return full & (t_depth <= occ)
+
+
+def add_occluder(orng, K, w, h, models: list[str], target: dict, t_layer: dict, full: np.ndarray,
+                 keep: list, light) -> tuple[dict, dict] | None:
+    """An object in front of the target hiding it down to a visible fraction drawn from
+    ``OCCLUDE_VISIBLE`` (``None``: the target stays as it is, or is already hidden that much).
+
+    The occluder (a box, cylinder, sphere or another CAD part, random colour) sits between the camera
+    and the target's nearest point, about the target's projected size; its projected centre moves out
+    from the target's centroid along a random direction, and a bisection on that offset meets the
+    visible fraction (the renderer's own masks, as ``visible_fraction`` counts it). Only ``orng`` is
+    drawn from: the scene's own random stream, hence the rest of the scene, is unchanged."""
+    if orng.uniform() >= OCCLUDE_P:
+        return None
+    goal = orng.uniform(*OCCLUDE_VISIBLE)
+    n_full = max(int(full.sum()), 1)
+    now = float(_visible(full, t_layer["depth_mm"], [ly for _, ly in keep]).sum()) / n_full
+    if now <= goal:
+        return None
+    vv, uu = np.nonzero(full)
+    centre = np.array([uu.mean(), vv.mean()])
+    radius_px = float(np.sqrt(n_full / np.pi))
+    z_near = float(t_layer["depth_mm"][full].min())
+    z_o = orng.uniform(0.55, 0.9) * z_near
+    others = [m for m in models if m != target["kind"]]
+    kind = str(orng.choice(others)) if others and orng.uniform() < 0.2 else \
+        str(orng.choice(["box", "cylinder", "sphere"], p=[0.45, 0.4, 0.15]))
+    size_mm = 2.0 * radius_px * z_o / K[0, 0] * orng.uniform(0.7, 1.5)  # ~ the target's projected size
+    if kind in ("box", "cylinder", "sphere"):
+        base = primitive(kind)
+        aspect = {"box": orng.uniform(0.4, 1.6, 3), "cylinder": np.r_[np.full(2, orng.uniform(0.3, 0.7)),
+                                                                       orng.uniform(1.0, 2.5)],
+                  "sphere": np.full(3, 0.5)}[kind]
+        mesh = _mesh(base.V * aspect * size_mm, base.F)
+    else:
+        base = load_model(kind)
+        mesh = _mesh(base.V * (size_mm / base.diameter), base.F)
+    R = random_rotation(orng)
+    ang = orng.uniform(0, 2 * np.pi)
+    direction = np.array([np.cos(ang), np.sin(ang)])
+    others_layers = [ly for _, ly in keep]
+
+    def visible_at(offset):
+        pose = pose_at_pixel(mesh, R, centre + offset * radius_px * direction, z_o, K)
+        r = render(mesh.V, mesh.F, pose, K, (w, h), supersample=SUPERSAMPLE)
+        ly = {"mask": r.mask, "depth_mm": r.depth_mm}
+        return float(_visible(full, t_layer["depth_mm"], others_layers + [ly]).sum()) / n_full, pose
+
+    lo, hi = 0.0, 4.0  # offsets in target radii: more offset, more of the target visible
+    vis_lo, pose = visible_at(lo)
+    if vis_lo > goal:  # even centred the occluder hides too little: take it centred
+        best = pose
+    else:
+        best = None
+        for _ in range(OCCLUDER_BISECT):
+            mid = 0.5 * (lo + hi)
+            vis, pose = visible_at(mid)
+            if vis < goal:
+                lo = mid
+            else:
+                hi, best = mid, pose
+        if best is None:
+            best = visible_at(hi)[1]
+    d = {"kind": kind, "mesh": mesh, "pose": best, "colour": random_colour(orng),
+         "ambient": orng.uniform(0.3, 0.5), "spec": orng.uniform(0.0, 0.3), "occluder": True}
+    ly = shade_layer(mesh, best, K, w, h, d["colour"], light, ambient=d["ambient"], spec=d["spec"])
+    return (d, ly) if ly is not None else None
+
+
 # --- the scene ----------------------------------------------------------------------------------
 
 def scene(seed: int, index: int, w: int, h: int, models: list[str], *, absent_frac: float = 0.25,
           min_visible: float = 0.5, omit_target: bool = False, clean: bool = False,
-          look: str = "flat") -> dict:
+          look: str = "flat", occlusion: str = "none") -> dict:
     """One scene: ``{"image": (h, w, 3) uint8 BGR, "gt": dict, "visible_mask", "full_mask",
     "target_shadow"}``. ``omit_target`` draws the very same scene without painting the target (nor
     its shadow); ``clean`` skips blur, noise and JPEG (both for tests).
@@ -505,7 +587,11 @@ def scene(seed: int, index: int, w: int, h: int, models: list[str], *, absent_fr
     normals within a crease angle, Blinn-Phong highlights, a directional light whose shadow map casts
     shadows onto the floor, onto other objects and onto the part itself, ambient light, gamma, and the
     renderer's soft pixel filter (``synth_light``; its parameters are drawn from an rng of their own).
-    ``target_shadow`` is then None."""
+    ``target_shadow`` is then None.
+
+    ``occlusion="clutter"``: after the scene's own distractors, an occluder is put in front of the target
+    (``add_occluder``, from an rng of its own) so the visible fractions spread like the Blender clutter
+    sets'; ``"none"`` leaves the scene as it always was."""
     rng = np.random.default_rng([seed, index])
     lk = sample_look(np.random.default_rng([seed, index, 2])) if look == "real" else None
     absent = bool(rng.uniform() < absent_frac)
@@ -556,6 +642,15 @@ def scene(seed: int, index: int, w: int, h: int, models: list[str], *, absent_fr
             np.minimum(occ, np.where(ly["mask"], ly["depth_mm"], np.inf), out=occ)
         visible = full & (t_layer["depth_mm"] <= occ)
         vis_frac = float(visible.sum()) / max(int(full.sum()), 1)
+    n_occluders = 0
+    if occlusion == "clutter" and target is not None:
+        added = add_occluder(np.random.default_rng([seed, index, 3]), K, w, h, models, target, t_layer, full,
+                             keep, light)
+        if added is not None:
+            keep.append(added)
+            n_occluders = 1
+            visible = _visible(full, t_layer["depth_mm"], [ly for _, ly in keep])
+            vis_frac = float(visible.sum()) / max(int(full.sum()), 1)
 
     # soft cast shadows on the floor (quarter resolution), the target's kept apart for tests
     q = 4
@@ -636,6 +731,8 @@ def scene(seed: int, index: int, w: int, h: int, models: list[str], *, absent_fr
         gt |= {"mask_px": int(full.sum()), "visible_px": int(visible.sum()), "colour_mode": colour_mode}
     gt |= {"noise_sigma": round(sigma, 3), "jpeg_quality": jpeg, "blur_sigma": blur and round(blur, 3),
            "n_distractors": len(keep), "distractors": [d["kind"] for d, _ in keep], "floor": floor_desc}
+    if occlusion != "none":
+        gt["occluders_added"] = n_occluders
     if lk is not None:
         gt["look"] = {k: round(v, 3) if isinstance(v, float) else v for k, v in vars(lk).items()} | {
             "light": [round(x, 4) for x in lk.light]}
@@ -655,7 +752,7 @@ def model_meta(name: str) -> dict:
 
 
 def generate(out: Path, n: int, seed: int, size: tuple[int, int], models: list[str], absent_frac: float,
-             min_visible: float, quiet: bool = False, look: str = "flat") -> dict:
+             min_visible: float, quiet: bool = False, look: str = "flat", occlusion: str = "none") -> dict:
     w, h = size
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "models").mkdir(exist_ok=True)
@@ -666,7 +763,8 @@ def generate(out: Path, n: int, seed: int, size: tuple[int, int], models: list[s
     n_absent, vis = 0, []
     with open(out / "gt.jsonl", "w") as f:
         for i in range(1, n + 1):
-            s = scene(seed, i, w, h, models, absent_frac=absent_frac, min_visible=min_visible, look=look)
+            s = scene(seed, i, w, h, models, absent_frac=absent_frac, min_visible=min_visible, look=look,
+                      occlusion=occlusion)
             name = f"images/{i:0{digits}d}.png"
             cv2.imwrite(str(out / name), s["image"])
             f.write(json.dumps({"image": name} | s["gt"]) + "\n")
@@ -680,6 +778,7 @@ def generate(out: Path, n: int, seed: int, size: tuple[int, int], models: list[s
     dt = (time.perf_counter() - t0) / max(n, 1)
     meta = {"set": out.name, "generator": "bench/synth_scenes.py", "n_images": n, "seed": seed,
             "size": [w, h], "absent_frac": absent_frac, "min_visible": min_visible, "look": look,
+            **({"occlusion": occlusion} if occlusion != "none" else {}),
             "visible_fraction": "target pixels not occluded / target pixels rendered alone, inside the image",
             "models": {m: model_meta(m) for m in models},
             "render_mean_s_per_image": {"total_s": round(dt, 3)}}
@@ -700,11 +799,14 @@ def main(argv=None) -> None:
     ap.add_argument("--look", choices=("flat", "real"), default="flat",
                     help="flat: Lambert per face (the older sets); real: smooth normals, highlights, "
                          "shadow maps, gamma (bench/synth_light.py)")
+    ap.add_argument("--occlusion", choices=("none", "clutter"), default="none",
+                    help="clutter: an occluder in front of most targets, visible fractions spread like the "
+                         "Blender clutter sets' (0.5-1.0, median ~0.75); none: the scenes as before")
     args = ap.parse_args(argv)
     w, h = (int(x) for x in args.size.lower().split("x"))
     models = [m.strip() for m in args.models.split(",") if m.strip()]
     r = generate(args.out_dir, args.n, args.seed, (w, h), models, args.absent_frac, args.min_visible,
-                 look=args.look)
+                 look=args.look, occlusion=args.occlusion)
     print(f"synth_scenes: {r['n']} images ({r['absent']} absent) {w}x{h} seed {args.seed} -> {args.out_dir}, "
           f"{r['s_per_image']:.2f} s/image, mean visible fraction {r['visible_mean']:.2f}")
 

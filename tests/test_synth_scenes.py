@@ -85,3 +85,26 @@ def test_absent_scene_and_determinism(data_dir, written):
     again = S.scene(SEED, 1, W, H, list(S.DEFAULT_MODELS), absent_frac=0.34)
     assert json.loads(json.dumps(again["gt"])) == {k: v for k, v in gts[0].items() if k != "image"}
     assert np.array_equal(again["image"], cv2.imread(str(out / gts[0]["image"])))
+
+
+def test_clutter_occlusion_hides_the_same_target_and_counts_it(data_dir):
+    """``occlusion="clutter"``: the same target (model, pose, camera) as the plain scene, an occluder
+    in front of most of them that lowers the visible fraction (never under 0.5: the bisection stops on
+    its visible side), and the written fraction is the masks' own ratio."""
+    models = list(S.DEFAULT_MODELS)
+    added = 0
+    for index in range(1, 7):
+        plain = S.scene(SEED, index, W, H, models, absent_frac=0.0, clean=True)
+        occl = S.scene(SEED, index, W, H, models, absent_frac=0.0, clean=True, occlusion="clutter")
+        g0, g = plain["gt"], occl["gt"]
+        assert (g["model"], g["K"], g["R"], g["t_mm"]) == (g0["model"], g0["K"], g0["R"], g0["t_mm"])
+        assert np.array_equal(plain["full_mask"], occl["full_mask"])
+        vis = occl["visible_mask"]
+        assert g["visible_fraction"] == pytest.approx(vis.sum() / occl["full_mask"].sum(), abs=1e-4)
+        assert not (vis & ~plain["visible_mask"]).any()  # an occluder only hides
+        if g["occluders_added"]:
+            added += 1
+            assert 0.5 <= g["visible_fraction"] < g0["visible_fraction"]
+        else:
+            assert g["visible_fraction"] == g0["visible_fraction"]
+    assert added >= 2

@@ -88,7 +88,8 @@ def test_empty_image_has_no_candidate(part_bank):
 
 TRUE_LIKE = {"edge_support": 0.98, "unexplained": 0.0, "colour_edge": 1.0, "polarity": 1.0, "region": 0.95,
              "region_low": 0.9, "region_global": 0.95, "coherence": 0.95, "shading_r2": 0.95,
-             "shading_std": 20.0, "in_image": 1.0}
+             "shading_std": 20.0, "in_image": 1.0, "visible": 1.0, "shading_r2_robust": 0.95,
+             "region_visible": 0.95, "region_best": 0.95, "colour_edge_visible": 1.0}
 
 
 def test_true_like_evidence_is_found():
@@ -97,11 +98,13 @@ def test_true_like_evidence_is_found():
 
 
 @pytest.mark.parametrize("change, reason", [
-    ({"edge_support": 0.2, "region_global": 0.5, "shading_r2": 0.6}, "low_support"),
-    ({"unexplained": 6.0, "region_global": 0.5, "shading_r2": 0.6}, "interior_edges"),
+    ({"edge_support": 0.2, "region_global": 0.5, "shading_r2": 0.6, "shading_r2_robust": 0.6},
+     "low_support"),
+    ({"unexplained": 6.0, "region_global": 0.5, "shading_r2": 0.6, "shading_r2_robust": 0.6},
+     "interior_edges"),
     ({"region": 0.05, "region_low": 0.0, "region_global": 0.0, "colour_edge": 0.3, "polarity": 0.3,
       "coherence": 0.0}, "region_mismatch"),
-    ({"shading_r2": 0.0, "region_global": 0.6}, "shading_mismatch"),
+    ({"shading_r2": 0.0, "shading_r2_robust": 0.0, "region_global": 0.6}, "shading_mismatch"),
     ({"in_image": 0.2}, "outside_image"),
 ])
 def test_each_rejection_names_its_evidence(change, reason):
