@@ -151,12 +151,11 @@ def _evidence_serial(bank, pose, intr, frame, others=None):
     in_image = (u >= 1) & (u < W - 1) & (v >= 1) & (v < H - 1)
     e = ev._edge_and_polarity(win, p, n, in_image)
     r = ev._region(win, mask, band, hidden, explained)
-    s = ev._shading(win, fid, bank, pose)
-    fit = ev._robust_shading(win, fid, bank, pose)
-    vis = ev._visible_evidence(win, mask, fid, band, fit, p, n, in_image, hidden, explained)
+    inside = ev._inside_samples(fid, bank, pose)
+    s = ev._shading(win, inside)
+    fit = ev._robust_shading(win, inside)
     return ev.Evidence(e[0], e[1], r[0], r[1], r[2], e[2], s[0], s[1], float(in_image.mean()),
-                       visible=fit.visible, shading_r2_robust=fit.r2, region_visible=vis[0],
-                       region_best=vis[1], colour_edge_visible=vis[2])
+                       visible=fit.visible, shading_r2_robust=fit.r2)
 
 
 def test_evidence_with_its_region_on_the_pool_equals_the_pieces_in_turn():

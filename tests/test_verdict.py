@@ -88,8 +88,7 @@ def test_empty_image_has_no_candidate(part_bank):
 
 TRUE_LIKE = {"edge_support": 0.98, "unexplained": 0.0, "colour_edge": 1.0, "polarity": 1.0, "region": 0.95,
              "region_low": 0.9, "region_global": 0.95, "coherence": 0.95, "shading_r2": 0.95,
-             "shading_std": 20.0, "in_image": 1.0, "visible": 1.0, "shading_r2_robust": 0.95,
-             "region_visible": 0.95, "region_best": 0.95, "colour_edge_visible": 1.0}
+             "shading_std": 20.0, "in_image": 1.0, "visible": 1.0, "shading_r2_robust": 0.95}
 
 
 def test_true_like_evidence_is_found():

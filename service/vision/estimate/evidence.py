@@ -21,11 +21,13 @@ the face normals, refitted on the pixels it explains, least trimmed squares styl
 nearest the median colour): its inliers are the pixels whose colour is the part's, and
 
 - ``visible``: the inlier share of the silhouette's inside (an estimate of the visible fraction);
-- ``shading_r2_robust``: the share of the inliers' colour variance the fit explains;
-- ``region_visible``: ``region_global`` with the inside band's outliers left out;
-- ``region_best``: the mean separability of the best ``REGION_BEST`` sectors (a covered side loses its
-  contrast);
-- ``colour_edge_visible``: ``colour_edge`` over the outline points whose inside is an inlier.
+- ``shading_r2_robust``: the share of the inliers' colour variance the fit explains.
+
+Measured and dropped (session 12, ``bench/truth_evidence.py`` on the tuning sets and clutter): the
+region separability of the inliers only, of the best 5 of 8 sectors, and the colour edges of the outline
+points with an inlier inside. Each separated truths from wrong candidates less well than
+``region_global`` / ``colour_edge`` (AUC 0.61-0.67 against 0.71 on clutter2), the refit gave them no
+weight, and they cost ~5 ms a hypothesis.
 """
 
 from __future__ import annotations
@@ -68,18 +70,13 @@ class Evidence:
     # The visible part's evidence (module docstring): what an occluder does not spoil.
     visible: float = 0.0  # inlier share of the inside under the robust colour shading fit
     shading_r2_robust: float = 0.0  # colour variance of the inliers the fit explains
-    region_visible: float = 0.0  # region_global with the inside band's outliers left out
-    region_best: float = 0.0  # mean separability of the best REGION_BEST sectors
-    colour_edge_visible: float = 0.0  # colour_edge over the outline points with an inlier inside
 
     def as_dict(self) -> dict[str, float]:
         return {"colour_edge": self.colour_edge, "polarity": self.polarity, "region": self.region,
                 "region_low": self.region_low, "region_global": self.region_global,
                 "coherence": self.coherence, "shading_r2": self.shading_r2, "shading_std": self.shading_std,
                 "in_image": self.in_image, "visible": self.visible,
-                "shading_r2_robust": self.shading_r2_robust,
-                "region_visible": self.region_visible, "region_best": self.region_best,
-                "colour_edge_visible": self.colour_edge_visible}
+                "shading_r2_robust": self.shading_r2_robust}
 
 
 NO_EVIDENCE = Evidence(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -93,7 +90,6 @@ ROBUST_K = 3.0
 ROBUST_MIN_LEVELS = 8.0
 ROBUST_ITERS = 6
 ROBUST_MAX_PIXELS = 3000
-REGION_BEST = 5  # sectors of REGION_SECTORS: a covered side (up to 3 of 8) does not count
 # Another found part hides a pixel of this one where its surface is nearer by more than this (mm):
 # rasterised depths of touching parts differ by less along their contact.
 OCCLUSION_MARGIN_MM = 1.0
@@ -286,28 +282,30 @@ def _region(win: _Window, mask: np.ndarray, band_px: int, hidden: np.ndarray | N
     return float(seps.mean()), float(seps[min(1, len(seps) - 1)]), overall
 
 
-def _shading(win: _Window, fid: np.ndarray, bank: TemplateBank, pose: Pose) -> tuple[float, float]:
+@dataclass(frozen=True)
+class _Inside:
+    """The silhouette's inside as both shading fits read it: every other pixel of the eroded mask."""
+    v: np.ndarray  # (N,) window rows
+    u: np.ndarray  # (N,) window columns
+    normals: np.ndarray  # (N, 3) camera-frame normal of each pixel's face
+
+
+def _inside_samples(fid: np.ndarray, bank: TemplateBank, pose: Pose) -> _Inside | None:
+    """``None`` with fewer than ``MIN_SHADING_PIXELS``."""
     inner = cv2.erode((fid >= 0).astype(np.uint8), np.ones((2 * SHADING_ERODE_PX + 1,) * 2, np.uint8))
-    # Every other row and column: the fit needs thousands of pixels, not all.
+    # Every other row and column: the fits need thousands of pixels, not all.
     vi, ui = np.nonzero(inner[::2, ::2])
     if len(vi) < MIN_SHADING_PIXELS:
-        return 0.0, 0.0
+        return None
     vi, ui = 2 * vi, 2 * ui
-    grey = cv2.cvtColor(win.bgr[vi, ui][None], cv2.COLOR_BGR2GRAY)[0].astype(np.float64)  # inner px only
     f = fid[vi, ui]
-    # The visible faces, sorted, and each pixel's index among them (np.unique's, without its sort).
+    # The faces seen, sorted, and each pixel's index among them (np.unique's, without its sort).
     seen = np.zeros(len(bank.faces), bool)
     seen[f] = True
     visible = np.flatnonzero(seen)
     index = (np.cumsum(seen) - 1)[f]
     n = face_normals_cam(bank.vertices_mm, bank.faces[visible], pose.R, pose.t_mm)[index].astype(np.float64)
-    A = np.hstack([np.ones((len(n), 1)), n, n * n, n[:, [0]] * n[:, [1]], n[:, [1]] * n[:, [2]],
-                   n[:, [0]] * n[:, [2]]])
-    # Normal equations: the 10 x 10 system costs a fraction of an SVD of the (pixels x 10) one.
-    coef = np.linalg.lstsq(A.T @ A, A.T @ grey, rcond=None)[0]
-    res = grey - A @ coef
-    var = float(grey.var())
-    return (float(1.0 - res.var() / var) if var > 0 else 0.0), float(np.sqrt(var))
+    return _Inside(vi, ui, n)
 
 
 def _normal_design(n: np.ndarray) -> np.ndarray:
@@ -316,26 +314,23 @@ def _normal_design(n: np.ndarray) -> np.ndarray:
                       n[:, [0]] * n[:, [2]]])
 
 
+def _shading(win: _Window, inside: _Inside | None) -> tuple[float, float]:
+    if inside is None:
+        return 0.0, 0.0
+    grey = cv2.cvtColor(win.bgr[inside.v, inside.u][None], cv2.COLOR_BGR2GRAY)[0].astype(np.float64)
+    A = _normal_design(inside.normals)
+    # Normal equations: the 10 x 10 system costs a fraction of an SVD of the (pixels x 10) one.
+    coef = np.linalg.lstsq(A.T @ A, A.T @ grey, rcond=None)[0]
+    res = grey - A @ coef
+    var = float(grey.var())
+    return (float(1.0 - res.var() / var) if var > 0 else 0.0), float(np.sqrt(var))
+
+
 @dataclass(frozen=True)
 class ColourFit:
-    """The robust colour shading fit of one pose: ``inlier_at`` says which pixels look like the part."""
-    visible: float
-    r2: float
-    coef: np.ndarray  # (10, 3) per-channel quadratic in the normals
-    tau: float  # inlier threshold on the BGR residual norm
-    normals: np.ndarray  # (n_faces, 3) camera-frame face normals (zero for faces not seen)
-
-    def inlier_at(self, win: _Window, fid: np.ndarray, v: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Whether the pixels (v, u) of the window are on the model and explained by the fit."""
-        f = fid[v, u]
-        on = f >= 0
-        out = np.zeros(len(v), bool)
-        if on.any():
-            pred = _normal_design(self.normals[f[on]]) @ self.coef
-            res = np.linalg.norm(win.bgr[v[on], u[on]].astype(np.float64) - pred, axis=1)
-            out[on] = res <= self.tau
-        return out
-
+    """The robust colour shading fit of one pose."""
+    visible: float  # inlier share of the pixels fitted
+    r2: float  # share of the inliers' colour variance the fit explains
 
 
 def _trimmed_fit(A: np.ndarray, c: np.ndarray, inl: np.ndarray) -> tuple[np.ndarray, float]:
@@ -355,24 +350,17 @@ def _trimmed_fit(A: np.ndarray, c: np.ndarray, inl: np.ndarray) -> tuple[np.ndar
     return coef, tau
 
 
-def _robust_shading(win: _Window, fid: np.ndarray, bank: TemplateBank, pose: Pose) -> ColourFit | None:
-    """The colour shading fit on the inside's visible part (module docstring), on the same eroded,
-    every-other-pixel inside as ``_shading``; ``None`` with too few pixels."""
-    inner = cv2.erode((fid >= 0).astype(np.uint8), np.ones((2 * SHADING_ERODE_PX + 1,) * 2, np.uint8))
-    vi, ui = np.nonzero(inner[::2, ::2])
-    if len(vi) < MIN_SHADING_PIXELS:
+def _robust_shading(win: _Window, inside: _Inside | None) -> ColourFit | None:
+    """The colour shading fit on the inside's visible part (module docstring), on the same pixels as
+    ``_shading`` (at most ``ROBUST_MAX_PIXELS`` of them); ``None`` with too few pixels."""
+    if inside is None:
         return None
+    vi, ui, normals = inside.v, inside.u, inside.normals
     if len(vi) > ROBUST_MAX_PIXELS:  # evenly thinned: the fit and the inlier share need a few thousand
         keep = np.linspace(0, len(vi) - 1, ROBUST_MAX_PIXELS).astype(np.int64)
-        vi, ui = vi[keep], ui[keep]
-    vi, ui = 2 * vi, 2 * ui
+        vi, ui, normals = vi[keep], ui[keep], normals[keep]
     c = win.bgr[vi, ui].astype(np.float64)
-    seen = np.zeros(len(bank.faces), bool)
-    seen[fid[fid >= 0]] = True
-    visible_faces = np.flatnonzero(seen)
-    normals = np.zeros((len(bank.faces), 3))
-    normals[visible_faces] = face_normals_cam(bank.vertices_mm, bank.faces[visible_faces], pose.R, pose.t_mm)
-    A = _normal_design(normals[fid[vi, ui]])
+    A = _normal_design(normals)
     # Two starts: all pixels (a part in full view: a plain fit already explains it), and the half
     # nearest the median colour (an occluder's colours pull a plain fit between the two; the median is
     # the part's while it shows more than half). The fit that explains more pixels within the SMALLER of
@@ -386,74 +374,11 @@ def _robust_shading(win: _Window, fid: np.ndarray, bank: TemplateBank, pose: Pos
     res = np.linalg.norm(c - A @ coef, axis=1)
     inl = res <= tau
     if inl.sum() < MIN_SHADING_PIXELS:
-        return ColourFit(float(inl.mean()), 0.0, coef, tau, normals)
+        return ColourFit(float(inl.mean()), 0.0)
     ci = c[inl]
     total = float(((ci - ci.mean(axis=0)) ** 2).sum())
     r2 = 1.0 - float((res[inl] ** 2).sum()) / total if total > 0 else 0.0
-    return ColourFit(float(inl.mean()), max(r2, 0.0), coef, tau, normals)
-
-
-def _visible_evidence(win: _Window, mask: np.ndarray, fid: np.ndarray, band_px: int, fit: ColourFit | None,
-                      p: np.ndarray, n: np.ndarray, in_image: np.ndarray, hidden: np.ndarray | None,
-                      explained: np.ndarray | None) -> tuple[float, float, float]:
-    """(region_visible, region_best, colour_edge_visible): the region and edge evidence of the pixels
-    the robust fit calls the part's."""
-    if fit is None:
-        return 0.0, 0.0, 0.0
-    region_visible, region_best = _visible_region(win, mask, fid, band_px, fit, hidden, explained)
-    q = np.rint(p - POLARITY_OFFSET_PX * n).astype(int)
-    h, w = mask.shape
-    ok = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
-    inside_ok = np.zeros(len(p), bool)
-    inside_ok[ok] = fit.inlier_at(win, fid, q[ok, 1], q[ok, 0])
-    pts = inside_ok & in_image
-    if not pts.any():
-        return region_visible, region_best, 0.0
-    supported = _edge_support(win, p, n)
-    return region_visible, region_best, float(supported[pts].mean())
-
-
-def _edge_support(win: _Window, p: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """Per outline point: a colour edge along its normal (``_edge_and_polarity``'s test)."""
-    offs = np.arange(-NORMAL_SEARCH_PX, NORMAL_SEARCH_PX + 1, dtype=np.float64)
-    q = p[:, None, :] + offs[None, :, None] * n[:, None, :]
-    gu, gv = _gradient_at(win, q)
-    along = np.abs(gu * n[:, None, 0] + gv * n[:, None, 1])
-    mag = np.sqrt(gu * gu + gv * gv)
-    return ((mag >= EDGE_MIN_GRADIENT) & (along >= np.cos(np.radians(EDGE_ANGLE_DEG)) * mag)).any(axis=1)
-
-
-def _visible_region(win: _Window, mask: np.ndarray, fid: np.ndarray, band_px: int, fit: ColourFit,
-                    hidden: np.ndarray | None, explained: np.ndarray | None) -> tuple[float, float]:
-    """(region_visible, region_best) from one histogram pass over the bands (as ``_region`` makes them):
-    the whole inside band's inliers against the outside band, and the mean of the best ``REGION_BEST``
-    judged sectors (inside band against outside band, as ``_region`` judges them)."""
-    m8 = mask.astype(np.uint8)
-    inner = mask & (cv2.distanceTransform(m8, cv2.DIST_L2, 3) <= band_px)
-    outer = ~mask & (cv2.distanceTransform(1 - m8, cv2.DIST_L2, 3) <= band_px)
-    if hidden is not None:
-        inner &= ~hidden
-        outer &= ~explained
-    n_px = int(m8.sum())
-    v_mean = float(m8.sum(axis=1, dtype=np.int64) @ np.arange(m8.shape[0])) / n_px
-    u_mean = float(m8.sum(axis=0, dtype=np.int64) @ np.arange(m8.shape[1])) / n_px
-    bv, bu = np.nonzero(inner | outer)
-    angle = np.arctan2(bv - v_mean, bu - u_mean) + np.pi
-    sector = np.minimum((angle * (REGION_SECTORS / (2 * np.pi))).astype(int), REGION_SECTORS - 1)
-    is_in = inner[bv, bu]
-    # class 0: inside and explained by the fit, 1: inside but not, 2: outside
-    cls = np.full(len(bv), 2, np.int64)
-    cls[is_in] = np.where(fit.inlier_at(win, fid, bv[is_in], bu[is_in]), 0, 1)
-    nb = REGION_BINS ** 3
-    key = (3 * sector + cls) * nb + win.quantised_at(bv, bu)
-    hist = np.bincount(key, minlength=3 * REGION_SECTORS * nb).reshape(REGION_SECTORS, 3, nb)
-    inside = hist[:, 0] + hist[:, 1]
-    seps = [_tv(inside[s], hist[s, 2]) for s in range(REGION_SECTORS)
-            if inside[s].sum() >= MIN_REGION_PIXELS and hist[s, 2].sum() >= MIN_REGION_PIXELS]
-    region_best = float(np.sort(seps)[::-1][:REGION_BEST].mean()) if seps else 0.0
-    both = hist.sum(axis=0)
-    ok = both[0].sum() >= MIN_REGION_PIXELS and both[2].sum() >= MIN_REGION_PIXELS
-    return (_tv(both[0], both[2]) if ok else 0.0), region_best
+    return ColourFit(float(inl.mean()), max(r2, 0.0))
 
 
 def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFrame,
@@ -491,12 +416,10 @@ def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFram
     u, v = p[:, 0] + u0, p[:, 1] + v0
     in_image = (u >= 1) & (u < W - 1) & (v >= 1) & (v < H - 1)
     colour_edge, polarity, coherence = _edge_and_polarity(win, p, n, in_image)
-    shading_r2, shading_std = _shading(win, fid, bank, pose)
-    fit = _robust_shading(win, fid, bank, pose)
-    region_visible, region_best, colour_edge_visible = _visible_evidence(
-        win, mask, fid, band, fit, p, n, in_image, hidden, explained)
+    inside = _inside_samples(fid, bank, pose)
+    shading_r2, shading_std = _shading(win, inside)
+    fit = _robust_shading(win, inside)
     region, region_low, region_global = region_fut.result()
     return Evidence(colour_edge, polarity, region, region_low, region_global, coherence, shading_r2,
                     shading_std, float(in_image.mean()), visible=fit.visible if fit else 0.0,
-                    shading_r2_robust=fit.r2 if fit else 0.0, region_visible=region_visible,
-                    region_best=region_best, colour_edge_visible=colour_edge_visible)
+                    shading_r2_robust=fit.r2 if fit else 0.0)

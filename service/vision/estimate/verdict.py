@@ -25,17 +25,17 @@ import numpy as np
 FEATURES = ("edge_support", "unexplained", "colour_edge", "polarity", "region", "region_low", "region_global",
             "coherence", "shading_r2", "shading_std",
             # the visible part's (``evidence``: what an occluder in front of the part does not spoil)
-            "visible", "shading_r2_robust", "region_visible", "region_best", "colour_edge_visible")
+            "visible", "shading_r2_robust")
 # Evidence the verification score may use, and which of it counts against a pose.
 MODEL_FEATURES = ("edge_support", "unexplained", "colour_edge", "region_low", "region_global", "coherence",
-                  "shading_r2", "visible", "shading_r2_robust", "region_visible", "region_best",
-                  "colour_edge_visible")
+                  "shading_r2", "visible", "shading_r2_robust")
 LOWER_IS_BETTER = ("unexplained",)
 # The score's weights (logistic regression, each weight's sign fixed so that better evidence never lowers
 # the score), fitted by ``bench/fit_verdict.py --use region_global,shading_r2_robust`` on the tuning sets
 # (140 scenes of ``bench/synth_scenes.py --seed 11 --look real --occlusion clutter``, and clutter2 /
 # absent2); evidence it dropped has weight 0 (fitted on all of MODEL_FEATURES and the visible part's
-# evidence, it keeps these two and colour_edge_visible at 0.06). The highest score is 0.9895 (both at 1).
+# evidence, it kept these two and the colour edges of the visible outline at 0.06, since dropped from the
+# evidence: ``evidence``'s docstring). The highest score is 0.9895 (both at 1).
 WEIGHTS = {"bias": -3.533, "region_global": 4.487, "shading_r2_robust": 3.595}
 # Operating point (``options.min_score`` moves it): the highest at which the tuning sets' hypotheses
 # keep as many right answers as the previous weights at 0.98 (synthetic 3, clutter2 1; 0.97-0.979), the
