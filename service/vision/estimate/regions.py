@@ -45,6 +45,7 @@ ROUND_ELONG = 0.75  # a region rounder than this is tried at 12 in-plane turns, 
 PER_REGION = 3  # proposals kept per region (distinct poses): silhouettes are ambiguous
 SHAPE_GATE = 0.15  # a region farther than this from every template's (elongation, compactness) is dropped
 N_REGIONS = 300  # candidate regions matched per frame, by contrast to their surroundings
+DISTANCE_SLACK = 1.25  # a given distance: the part's reference point lies within this factor of it
 SCALES = (1.0, 1.25)  # template area / region area tried (a partly hidden part's region is smaller)
 
 
@@ -362,7 +363,9 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
     F = np.diag([fx, fy])
     z_ref = bank.reference_distance_mm
     bad_t = ~ok_t
-    out: list[RegionProposal] = []
+    # every region's canonical turns first, then one product per area scale for all of them
+    info = []
+    rows: list[np.ndarray] = []
     for c in cand:
         m = region_mask(reg, int(c))
         mo = cv2.moments(m, True)
@@ -372,14 +375,22 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
         # the region turned by each of these onto the templates' canonical frame: its axis either
         # way round; a roundish region every 30 degrees (its axis says little)
         turns = (0.0, 180.0) if el_r < ROUND_ELONG else tuple(range(0, 360, 30))
-        Rc = np.stack([canonical(m, mo, ang_r + math.radians(tn)).ravel() for tn in turns])  # (T, G^2)
-        r_area = Rc.sum(1)
         x0, y0 = reg.bbox[c, :2]
         c_full = (np.array([mo["m10"], mo["m01"]]) / mo["m00"] + np.array([x0, y0]) + 0.5) / sc - 0.5
-        A_r = mo["m00"] / sc**2
+        info.append((int(c), ang_r, turns, c_full, mo["m00"] / sc**2, len(rows)))
+        rows += [canonical(m, mo, ang_r + math.radians(tn)).ravel() for tn in turns]
+    if not rows:
+        return [], reg
+    Rc_all = np.stack(rows)  # (sum of turns, G^2)
+    r_area_all = Rc_all.sum(1)
+    inter_all = [Rc_all @ canon[k].T for k in range(len(SCALES))]  # (sum of turns, N) per scale
+    out: list[RegionProposal] = []
+    for c, ang_r, turns, c_full, A_r, r0 in info:
+        sl = slice(r0, r0 + len(turns))
+        r_area = r_area_all[sl]
         scored = []
         for k, s_a in enumerate(SCALES):
-            inter = Rc @ canon[k].T  # (T, N)
+            inter = inter_all[k][sl]  # (T, N)
             iou = inter / (r_area[:, None] + t_area[k][None] - inter + 1e-9)
             iou[:, bad_t] = 0
             kz = np.sqrt(s_a * A_r / (np.maximum(sil.area_n, 1e-12) * fx * fy))
@@ -398,9 +409,9 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
             cp, sp = math.cos(math.radians(phi)), math.sin(math.radians(phi))
             uv_ref = c_full - F @ np.array([[cp, -sp], [sp, cp]]) @ sil.centroid_n[t] * kz
             hyp = Hypothesis(t, float(phi % 360), z, uv_ref)
-            if any(_same(hyp, q.hyp, bank) for q in out if q.region == int(c)):
+            if any(_same(hyp, q.hyp, bank) for q in out if q.region == c):
                 continue
-            out.append(RegionProposal(hyp, iou_v, int(c)))
+            out.append(RegionProposal(hyp, iou_v, c))
             n_kept += 1
     out.sort(key=lambda r: -r.iou)
     kept: list[RegionProposal] = []
@@ -445,16 +456,33 @@ def boundary_segments(reg: Regions, c: int, image_shape: tuple[int, int]) -> Seg
 
 
 def refine_on_boundary(bank: TemplateBank, prop: RegionProposal, reg: Regions, K: np.ndarray,
-                       image_shape: tuple[int, int], p: SearchParams, *, level_b: bool = True
-                       ) -> Hypothesis:
+                       image_shape: tuple[int, int], p: SearchParams, *, level_b: bool = True,
+                       distance_mm: float | None = None) -> Hypothesis:
     """Level B (optional) and the polish from a region proposal on the region's own outline."""
     seg = boundary_segments(reg, prop.region, image_shape)
     dtt = distance_tensor(seg, n_channels=p.n_channels, scale=p.fine_scale)
     h = Hypothesis(prop.hyp.view, prop.hyp.phi_deg, prop.hyp.z_mm, prop.hyp.uv.copy())
     if level_b:
         dt_q, tau_q = quantised(dtt, p.rank_tau_px * dtt.scale)
-        hb, _ = local_scan(bank, h, dt_q, tau_q, dtt, K, p, distance_mm=None, accept_q=int(tau_q))
+        hb, _ = local_scan(bank, h, dt_q, tau_q, dtt, K, p, distance_mm=distance_mm, accept_q=int(tau_q))
         if hb is not None:
             h = hb
-    return polish(bank, h, dtt, K, p, distance_mm=None, neighbours=view_neighbours(bank),
+    return polish(bank, h, dtt, K, p, distance_mm=distance_mm, neighbours=view_neighbours(bank),
                   step_phi_deg=2.0, step_uv_px=2.0, step_z=0.04)
+
+
+def region_proposals(bank: TemplateBank, image: np.ndarray, K: np.ndarray, image_shape: tuple[int, int],
+                     p: SearchParams, *, distance_mm: float | None, distance_range_mm: tuple[float, float],
+                     n_out: int) -> list[Hypothesis]:
+    """The first ``n_out`` region proposals (``propose``), each refined on its region's outline
+    (``refine_on_boundary``), in the proposals' order (silhouette IoU). With ``distance_mm`` the
+    regions' areas are judged within ``DISTANCE_SLACK`` of it."""
+    if image.ndim == 2:
+        image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    image = image[..., :3]
+    if image.dtype != np.uint8:
+        image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    rng = distance_range_mm if distance_mm is None else \
+        (distance_mm / DISTANCE_SLACK, distance_mm * DISTANCE_SLACK)
+    props, reg = propose(bank, image, K, rng, n_out=n_out)
+    return [refine_on_boundary(bank, r, reg, K, image_shape, p, distance_mm=distance_mm) for r in props]
