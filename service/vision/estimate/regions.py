@@ -1,0 +1,488 @@
+"""Pose proposals from colour-homogeneous image regions (issue #14: clutter).
+
+On a textured floor the chamfer cost of texture is lower than that of a partly hidden true outline, so
+ranking by chamfer cost loses the part; a person finds a single-coloured part by its region instead.
+Here the image (at ``WORK_WIDTH`` px wide) is smoothed by mean shift, split into pixel-connected
+regions of near-equal colour, and those are merged hierarchically, weakest shared boundary first (the
+mean Lab contrast across the boundary: a smoothly shaded part's bands merge before the part meets its
+floor), every merge being a candidate region, as in selective search. A candidate whose area fits the
+part's projected area over the distance range is compared with every template's silhouette
+(``Silhouettes``, rasterised once per bank): shape descriptors first (elongation, solidity), then the
+intersection over union of the best templates placed on the region (depth from the area ratio,
+in-plane angle from the principal axes), giving ``coarse.Hypothesis`` proposals ranked by IoU.
+``refine_on_boundary`` then runs level B and the polish on the region's own boundary only (a clean
+edge map: the floor's texture inside it does not count).
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from service.vision.bank import TemplateBank, view_neighbours
+from service.vision.estimate.chamfer import distance_tensor, quantised
+from service.vision.estimate.coarse import Hypothesis, SearchParams, local_scan, polish
+from service.vision.estimate.edges import Segments
+from service.vision.geometry.frames import Pose, Rz
+from service.vision.geometry.render import rasterise_roi
+from service.vision.memo import Memo
+
+WORK_WIDTH = 320  # px: the segmentation's image width (1/4 of 1280, 1/2 of 640)
+MS_SP, MS_SR = 5, 12  # mean shift's spatial and colour radii (working px, Lab-ish units of BGR)
+LINK_DE = 4.0  # neighbouring pixels closer than this (Lab, after mean shift) start in one region
+MAX_MERGE_DE = 45.0  # regions are not merged across a boundary contrast above this
+SPECK_PX = 16.0  # working px: a region this small merges at a contrast discounted by its size
+MASK_PX = 64  # template silhouettes are rasterised on MASK_PX x MASK_PX
+AREA_SLACK = (0.35, 1.3)  # a region may hold this fraction of the smallest .. largest projected area
+CANON_PX, CANON_AREA = 48, 0.2  # silhouettes are compared on this square, at this share of its area
+ROUND_ELONG = 0.75  # a region rounder than this is tried at 12 in-plane turns, not 2
+PER_REGION = 3  # proposals kept per region (distinct poses): silhouettes are ambiguous
+SHAPE_GATE = 0.15  # a region farther than this from every template's (elongation, compactness) is dropped
+N_REGIONS = 300  # candidate regions matched per frame, by contrast to their surroundings
+DISTANCE_SLACK = 1.25  # a given distance: the part's reference point lies within this factor of it
+SCALES = (1.0, 1.25)  # template area / region area tried (a partly hidden part's region is smaller)
+
+
+@dataclass(frozen=True)
+class Silhouettes:
+    masks: np.ndarray  # (N, S, S) uint8 0/1: template n's silhouette, reference point at the centre
+    px_per_unit: float  # mask px per normalised image unit (x / z) at the bank's reference distance
+    area_n: np.ndarray  # (N,) silhouette area, normalised units^2, at the reference distance
+    centroid_n: np.ndarray  # (N, 2) silhouette centroid relative to the reference point, normalised
+    axis_rad: np.ndarray  # (N,) principal axis angle (image x towards y)
+    elong: np.ndarray  # (N,) sqrt(minor / major second moment)
+    solidity: np.ndarray  # (N,) area / convex hull area
+    compact: np.ndarray  # (N,) ``moment_shape``'s compactness
+
+
+_SIL = Memo(8)
+
+
+def silhouettes(bank: TemplateBank) -> Silhouettes:
+    """Every template's silhouette (the mesh's faces filled), once per bank."""
+
+    def make() -> Silhouettes:
+        S = MASK_PX
+        v = np.asarray(bank.vertices_mm, float) - bank.centre_obj
+        r_obj = float(np.linalg.norm(v, axis=1).max())
+        z_ref = bank.reference_distance_mm
+        ppu = (S / 2 - 2) / (r_obj / (z_ref - r_obj))
+        N = bank.n_templates
+        masks = np.zeros((N, S, S), np.uint8)
+        area = np.zeros(N)
+        cen = np.zeros((N, 2))
+        axis = np.zeros(N)
+        elong = np.zeros(N)
+        solid = np.zeros(N)
+        compact = np.zeros(N)
+        # a camera with focal length ppu and the reference point at the mask's centre
+        K_m = np.array([[ppu, 0.0, S / 2 - 0.5], [0.0, ppu, S / 2 - 0.5], [0.0, 0.0, 1.0]])
+        for n in range(N):
+            R = bank.R_tpl_obj[n]
+            pose = Pose(R, np.array([0.0, 0.0, z_ref]) - R @ bank.centre_obj)
+            _, face, (u0, v0) = rasterise_roi(bank.vertices_mm, bank.faces, pose, K_m, (S, S))
+            masks[n, v0:v0 + face.shape[0], u0:u0 + face.shape[1]] = face >= 0
+            mo = cv2.moments(masks[n], True)
+            if mo["m00"] <= 0:
+                continue
+            area[n] = mo["m00"] / ppu**2
+            cen[n] = (np.array([mo["m10"], mo["m01"]]) / mo["m00"] + 0.5 - S / 2) / ppu
+            axis[n], elong[n] = _axes(mo)
+            solid[n] = _solidity(masks[n], mo["m00"])
+            raw = np.array([[mo[k] for k in ("m00", "m10", "m01", "m20", "m11", "m02")]])
+            compact[n] = moment_shape(raw)[1][0]
+        return Silhouettes(masks, ppu, area, cen, axis, elong, solid, compact)
+
+    return _SIL.get(bank, "sil", make)
+
+
+def _axes(mo: dict) -> tuple[float, float]:
+    a, b, c = mo["mu20"], mo["mu11"], mo["mu02"]
+    ang = 0.5 * math.atan2(2 * b, a - c)
+    d = math.sqrt(max((a - c) ** 2 + 4 * b * b, 0.0))
+    l1, l2 = (a + c + d) / 2, (a + c - d) / 2
+    return ang, math.sqrt(max(l2, 0.0) / l1) if l1 > 0 else 1.0
+
+
+def moment_shape(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(elongation sqrt(minor / major), compactness A / (4 pi sqrt(det cov))) from raw moments (M, 6):
+    1 for a disc, 0.95 for a rectangle, less the more a region's mass is scattered (a merge of stripes)."""
+    a0 = np.maximum(m[:, 0], 1e-9)
+    cx, cy = m[:, 1] / a0, m[:, 2] / a0
+    sxx = m[:, 3] / a0 - cx * cx + 1 / 12
+    sxy = m[:, 4] / a0 - cx * cy
+    syy = m[:, 5] / a0 - cy * cy + 1 / 12
+    tr, det = sxx + syy, np.maximum(sxx * syy - sxy * sxy, 1e-12)
+    disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0))
+    l1, l2 = tr / 2 + disc, np.maximum(tr / 2 - disc, 1e-12)
+    return np.sqrt(l2 / l1), a0 / (4 * np.pi * np.sqrt(det))
+
+
+def _solidity(mask: np.ndarray, area: float) -> float:
+    cs, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    if not cs:
+        return 0.0
+    hull = cv2.convexHull(np.concatenate(cs))
+    ha = cv2.contourArea(hull)
+    return float(min(area / ha, 1.0)) if ha > 0 else 1.0
+
+
+# --- segmentation ----------------------------------------------------------------------------------
+
+
+@dataclass
+class Regions:
+    labels: np.ndarray  # (h, w) int32 initial region of each working pixel
+    scale: float  # working px per full-resolution px
+    children: list[tuple[int, int]]  # per node: the two nodes it merged ((-1, -1): an initial region)
+    area: np.ndarray  # (C,) working px per node
+    bbox: np.ndarray  # (C, 4) x0, y0, x1, y1 (exclusive) working px per node
+    born: np.ndarray  # (C,) the boundary contrast at which the node formed (0: initial)
+    died: np.ndarray  # (C,) ... at which it merged into a larger one (inf: never), specks aside: its
+    # contrast to every neighbour when it stopped growing
+    moments: np.ndarray  # (C, 6) m00, m10, m01, m20, m11, m02 (working px)
+
+    def members(self, c: int) -> list[int]:
+        out, stack = [], [c]
+        while stack:
+            n = stack.pop()
+            a, b = self.children[n]
+            if a < 0:
+                out.append(n)
+            else:
+                stack += [a, b]
+        return out
+
+
+def segment(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> Regions:
+    """Initial regions (mean shift, then pixel-connected components of near-equal colour) and every
+    region of their hierarchical merging by weakest mean boundary contrast (``MAX_MERGE_DE`` at most)."""
+    H, W = image_bgr.shape[:2]
+    sc = min(work_width / W, 1.0)
+    w, h = max(int(round(W * sc)), 1), max(int(round(H * sc)), 1)
+    small = cv2.resize(image_bgr, (w, h), interpolation=cv2.INTER_AREA) if sc < 1 else image_bgr.copy()
+    ms = cv2.pyrMeanShiftFiltering(small, MS_SP, MS_SR)
+    lab = cv2.cvtColor(ms, cv2.COLOR_BGR2LAB).astype(np.float32)
+    lab[..., 0] *= 100.0 / 255.0
+    lab[..., 1:] -= 128.0
+    idx = np.arange(h * w).reshape(h, w)
+    dh = np.linalg.norm(lab[:, 1:] - lab[:, :-1], axis=2)
+    dv = np.linalg.norm(lab[1:] - lab[:-1], axis=2)
+    a = np.concatenate([idx[:, 1:][dh < LINK_DE], idx[1:][dv < LINK_DE]])
+    b = np.concatenate([idx[:, :-1][dh < LINK_DE], idx[:-1][dv < LINK_DE]])
+    g = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(h * w, h * w))
+    n0, lab_id = connected_components(g, directed=False)
+    labels = lab_id.reshape(h, w).astype(np.int32)
+    # boundary contrast between neighbouring initial regions: sum and count over pixel pairs
+    la = np.concatenate([labels[:, 1:].ravel(), labels[1:].ravel()])
+    lb = np.concatenate([labels[:, :-1].ravel(), labels[:-1].ravel()])
+    de = np.concatenate([dh.ravel(), dv.ravel()])
+    cut = la != lb
+    la, lb, de = la[cut], lb[cut], de[cut]
+    lo, hi = np.minimum(la, lb), np.maximum(la, lb)
+    key = lo.astype(np.int64) * n0 + hi
+    uk, inv = np.unique(key, return_inverse=True)
+    s_de = np.bincount(inv, de)
+    c_de = np.bincount(inv).astype(float)
+    area0 = np.bincount(labels.ravel(), minlength=n0).astype(float)
+    ys, xs = np.divmod(idx.ravel(), w)
+    lr = labels.ravel()
+    x0 = np.full(n0, w)
+    y0 = np.full(n0, h)
+    x1 = np.zeros(n0, int)
+    y1 = np.zeros(n0, int)
+    np.minimum.at(x0, lr, xs)
+    np.minimum.at(y0, lr, ys)
+    np.maximum.at(x1, lr, xs + 1)
+    np.maximum.at(y1, lr, ys + 1)
+    # raw moments (additive over merges): every node's second moments come for free
+    xs_f, ys_f = xs.astype(float), ys.astype(float)
+    mom0 = np.stack([np.bincount(lr, wts, minlength=n0) for wts in
+                     (np.ones_like(xs_f), xs_f, ys_f, xs_f * xs_f, xs_f * ys_f, ys_f * ys_f)], 1)
+    mom = [mom0[i] for i in range(n0)]
+    # Hierarchical merging. Nodes: the initial regions, then one per merge (children, area, bbox, the
+    # contrast at which it formed and at which it was merged away). A live region is held by a
+    # representative id whose neighbour dict the merge keeps (the larger dict absorbs the smaller, so a
+    # floor region with thousands of neighbours is not copied at each merge); a heap entry is stale
+    # when its pair's current mean contrast differs from it.
+    nb: list[dict[int, list[float]]] = [dict() for _ in range(n0)]
+    for k, s, c in zip(uk, s_de, c_de, strict=True):
+        i, j = int(k // n0), int(k % n0)
+        nb[i][j] = [s, c]
+        nb[j][i] = [s, c]
+    children: list[tuple[int, int]] = [(-1, -1)] * n0
+    area = list(area0)
+    bbox = [[int(x0[i]), int(y0[i]), int(x1[i]), int(y1[i])] for i in range(n0)]
+    born = [0.0] * n0
+    died = [np.inf] * n0
+    node_of = list(range(n0))  # representative -> its current node
+
+    def key(i: int, j: int, e: list[float]) -> float:
+        # a speck (noise, a mean-shift leftover) merges before its contrast says: otherwise a part's
+        # region absorbs the specks along its outline one at a time and never stands out as one node
+        a = min(area[node_of[i]], area[node_of[j]])
+        return e[0] / e[1] * min(1.0, a / SPECK_PX)
+
+    heap = [(key(i, j, e), i, j) for i in range(n0) for j, e in nb[i].items() if i < j]
+    heapq.heapify(heap)
+    while heap:
+        d, i, j = heapq.heappop(heap)
+        if d > MAX_MERGE_DE:
+            break
+        e = nb[i].get(j)
+        if e is None:
+            continue
+        now = key(i, j, e)
+        if now > d + 1e-9:  # a side grew past a speck since: its turn comes later
+            heapq.heappush(heap, (now, i, j))
+            continue
+        if now < d - 1e-9:  # a fresher entry of the pair was pushed when its contrast changed
+            continue
+        big, small = (i, j) if len(nb[i]) >= len(nb[j]) else (j, i)
+        ni, nj = node_of[i], node_of[j]
+        k = len(children)
+        children.append((ni, nj))
+        area.append(area[ni] + area[nj])
+        bi, bj = bbox[ni], bbox[nj]
+        bbox.append([min(bi[0], bj[0]), min(bi[1], bj[1]), max(bi[2], bj[2]), max(bi[3], bj[3])])
+        born.append(d)
+        mom.append(mom[ni] + mom[nj])
+        died.append(np.inf)
+        died[ni] = died[nj] = d
+        node_of[big] = k
+        keep = nb[big]
+        del keep[small]
+        for m, (s, c) in nb[small].items():
+            if m == big:
+                continue
+            del nb[m][small]
+            if m in keep:
+                keep[m][0] += s
+                keep[m][1] += c
+                nb[m][big] = keep[m]  # one shared list per pair
+            else:
+                keep[m] = [s, c]
+                nb[m][big] = keep[m]
+            heapq.heappush(heap, (key(big, m, keep[m]), min(big, m), max(big, m)))
+        nb[small] = {}
+    return Regions(labels, sc, children, np.array(area), np.array(bbox, int).reshape(-1, 4), np.array(born),
+                   np.array(died), np.array(mom))
+
+
+# --- proposals -------------------------------------------------------------------------------------
+
+
+@dataclass
+class RegionProposal:
+    hyp: Hypothesis
+    iou: float
+    region: int  # candidate index in ``Regions``
+
+
+def projected_area_range(bank: TemplateBank, sil: Silhouettes, K: np.ndarray,
+                         distance_range_mm: tuple[float, float]) -> tuple[float, float]:
+    """Full-resolution px^2: smallest and largest silhouette area over the templates and distances."""
+    f2 = float(K[0, 0] * K[1, 1])
+    z_ref = bank.reference_distance_mm
+    ok = sil.area_n > 0
+    lo = float(sil.area_n[ok].min()) * f2 * (z_ref / distance_range_mm[1]) ** 2
+    hi = float(sil.area_n[ok].max()) * f2 * (z_ref / distance_range_mm[0]) ** 2
+    return lo, hi
+
+
+def region_mask(reg: Regions, c: int) -> np.ndarray:
+    x0, y0, x1, y1 = reg.bbox[c]
+    lab = reg.labels[y0:y1, x0:x1]
+    return np.isin(lab, reg.members(c)).astype(np.uint8)
+
+
+def canonical(mask: np.ndarray, mo: dict, angle_rad: float, area_scale: float = 1.0) -> np.ndarray:
+    """``mask`` moved to a ``CANON_PX`` square: its centroid at the centre, its axis at ``angle_rad``
+    turned onto x, its area scaled to ``CANON_AREA`` x ``area_scale`` of the square (float 0..1)."""
+    G = CANON_PX
+    s = math.sqrt(CANON_AREA * area_scale * G * G / mo["m00"])
+    cx, cy = mo["m10"] / mo["m00"], mo["m01"] / mo["m00"]
+    c, sn = math.cos(-angle_rad), math.sin(-angle_rad)
+    A = s * np.array([[c, -sn], [sn, c]])
+    off = np.array([G / 2 - 0.5, G / 2 - 0.5]) - A @ np.array([cx, cy])
+    return cv2.warpAffine(mask.astype(np.float32), np.hstack([A, off[:, None]]), (G, G),
+                          flags=cv2.INTER_LINEAR)
+
+
+_CANON = Memo(8)
+
+
+def canonical_templates(bank: TemplateBank, sil: Silhouettes) -> np.ndarray:
+    """(len(SCALES), N, CANON_PX^2) every template's silhouette in its canonical frame, per area scale."""
+
+    def make() -> np.ndarray:
+        out = np.zeros((len(SCALES), bank.n_templates, CANON_PX * CANON_PX), np.float32)
+        for n in range(bank.n_templates):
+            mo = cv2.moments(sil.masks[n], True)
+            if mo["m00"] <= 0:
+                continue
+            for k, s_a in enumerate(SCALES):
+                out[k, n] = canonical(sil.masks[n], mo, sil.axis_rad[n], s_a).ravel() > 0.5
+        return out
+
+    return _CANON.get(bank, "canon", make)
+
+
+def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
+            distance_range_mm: tuple[float, float], *, n_out: int = 30,
+            reg: Regions | None = None) -> tuple[list[RegionProposal], Regions]:
+    """Region proposals, best IoU first, mutually distinct (reference points, depths or rotations apart)."""
+    sil = silhouettes(bank)
+    canon = canonical_templates(bank, sil)
+    t_area = canon.sum(2)  # (S, N)
+    reg = reg if reg is not None else segment(image_bgr)
+    sc = reg.scale
+    a_lo, a_hi = projected_area_range(bank, sil, K, distance_range_mm)
+    area_full = reg.area / sc**2
+    cand = np.flatnonzero((area_full >= AREA_SLACK[0] * a_lo) & (area_full <= AREA_SLACK[1] * a_hi))
+    h, w = reg.labels.shape
+    # a region touching most of the image border is floor
+    bw = reg.bbox[:, 2] - reg.bbox[:, 0]
+    bh = reg.bbox[:, 3] - reg.bbox[:, 1]
+    cand = cand[(bw[cand] < 0.9 * w) & (bh[cand] < 0.9 * h) & (reg.area[cand] >= 12)]
+    # shaped like some template (elongation and compactness from the additive moments), then the
+    # regions that stand out most from all their surroundings (merged latest) first
+    el, co = moment_shape(reg.moments[cand])
+    ok_t = sil.area_n > 0
+    d_shape = (np.abs(el[:, None] - sil.elong[None, ok_t])
+               + np.abs(co[:, None] - sil.compact[None, ok_t])).min(1)
+    cand = cand[d_shape < SHAPE_GATE]
+    cand = cand[np.argsort(-reg.died[cand], kind="stable")[:N_REGIONS]]
+    fx, fy = float(K[0, 0]), float(K[1, 1])
+    F = np.diag([fx, fy])
+    z_ref = bank.reference_distance_mm
+    bad_t = ~ok_t
+    # every region's canonical turns first, then one product per area scale for all of them
+    info = []
+    rows: list[np.ndarray] = []
+    for c in cand:
+        m = region_mask(reg, int(c))
+        mo = cv2.moments(m, True)
+        if mo["m00"] < 12:
+            continue
+        ang_r, el_r = _axes(mo)
+        # the region turned by each of these onto the templates' canonical frame: its axis either
+        # way round; a roundish region every 30 degrees (its axis says little)
+        turns = (0.0, 180.0) if el_r < ROUND_ELONG else tuple(range(0, 360, 30))
+        x0, y0 = reg.bbox[c, :2]
+        c_full = (np.array([mo["m10"], mo["m01"]]) / mo["m00"] + np.array([x0, y0]) + 0.5) / sc - 0.5
+        info.append((int(c), ang_r, turns, c_full, mo["m00"] / sc**2, len(rows)))
+        rows += [canonical(m, mo, ang_r + math.radians(tn)).ravel() for tn in turns]
+    if not rows:
+        return [], reg
+    Rc_all = np.stack(rows)  # (sum of turns, G^2)
+    r_area_all = Rc_all.sum(1)
+    inter_all = [Rc_all @ canon[k].T for k in range(len(SCALES))]  # (sum of turns, N) per scale
+    out: list[RegionProposal] = []
+    for c, ang_r, turns, c_full, A_r, r0 in info:
+        sl = slice(r0, r0 + len(turns))
+        r_area = r_area_all[sl]
+        scored = []
+        for k, s_a in enumerate(SCALES):
+            inter = inter_all[k][sl]  # (T, N)
+            iou = inter / (r_area[:, None] + t_area[k][None] - inter + 1e-9)
+            iou[:, bad_t] = 0
+            kz = np.sqrt(s_a * A_r / (np.maximum(sil.area_n, 1e-12) * fx * fy))
+            z = z_ref / kz
+            iou[:, (z < distance_range_mm[0]) | (z > distance_range_mm[1])] = 0
+            top = np.unravel_index(np.argsort(-iou, axis=None)[:PER_REGION * 4], iou.shape)
+            for ti, t in zip(*top, strict=True):
+                scored.append((float(iou[ti, t]), int(t), float(turns[ti]), float(z[t]), float(kz[t])))
+        scored.sort(key=lambda x: -x[0])
+        n_kept = 0
+        for iou_v, t, tn, z, kz in scored:
+            if iou_v <= 0 or n_kept >= PER_REGION:
+                break
+            # the template's axis (canonical x) is the region's axis turned by tn: in-plane angle
+            phi = math.degrees(ang_r - sil.axis_rad[t]) + tn
+            cp, sp = math.cos(math.radians(phi)), math.sin(math.radians(phi))
+            uv_ref = c_full - F @ np.array([[cp, -sp], [sp, cp]]) @ sil.centroid_n[t] * kz
+            hyp = Hypothesis(t, float(phi % 360), z, uv_ref)
+            if any(_same(hyp, q.hyp, bank) for q in out if q.region == c):
+                continue
+            out.append(RegionProposal(hyp, iou_v, c))
+            n_kept += 1
+    out.sort(key=lambda r: -r.iou)
+    kept: list[RegionProposal] = []
+    for r in out:
+        if any(_same(r.hyp, q.hyp, bank) for q in kept):
+            continue
+        kept.append(r)
+        if len(kept) >= n_out:
+            break
+    return kept, reg
+
+
+def _same(a: Hypothesis, b: Hypothesis, bank: TemplateBank) -> bool:
+    """Two proposals one pose: reference points within 8 px, depths within 10 %, rotations within 15 deg."""
+    if np.hypot(*(a.uv - b.uv)) >= 8.0 or abs(math.log(a.z_mm / b.z_mm)) >= 0.1:
+        return False
+    Ra = Rz(a.phi_deg) @ bank.R_tpl_obj[a.view]
+    Rb = Rz(b.phi_deg) @ bank.R_tpl_obj[b.view]
+    return (np.trace(Ra @ Rb.T) - 1) / 2 > math.cos(math.radians(15.0))
+
+
+def boundary_segments(reg: Regions, c: int, image_shape: tuple[int, int]) -> Segments:
+    """The candidate region's outline as segments in full-resolution pixels."""
+    m = region_mask(reg, c)
+    x0, y0 = reg.bbox[c, :2]
+    cs, _ = cv2.findContours(np.pad(m, 1), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    uv0, uv1 = [], []
+    for cnt in cs:
+        pts = cv2.approxPolyDP(cnt, 0.7, True).reshape(-1, 2).astype(np.float32)
+        if len(pts) < 2:
+            continue
+        pts = (pts - 1 + np.array([x0, y0], np.float32) + 0.5) / reg.scale - 0.5
+        uv0.append(pts)
+        uv1.append(np.roll(pts, -1, axis=0))
+    if not uv0:
+        e = np.zeros((0, 2), np.float32)
+        return Segments(e, e, np.zeros(0, np.float32), image_shape)
+    a, b = np.concatenate(uv0), np.concatenate(uv1)
+    d = b - a
+    theta = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi).astype(np.float32)
+    return Segments(a, b, theta, image_shape)
+
+
+def refine_on_boundary(bank: TemplateBank, prop: RegionProposal, reg: Regions, K: np.ndarray,
+                       image_shape: tuple[int, int], p: SearchParams, *, level_b: bool = True,
+                       distance_mm: float | None = None) -> Hypothesis:
+    """Level B (optional) and the polish from a region proposal on the region's own outline."""
+    seg = boundary_segments(reg, prop.region, image_shape)
+    dtt = distance_tensor(seg, n_channels=p.n_channels, scale=p.fine_scale)
+    h = Hypothesis(prop.hyp.view, prop.hyp.phi_deg, prop.hyp.z_mm, prop.hyp.uv.copy())
+    if level_b:
+        dt_q, tau_q = quantised(dtt, p.rank_tau_px * dtt.scale)
+        hb, _ = local_scan(bank, h, dt_q, tau_q, dtt, K, p, distance_mm=distance_mm, accept_q=int(tau_q))
+        if hb is not None:
+            h = hb
+    return polish(bank, h, dtt, K, p, distance_mm=distance_mm, neighbours=view_neighbours(bank),
+                  step_phi_deg=2.0, step_uv_px=2.0, step_z=0.04)
+
+
+def region_proposals(bank: TemplateBank, image: np.ndarray, K: np.ndarray, image_shape: tuple[int, int],
+                     p: SearchParams, *, distance_mm: float | None, distance_range_mm: tuple[float, float],
+                     n_out: int) -> list[Hypothesis]:
+    """The first ``n_out`` region proposals (``propose``), each refined on its region's outline
+    (``refine_on_boundary``), in the proposals' order (silhouette IoU). With ``distance_mm`` the
+    regions' areas are judged within ``DISTANCE_SLACK`` of it."""
+    if image.ndim == 2:
+        image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    image = image[..., :3]
+    if image.dtype != np.uint8:
+        image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    rng = distance_range_mm if distance_mm is None else \
+        (distance_mm / DISTANCE_SLACK, distance_mm * DISTANCE_SLACK)
+    props, reg = propose(bank, image, K, rng, n_out=n_out)
+    return [refine_on_boundary(bank, r, reg, K, image_shape, p, distance_mm=distance_mm) for r in props]

@@ -1,0 +1,92 @@
+"""Region proposals (``vision/estimate/regions.py``): a flat-coloured part on a checker floor is found by
+its region, and the proposal's pose is the rendered one."""
+
+import numpy as np
+import pytest
+
+from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, SEARCH_PARAMS
+from service.vision.estimate import regions
+from service.vision.estimate.coarse import Hypothesis, poses_of
+from service.vision.geometry.camera import project
+from service.vision.geometry.frames import Pose, Rx, Ry, Rz
+from service.vision.geometry.render import rasterise_roi
+
+K = np.array([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]])
+W, H = 640, 480
+
+
+def checker_scene(bank, pose: Pose, colour=(40, 150, 210), square_px=24) -> np.ndarray:
+    v, u = np.mgrid[0:H, 0:W]
+    floor = np.where(((u // square_px) + (v // square_px)) % 2 == 0, 70, 170).astype(np.uint8)
+    img = np.repeat(floor[..., None], 3, axis=2)
+    _, face, (u0, v0) = rasterise_roi(bank.vertices_mm, bank.faces, pose, K, (W, H))
+    win = img[v0:v0 + face.shape[0], u0:u0 + face.shape[1]]
+    win[face >= 0] = colour
+    return img
+
+
+def max_vertex_px(bank, a: Pose, b: Pose) -> float:
+    """MSPD of a part without symmetry: the largest image distance of any vertex between two poses."""
+    V = np.asarray(bank.vertices_mm, float)
+    return float(np.linalg.norm(project(a.apply(V), K) - project(b.apply(V), K), axis=1).max())
+
+
+def template_pose(bank, view: int, phi_deg: float, uv, z_mm: float) -> Pose:
+    """The pose a search hypothesis names: template ``view`` turned by ``phi_deg`` about its viewing ray
+    through pixel ``uv``, its reference point at depth ``z_mm`` (``coarse.poses_of``)."""
+    Rs, ts = poses_of(bank, [Hypothesis(view, phi_deg, z_mm, np.asarray(uv, float))], K, None)
+    return Pose(Rs[0], ts[0])
+
+
+@pytest.mark.parametrize("view, phi_deg, uv, z_mm, tol_px", [
+    (40, 25.0, (380.0, 210.0), 650.0, 3.0),  # a template's own view: only the outline's pixels err
+    (None, None, None, None, 8.0),  # any rotation: up to half the bank's 15-degree view step
+])
+def test_a_flat_part_on_a_checker_floor_is_proposed_at_its_pose(l_block_bank, view, phi_deg, uv, z_mm,
+                                                                tol_px):
+    bank = l_block_bank
+    if view is None:
+        truth = Pose(Rz(25.0) @ Rx(-40.0) @ Ry(30.0), np.array([60.0, -30.0, 650.0]))
+    else:
+        truth = template_pose(bank, view, phi_deg, uv, z_mm)
+    image = checker_scene(bank, truth)
+    props, reg = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=5)
+    assert props
+    refined = [regions.refine_on_boundary(bank, r, reg, K, (H, W), SEARCH_PARAMS) for r in props]
+    Rs, ts = poses_of(bank, refined, K, None)
+    errs = [max_vertex_px(bank, Pose(R, t), truth) for R, t in zip(Rs, ts, strict=True)]
+    assert min(errs) < tol_px, errs
+    # and the region that proposed it is the part's own: its reference point within a few px of the truth's
+    c_uv = project(truth.apply(bank.centre_obj[None]), K)[0]
+    best = int(np.argmin(errs))
+    assert np.hypot(*(refined[best].uv - c_uv)) < tol_px
+
+
+def test_region_proposals_give_the_distance_they_were_asked_for(l_block_bank):
+    bank = l_block_bank
+    truth = template_pose(bank, 100, -60.0, (250.0, 280.0), 700.0)
+    image = checker_scene(bank, truth, colour=(200, 60, 60))
+    z_true = float(truth.t_mm[2])  # a given distance is the model origin's depth (``poses_of``)
+    hs = regions.region_proposals(bank, image, K, (H, W), SEARCH_PARAMS, distance_mm=z_true,
+                                  distance_range_mm=DEFAULT_DISTANCE_RANGE_MM, n_out=5)
+    Rs, ts = poses_of(bank, hs, K, z_true)
+    errs = [max_vertex_px(bank, Pose(R, t), truth) for R, t in zip(Rs, ts, strict=True)]
+    assert min(errs) < 3.0, errs
+
+
+def test_merging_keeps_a_two_tone_part_as_one_region_before_it_meets_the_floor():
+    # a square of two close tones (a lit and a shaded face) on a contrasting floor: some region of the
+    # hierarchy is exactly the square
+    img = np.full((240, 320, 3), 30, np.uint8)
+    img[80:160, 100:140] = (150, 150, 150)
+    img[80:160, 140:180] = (135, 135, 135)
+    reg = regions.segment(img, work_width=320)
+    target = np.zeros((240, 320), bool)
+    target[80:160, 100:180] = True
+    ious = []
+    for c in range(len(reg.children)):
+        x0, y0, x1, y1 = reg.bbox[c]
+        m = np.zeros_like(target)
+        m[y0:y1, x0:x1] = regions.region_mask(reg, c).astype(bool)
+        ious.append((m & target).sum() / (m | target).sum())
+    assert max(ious) > 0.97
