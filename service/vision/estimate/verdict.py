@@ -7,11 +7,10 @@ colour-image evidence (``evidence``: colour edges along the outline, the coheren
 the inside/outside colour separability, the shading the part's normals explain). Its weights were
 fitted by ``bench/fit_verdict.py`` on the tuning sets (seeded synthetic scenes of
 ``bench/synth_scenes.py``, and the shared ``clutter2`` / ``absent2``), never on the sets it is reported
-on. The score reads the inside's shading through the robust fit (``shading_r2_robust``: the part's
-visible pixels, an occluder's left out), so a part a nearer object partly hides is not refused for the
-occluder's colours; the tuning scenes hide their targets as the Blender clutter sets do
-(``synth_scenes.py --occlusion clutter``). Evidence the fit gave no weight is still reported: the
-reason of a rejection names the evidence furthest from a true pose's.
+on. Evidence the fit gave no weight is still reported: the reason of a rejection names the evidence
+furthest from a true pose's. The visible part's evidence (``visible``, ``shading_r2_robust``: what a
+nearer object partly hiding the part does not spoil) is reported and not scored: a refit on it (below)
+found one more clutter part but lost a real photo's and accepted two wrong instances elsewhere.
 """
 
 from __future__ import annotations
@@ -31,16 +30,18 @@ MODEL_FEATURES = ("edge_support", "unexplained", "colour_edge", "region_low", "r
                   "shading_r2", "visible", "shading_r2_robust")
 LOWER_IS_BETTER = ("unexplained",)
 # The score's weights (logistic regression, each weight's sign fixed so that better evidence never lowers
-# the score), fitted by ``bench/fit_verdict.py --use region_global,shading_r2_robust`` on the tuning sets
-# (140 scenes of ``bench/synth_scenes.py --seed 11 --look real --occlusion clutter``, and clutter2 /
-# absent2); evidence it dropped has weight 0 (fitted on all of MODEL_FEATURES and the visible part's
-# evidence, it kept these two and the colour edges of the visible outline at 0.06, since dropped from the
-# evidence: ``evidence``'s docstring). The highest score is 0.9895 (both at 1).
-WEIGHTS = {"bias": -3.533, "region_global": 4.487, "shading_r2_robust": 3.595}
-# Operating point (``options.min_score`` moves it): the highest at which the tuning sets' hypotheses
-# keep as many right answers as the previous weights at 0.98 (synthetic 3, clutter2 1; 0.97-0.979), the
-# fewest wrong (synthetic 7 against 10: most are printed pictures of the part on the floor).
-MIN_SCORE = 0.97
+# the score), fitted by ``bench/fit_verdict.py`` on the tuning sets (120 synthetic scenes of
+# bench/synth_scenes.py, seed 11, and clutter2 / absent2); evidence it dropped has weight 0.
+WEIGHTS = {"bias": -3.935, "unexplained": -0.339, "region_global": 5.265, "shading_r2": 4.329}
+# Operating point (``options.min_score`` moves it).
+MIN_SCORE = 0.98
+# Measured in session 12 and not switched on (README, Detection): the refit on occluded realistic scenes
+# (``synth_scenes.py --seed 11 --look real --occlusion clutter``) + clutter2 + absent2, region_global
+# 4.487 + shading_r2_robust 3.595 - 3.533 at 0.97: clutter right found 0 -> 1 and wrong found 0 on the
+# detection sets, but lmo_dev's one right answer lost (0.981 -> 0.967) and, on bench/plane.py's scenes
+# without the plane, 2 wrong instances (a flat-shaded block's flipped pose, whose faces the robust fit
+# explains on 98 % of the pixels, where the plain grey fit explained 41 %) and recall 0.89 -> 0.83.
+# Its weights: bench/verdict_occlusion12.json (``bench/detection.py --weights ... --min-score 0.97``).
 
 # The reasons a verdict gives.
 REASONS = ("found", "no_candidate", "outside_distance_range", "outside_image", "off_plane", "low_support",
@@ -49,9 +50,8 @@ REASONS = ("found", "no_candidate", "outside_distance_range", "outside_image", "
 # sets it (``decide`` judges one hypothesis and never returns it).
 # A rejected pose is said to fail on the evidence furthest below a true pose's typical value (medians
 # over the truth hypotheses of the tuning sets): the reason names the one a person should look at.
-# shading_r2_robust's is set at shading_r2's (the occluded realistic tuning truths: medians 0.76 and 0.28).
 TYPICAL_RIGHT = {"edge_support": 0.9, "unexplained": 0.1, "colour_edge": 0.95, "region_global": 0.85,
-                 "shading_r2": 0.9, "shading_r2_robust": 0.9}
+                 "shading_r2": 0.9}
 MIN_IN_IMAGE = 0.5  # a pose whose outline is mostly outside the image cannot be checked
 
 
@@ -82,7 +82,7 @@ def rejection_reason(ev: dict) -> str:
         "interior_edges": ev["unexplained"] - TYPICAL_RIGHT["unexplained"],
         "region_mismatch": max(TYPICAL_RIGHT["region_global"] - ev["region_global"],
                                TYPICAL_RIGHT["colour_edge"] - ev["colour_edge"]),
-        "shading_mismatch": TYPICAL_RIGHT["shading_r2_robust"] - ev["shading_r2_robust"],
+        "shading_mismatch": TYPICAL_RIGHT["shading_r2"] - ev["shading_r2"],
     }
     reason, gap = max(gaps.items(), key=lambda kv: kv[1])
     return reason if gap > 0 else "low_score"
