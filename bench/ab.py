@@ -13,6 +13,8 @@ nogil           the vision kernels release the GIL (``nogil=True``; off: recompi
 prefetch        the refinement's image side and border traced during the polish (``pipeline.PREFETCH``)
 front_faces     the evidence rasterises a closed mesh's front faces only (``evidence.FRONT_FACES_ONLY``)
 fast_evaluate   the coarse search's ``evaluate``: one matmul, a compiled read-out (``coarse.FAST_EVALUATE``)
+visible_part    the evidence's robust colour shading fit (``evidence.VISIBLE_PART``: ``visible``,
+                ``shading_r2_robust``; the score does not read them)
 numba1          numba's parallel kernels on one thread (the calling one; the background pool unchanged):
                 B is one thread, A the budget (not a code path of the service: a measurement)
 """
@@ -77,7 +79,7 @@ def _numba1(on: bool) -> None:
 SWITCHES = {"numba1": _numba1,
             "interior_later": _flag("INTERIOR_LATER"), "nogil": _nogil, "prefetch": _flag("PREFETCH"),
             "front_faces": _flag("FRONT_FACES_ONLY", evidence),
-            "fast_evaluate": _flag("FAST_EVALUATE", coarse)}
+            "fast_evaluate": _flag("FAST_EVALUATE", coarse), "visible_part": _flag("VISIBLE_PART", evidence)}
 
 
 def main(argv=None) -> int:

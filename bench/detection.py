@@ -116,6 +116,10 @@ def main(argv=None) -> int:
 
         verdict.WEIGHTS.clear()
         verdict.WEIGHTS.update(json.loads(a.weights.read_text()))
+        if {"visible", "shading_r2_robust"} & set(verdict.WEIGHTS):  # evidence the service leaves out
+            from service.vision.estimate import evidence
+
+            evidence.VISIBLE_PART = True
     rows = []
     dump = {}
     for name in a.sets.split(","):

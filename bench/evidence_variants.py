@@ -37,12 +37,15 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+import service.vision.estimate.evidence as _evidence  # noqa: E402
 from bench.accuracy import gt_bank, read_gt  # noqa: E402
 from bench.hypotheses import OUT, read_colour, set_dir_of  # noqa: E402
 from service.vision.estimate import evidence as ev  # noqa: E402
 from service.vision.geometry.camera import Intrinsics, undistort_image  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
 from service.vision.geometry.render import face_normals_cam  # noqa: E402
+
+_evidence.VISIBLE_PART = True  # the visible part's evidence is what these tables study too
 
 RIGHT_PX = 20.0
 MARGIN_PX = 40  # ROI margin: the widest band read

@@ -29,6 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+import service.vision.estimate.evidence as _evidence  # noqa: E402
 from bench.accuracy import (  # noqa: E402
     DATA_DIR,
     gt_bank,
@@ -39,6 +40,8 @@ from bench.accuracy import (  # noqa: E402
 )
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
+
+_evidence.VISIBLE_PART = True  # the visible part's evidence is what these tables study too
 
 OUT = ROOT / "bench" / "out" / "hyps"
 RIGHT_PX = 20.0  # MSPD at 640 px width: a pose under this is "right" (BOP's loosest threshold)

@@ -42,6 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+import service.vision.estimate.evidence as _evidence  # noqa: E402
 from bench.accuracy import DATA_DIR, OUT_DIR, gt_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
 from bench.hypotheses import read_colour  # noqa: E402
 from service import pipeline  # noqa: E402
@@ -66,6 +67,8 @@ from service.vision.estimate.verdict import (  # noqa: E402
 )
 from service.vision.geometry.camera import Intrinsics, undistort_image  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
+
+_evidence.VISIBLE_PART = True  # the visible part's evidence is what these tables study too
 
 RIGHT_PX = 20.0
 MIN_SCORE = 0.98  # verdict.MIN_SCORE, printed for the reader

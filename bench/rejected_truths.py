@@ -30,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+import service.vision.estimate.evidence as _evidence  # noqa: E402
 from bench.accuracy import DATA_DIR, gt_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
 from bench.hypotheses import read_colour  # noqa: E402
 from service.pipeline import (  # noqa: E402
@@ -49,6 +50,8 @@ from service.vision.estimate.refine import refine_pose  # noqa: E402
 from service.vision.estimate.verdict import FEATURES, WEIGHTS  # noqa: E402
 from service.vision.geometry.camera import Intrinsics, undistort_image  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
+
+_evidence.VISIBLE_PART = True  # the visible part's evidence is what these tables study too
 
 RIGHT_PX = 20.0
 REF_SETS = ("clutter", "clutter2", "absent", "absent2", "lmo_dev", "paper")

@@ -29,9 +29,12 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+import service.vision.estimate.evidence as _evidence  # noqa: E402
 from bench.accuracy import DATA_DIR, gt_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
 from bench.hypotheses import read_colour  # noqa: E402
 from service.vision.estimate.verdict import FEATURES, MIN_SCORE, WEIGHTS, verification_score  # noqa: E402
+
+_evidence.VISIBLE_PART = True  # the visible part's evidence is what these tables study too
 
 OUT = ROOT / "bench" / "out" / "truth_ev"
 HYPS = ROOT / "bench" / "out" / "hyps"

@@ -130,12 +130,15 @@ def _occluded_part(cover: float, seed: int = 5):
     return bank, pose, intr, frame, uncovered
 
 
-def test_visible_evidence_measures_the_uncovered_part_of_an_occluded_part():
+def test_visible_evidence_measures_the_uncovered_part_of_an_occluded_part(monkeypatch):
     """Known answer: with a known share of the silhouette painted over by an occluder of another
     colour, ``visible`` reports the uncovered share (within the erosion of the outline's last pixels),
     and the robust shading fit explains the part's pixels as well as without the occluder while the
     plain grey fit drops."""
+    from service.vision.estimate import evidence as ev_module
     from service.vision.estimate.evidence import evidence
+
+    monkeypatch.setattr(ev_module, "VISIBLE_PART", True)
 
     bank, pose, intr, frame, full = _occluded_part(0.0)
     clear = evidence(bank, pose, intr, frame)

@@ -153,15 +153,19 @@ def _evidence_serial(bank, pose, intr, frame, others=None):
     r = ev._region(win, mask, band, hidden, explained)
     inside = ev._inside_samples(fid, bank, pose)
     s = ev._shading(win, inside)
-    fit = ev._robust_shading(win, inside)
+    fit = ev._robust_shading(win, inside) if ev.VISIBLE_PART else None
     return ev.Evidence(e[0], e[1], r[0], r[1], r[2], e[2], s[0], s[1], float(in_image.mean()),
-                       visible=fit.visible, shading_r2_robust=fit.r2)
+                       visible=fit.visible if fit else None, shading_r2_robust=fit.r2 if fit else None)
 
 
-def test_evidence_with_its_region_on_the_pool_equals_the_pieces_in_turn():
+@pytest.mark.parametrize("visible_part", [False, True])
+def test_evidence_with_its_region_on_the_pool_equals_the_pieces_in_turn(visible_part, monkeypatch):
     import trimesh
 
+    from service.vision.estimate import evidence as ev_module
     from service.vision.estimate.evidence import colour_frame, evidence
+
+    monkeypatch.setattr(ev_module, "VISIBLE_PART", visible_part)
     from service.vision.geometry.camera import Intrinsics
     from service.vision.geometry.frames import Pose, Rx, Ry
     from service.vision.geometry.render import render_shaded

@@ -68,15 +68,17 @@ class Evidence:
     shading_std: float  # grey-level standard deviation inside (small: the fit above says little)
     in_image: float  # fraction of the silhouette's pixels inside the image
     # The visible part's evidence (module docstring): what an occluder does not spoil.
-    visible: float = 0.0  # inlier share of the inside under the robust colour shading fit
-    shading_r2_robust: float = 0.0  # colour variance of the inliers the fit explains
+    # None where the fit did not run (``VISIBLE_PART``): the dict then leaves them out.
+    visible: float | None = None  # inlier share of the inside under the robust colour shading fit
+    shading_r2_robust: float | None = None  # colour variance of the inliers the fit explains
 
     def as_dict(self) -> dict[str, float]:
         return {"colour_edge": self.colour_edge, "polarity": self.polarity, "region": self.region,
                 "region_low": self.region_low, "region_global": self.region_global,
                 "coherence": self.coherence, "shading_r2": self.shading_r2, "shading_std": self.shading_std,
-                "in_image": self.in_image, "visible": self.visible,
-                "shading_r2_robust": self.shading_r2_robust}
+                "in_image": self.in_image} | (
+            {} if self.visible is None else {"visible": self.visible,
+                                              "shading_r2_robust": self.shading_r2_robust})
 
 
 NO_EVIDENCE = Evidence(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -90,6 +92,10 @@ ROBUST_K = 3.0
 ROBUST_MIN_LEVELS = 8.0
 ROBUST_ITERS = 6
 ROBUST_MAX_PIXELS = 3000
+# Whether ``evidence`` runs the robust fit. Off in the service: the verdict's score does not read it
+# (verdict.py says why) and it costs ~4 ms a checked pose (bench/ab.py visible_part); the benchmarks that
+# study it (bench/hypotheses.py, truth_evidence.py, detection.py --weights) switch it on.
+VISIBLE_PART = False
 # Another found part hides a pixel of this one where its surface is nearer by more than this (mm):
 # rasterised depths of touching parts differ by less along their contact.
 OCCLUSION_MARGIN_MM = 1.0
@@ -418,8 +424,10 @@ def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFram
     colour_edge, polarity, coherence = _edge_and_polarity(win, p, n, in_image)
     inside = _inside_samples(fid, bank, pose)
     shading_r2, shading_std = _shading(win, inside)
-    fit = _robust_shading(win, inside)
+    visible = robust_r2 = None
+    if VISIBLE_PART:
+        fit = _robust_shading(win, inside)
+        visible, robust_r2 = (fit.visible, fit.r2) if fit else (0.0, 0.0)
     region, region_low, region_global = region_fut.result()
     return Evidence(colour_edge, polarity, region, region_low, region_global, coherence, shading_r2,
-                    shading_std, float(in_image.mean()), visible=fit.visible if fit else 0.0,
-                    shading_r2_robust=fit.r2 if fit else 0.0)
+                    shading_std, float(in_image.mean()), visible=visible, shading_r2_robust=robust_r2)

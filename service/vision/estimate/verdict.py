@@ -25,6 +25,9 @@ FEATURES = ("edge_support", "unexplained", "colour_edge", "polarity", "region", 
             "coherence", "shading_r2", "shading_std",
             # the visible part's (``evidence``: what an occluder in front of the part does not spoil)
             "visible", "shading_r2_robust")
+# Of these, reported only where ``evidence.VISIBLE_PART`` runs the robust fit (the benchmarks; off in the
+# service, whose score does not read them).
+VISIBLE_FEATURES = ("visible", "shading_r2_robust")
 # Evidence the verification score may use, and which of it counts against a pose.
 MODEL_FEATURES = ("edge_support", "unexplained", "colour_edge", "region_low", "region_global", "coherence",
                   "shading_r2", "visible", "shading_r2_robust")
