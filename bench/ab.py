@@ -10,7 +10,6 @@ frame (poses, verdicts). Switches:
 
 interior_later  the refinement's interior check waited for after the evidence (``pipeline.INTERIOR_LATER``)
 nogil           the vision kernels release the GIL (``nogil=True``; off: recompiled without it)
-prefetch        the refinement's image side and border traced during the polish (``pipeline.PREFETCH``)
 front_faces     the evidence rasterises a closed mesh's front faces only (``evidence.FRONT_FACES_ONLY``)
 fast_evaluate   the coarse search's ``evaluate``: one matmul, a compiled read-out (``coarse.FAST_EVALUATE``)
 visible_part    the evidence's robust colour shading fit (``evidence.VISIBLE_PART``: ``visible``,
@@ -77,7 +76,7 @@ def _numba1(on: bool) -> None:
 
 
 SWITCHES = {"numba1": _numba1,
-            "interior_later": _flag("INTERIOR_LATER"), "nogil": _nogil, "prefetch": _flag("PREFETCH"),
+            "interior_later": _flag("INTERIOR_LATER"), "nogil": _nogil,
             "front_faces": _flag("FRONT_FACES_ONLY", evidence),
             "fast_evaluate": _flag("FAST_EVALUATE", coarse), "visible_part": _flag("VISIBLE_PART", evidence)}
 

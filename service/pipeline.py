@@ -190,7 +190,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
             roi_uv: np.ndarray | None = None, deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0,
             plane: Plane | None = None, several: bool = False,
             deferred: list[Callable[[], list[PoseCandidate]]] | None = None,
-            colour: np.ndarray | None = None, on_polished: Callable[[Hypothesis], None] | None = None):
+            colour: np.ndarray | None = None):
     """The proposal engine (the paper's method): LSD edges, their distance tensor and the coarse
     search -> (distinct candidates, lowest chamfer cost first; full-image segments; timing_ms with
     "edges" and "coarse").
@@ -214,7 +214,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     second pass: only the single-instance ``estimate`` runs it, when the first one's candidates fail.
 
     ``colour``: the (undistorted) BGR image: the second pass then also starts from the peaks of level A
-    on oriented colour contrast (``CONTRAST_PEAKS``). ``on_polished``: see ``coarse_search``."""
+    on oriented colour contrast (``CONTRAST_PEAKS``)."""
     rest = resting_rotations(bank) if plane is not None else None
     p = params or SEARCH_PARAMS
     threads.use_budget()
@@ -259,7 +259,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
         n_con = CONTRAST_PEAKS if con is not None else 0
         hyps = coarse_search(bank, dtt_b, intr, (h, w), p, distance_mm=distance_mm, distance_range_mm=rng,
                              anchor_mask=anchor_mask, deadline=deadline, reserve_ms=reserve_ms,
-                             deferred=later, contrast=con, extra_peaks=n_con, on_polished=on_polished
+                             deferred=later, contrast=con, extra_peaks=n_con
                              ) if deadline.allows(reserve_ms) else []
 
         def to_candidates(hs: list[Hypothesis]) -> list[PoseCandidate]:
@@ -352,22 +352,12 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     # The evidence (and the second pass's contrast) reads pixels where the ideal camera projects the
     # model: undistort the frame once.
     ideal = undistort_image(image, intr)
-    ahead: list = []  # the first candidate's refinement inputs, made during the polish (PREFETCH)
-
-    def first_polished(hy: Hypothesis) -> None:
-        from service.vision.estimate.refine import Prefetched
-
-        Rs, ts = poses_of(bank, [hy], intr.K, distance_mm)
-        ahead.append(Prefetched(bank, _candidate(bank, Pose(Rs[0], ts[0]), 0.0, 0.0).pose, grey, intr,
-                                p.n_channels))
-
     cands, _, timing = propose(bank, grey, intr, distance_mm=distance_mm, distance_range_mm=distance_range_mm,
                                params=p, roi_uv=roi_uv, deadline=deadline,
                                reserve_ms=_CHECK_MS.high + SEARCH_RESERVE_CHECKS * _CHECK_MS.value,
                                plane=plane, several=max_instances > 1,
                                deferred=second if max_instances <= 1 else None,
-                               colour=ideal, on_polished=first_polished if PREFETCH and max_instances <= 1
-                               else None)
+                               colour=ideal)
     t0 = time.perf_counter()
     t_second = 0.0
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
@@ -375,8 +365,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     kw = dict(distance_mm=distance_mm, distance_range_mm=rng, min_score=min_score, n_channels=p.n_channels,
               deadline=deadline, plane=plane, plane_tolerance_mm=plane_tolerance_mm)
     if max_instances <= 1:
-        checked = verify_candidates(bank, cands, grey, frame, intr, prefetched=ahead[0] if ahead else None,
-                                    **kw)
+        checked = verify_candidates(bank, cands, grey, frame, intr, **kw)
         for later_pass in second:
             if (checked and checked[0].verdict.found) or not deadline.allows(_CHECK_MS.high):
                 break
@@ -429,13 +418,11 @@ def check_candidate(bank: TemplateBank, cand: PoseCandidate, grey: np.ndarray, f
                     distance_range_mm: tuple[float, float] | None, min_score: float | None,
                     n_channels: int, plane: Plane | None = None,
                     plane_tolerance_mm: float = PLANE_TOLERANCE_MM,
-                    others_depth_mm: np.ndarray | None = None, prefetched=None) -> Checked:
+                    others_depth_mm: np.ndarray | None = None) -> Checked:
     """One candidate refined, its evidence measured at the refined pose, and the verdict on it (with a
-    plane, also whether the refined pose rests on it; ``others_depth_mm``: see ``judge``; ``prefetched``:
-    see ``refine.refine_pose``)."""
+    plane, also whether the refined pose rests on it; ``others_depth_mm``: see ``judge``)."""
     t0 = time.perf_counter()
-    kept, unexplained = _refine(bank, cand, grey, intr, distance_mm=distance_mm, n_channels=n_channels,
-                                prefetched=prefetched)
+    kept, unexplained = _refine(bank, cand, grey, intr, distance_mm=distance_mm, n_channels=n_channels)
     c = judge(bank, Checked(cand, kept, decide(None)), frame, intr, edge_support=kept.score,
               unexplained=unexplained, distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
               plane_tolerance_mm=plane_tolerance_mm, others_depth_mm=others_depth_mm)
@@ -465,19 +452,17 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
                       intr: Intrinsics, *, distance_mm: float | None,
                       distance_range_mm: tuple[float, float] | None, min_score: float | None,
                       n_channels: int, deadline: Deadline = NO_DEADLINE, plane: Plane | None = None,
-                      plane_tolerance_mm: float = PLANE_TOLERANCE_MM, prefetched=None) -> list[Checked]:
+                      plane_tolerance_mm: float = PLANE_TOLERANCE_MM) -> list[Checked]:
     """Refine and verify the best ``N_VERIFY`` candidates, best verification first. Stops at the first
     found one: the search ranks by chamfer cost (over the local background's), and on a clean frame
-    the first is the truth; and before a check the ``deadline`` leaves no time for. ``prefetched``
-    (``refine.Prefetched``): the first candidate's refinement inputs, if made for its pose."""
+    the first is the truth; and before a check the ``deadline`` leaves no time for."""
     out: list[Checked] = []
-    for k, cand in enumerate(cands[:N_VERIFY]):
+    for cand in cands[:N_VERIFY]:
         if not deadline.allows(_CHECK_MS.high):
             break
         c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm,
                             distance_range_mm=distance_range_mm, min_score=min_score, n_channels=n_channels,
-                            plane=plane, plane_tolerance_mm=plane_tolerance_mm,
-                            prefetched=prefetched if k == 0 else None)
+                            plane=plane, plane_tolerance_mm=plane_tolerance_mm)
         out.append(c)
         if c.verdict.found:
             break
@@ -712,15 +697,13 @@ def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.nd
 # The refinement's interior check (on the background pool) is waited for after the evidence, not before:
 # the calling thread measures the evidence instead of idling (same values, ``check_candidate``).
 INTERIOR_LATER = True
-# The first candidate's refinement inputs (its ROI's full-resolution LSD and DT3, its border) are made on the
-# background pool while the search polishes its other hypotheses (``coarse_search``'s ``on_polished``),
-# used only if the candidate's pose is exactly the one they were made for (the same answer either way).
-PREFETCH = False
+# Measured and dropped (session 12): making the first candidate's refinement inputs (ROI LSD, DT3, border)
+# on the background pool during the polish: +2.9 ms p50 a paper frame on a quiet machine (bench/ab.py,
+# alternating), the pool's work competing with the polish for the second core.
 
 
 def _refine(bank: TemplateBank, best: PoseCandidate, grey: np.ndarray, intr: Intrinsics, *,
-            distance_mm: float | None, n_channels: int, prefetched=None
-            ) -> tuple[RefinedPose, float | Callable[[], float]]:
+            distance_mm: float | None, n_channels: int) -> tuple[RefinedPose, float | Callable[[], float]]:
     """Refine a candidate -> (the kept pose, its unexplained-edge ratio ``interior.unexplained_edge_ratio``,
     or with ``INTERIOR_LATER`` a callable waiting for it).
 
@@ -732,7 +715,7 @@ def _refine(bank: TemplateBank, best: PoseCandidate, grey: np.ndarray, intr: Int
     from service.vision.estimate.refine import refine_pose
 
     r = refine_pose(bank, best.pose, grey, intr, None, distance_mm=distance_mm, n_channels=n_channels,
-                    interior_later=INTERIOR_LATER, prefetched=prefetched)
+                    interior_later=INTERIOR_LATER)
     return RefinedPose(r.pose, float(r.cost), float(r.score), int(r.iterations), float(r.inlier_ratio)), \
         (r.unexplained_later if r.unexplained_later is not None else r.unexplained)
 

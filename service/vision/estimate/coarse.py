@@ -1086,8 +1086,7 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
                   distance_range_mm: tuple[float, float], anchor_mask: np.ndarray | None = None,
                   deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0,
                   deferred: list[Callable[[], list[Hypothesis]]] | None = None,
-                  contrast=None, extra_peaks: int = 0,
-                  on_polished: Callable[[Hypothesis], None] | None = None) -> list[Hypothesis]:
+                  contrast=None, extra_peaks: int = 0) -> list[Hypothesis]:
     """Ranked, polished, mutually distinct hypotheses (best first). ``dtt_b`` is the DT3 at
     ``fine_scale``; level A's grid is min-pooled from it. ``anchor_mask`` (full-resolution (h, w)
     bool): level A places the reference point only there (``scan_level_a``).
@@ -1105,11 +1104,7 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
 
     ``contrast`` (``contrast.Contrast``): level A scans its blend of DT3 and oriented contrast instead
     of the DT3, and level B its blend at ``fine_scale`` (``weight_b`` > 0). With ``extra_peaks`` > 0
-    the first pass is unchanged and the second pass adds ``_contrast_pass``'s hypotheses.
-
-    ``on_polished``: called with the first pass's first polished hypothesis (the best before the
-    polish, most often the best after it) while the others are still to polish: a caller can start
-    work on it ahead (``pipeline.PREFETCH``)."""
+    the first pass is unchanged and the second pass adds ``_contrast_pass``'s hypotheses."""
     K = intr.K
     dtt_a, dt_q, tau_q = pooled_and_quantised(dtt_b, p.level_scale, p.rank_tau_px * dtt_b.scale)
     z_ref, scales = (distance_mm, np.array([1.0])) if distance_mm is not None else \
@@ -1145,9 +1140,7 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
         dtt_b = contrast.fine_tensor(dtt_b, p.rank_tau_px * dtt_b.scale, r_bg / p.level_scale)
         dt_q, tau_q = quantised(dtt_b, p.rank_tau_px * dtt_b.scale)
     state = _LevelB(bank, dtt_b, dt_q, tau_q, K, p, distance_mm, bg, deadline, reserve_ms)
-    state.on_polished = on_polished
     out = state.run(starts)
-    state.on_polished = None
     if p.templates_per_peak <= 1 and not (extra_peaks and lac is not None):
         return out
 
@@ -1216,7 +1209,6 @@ class _LevelB:
         self.bank, self.dtt_b, self.dt_q, self.tau_q, self.K, self.p = bank, dtt_b, dt_q, tau_q, K, p
         self.distance_mm, self.bg, self.deadline, self.reserve_ms = distance_mm, bg, deadline, reserve_ms
         self.best_q = np.inf  # the best cost so far (over its background with bg_norm)
-        self.on_polished: Callable[[Hypothesis], None] | None = None  # see coarse_search
 
     def bg_of(self, hs: list[Hypothesis]) -> np.ndarray:
         if self.bg is None or not hs:
@@ -1251,8 +1243,6 @@ class _LevelB:
                 out.append(polish(bank, scanned[i], dtt_b, K, p, distance_mm=self.distance_mm,
                                   neighbours=neighbours, step_phi_deg=p.local_phi_step_deg / 2,
                                   step_uv_px=1.0 / dtt_b.scale, step_z=p.depth_step / 4))
-                if self.on_polished is not None and len(out) == 1:
-                    self.on_polished(out[0])
             else:
                 h = scanned[i]
                 h.cost, h.score = float(cost_b[i]), float(score_b[i])

@@ -559,45 +559,11 @@ def _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px):
     return roi, seg_roi, dtt
 
 
-class Prefetched:
-    """The refinement's first inputs for a start pose, made on the background pool ahead of
-    ``refine_pose`` (while the caller still searches): its image side (the ROI's full-resolution LSD
-    segments and their DT3, ``_image_side``) and the border traced at the start pose. ``refine_pose``
-    uses them only for exactly that start pose (every bit of R and t), image object and settings, so
-    the answer is the one it would make itself; otherwise they are dropped."""
-
-    def __init__(self, bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrinsics, n_channels: int):
-        self.bank, self.pose0, self.grey, self.intr, self.n_channels = bank, pose0, grey, intr, n_channels
-        size = (grey.shape[1], grey.shape[0])
-        pool = threads.background()
-        self.image_side = pool.submit(self._image_side)
-        self.border = pool.submit(border_points, bank, pose0, intr.pinhole(), size)
-
-    def _image_side(self):
-        threads.use_budget()  # the segment DT's numba threads, on this pool thread
-        return _image_side(self.bank, self.pose0, self.grey, self.intr, None, self.n_channels, DT_SCALE,
-                           DT_TAU_PX)
-
-    def matches(self, bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrinsics, n_channels: int,
-                dt_scale: float, tau_px: float) -> bool:
-        return (bank is self.bank and grey is self.grey and intr == self.intr
-                and n_channels == self.n_channels
-                and dt_scale == DT_SCALE and tau_px == DT_TAU_PX
-                and np.array_equal(np.asarray(pose0.R), np.asarray(self.pose0.R))
-                and np.array_equal(np.asarray(pose0.t_mm), np.asarray(self.pose0.t_mm)))
-
-    def drop(self) -> None:
-        """Not needed after all: cancel what has not started."""
-        self.image_side.cancel()
-        self.border.cancel()
-
-
 def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrinsics,
                 seg: Segments | None = None, *, distance_mm: float | None = None, n_channels: int = 16,
                 score_px: float = 3.0, loss: str = "soft_l1", max_iter: int = 30, residual: str = "dt+line",
                 dt_scale: float = DT_SCALE, tau_px: float = DT_TAU_PX, f_scale_px: float = 0.5,
-                dt_f_scale_px: float = DT_F_SCALE_PX, interior_later: bool = False,
-                prefetched: Prefetched | None = None) -> RefineResult:
+                dt_f_scale_px: float = DT_F_SCALE_PX, interior_later: bool = False) -> RefineResult:
     """Refine ``pose0`` (T_cam_obj) against the edges of ``grey`` (H, W) uint8.
 
     ``seg``: LSD segments of the image at full resolution (None: detected here on the ROI around
@@ -611,9 +577,6 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     ``interior_later``: the interior check (``unexplained``, running on the background pool) is not
     waited for: ``unexplained`` is nan and ``unexplained_later()`` waits for it (the caller's evidence
     runs meanwhile instead of the calling thread idling; the same value).
-
-    ``prefetched``: ``Prefetched`` inputs, used when they were made for exactly these arguments (the
-    same result either way).
     """
     if loss not in LOSSES:
         raise ValueError(f"loss must be one of {LOSSES}.")
@@ -628,15 +591,8 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     ideal = intr.pinhole()
     # A background thread overlaps the border rasterisation with LSD + DT, and the interior check
     # (unexplained_edge_ratio) with the line stage.
-    if seg is None and prefetched is not None and prefetched.matches(bank, pose0, grey, intr, n_channels,
-                                                                     dt_scale, tau_px):
-        fut = prefetched.border
-        img = prefetched.image_side.result()
-    else:
-        if prefetched is not None:
-            prefetched.drop()
-        fut = threads.background().submit(border_points, bank, pose0, ideal, size)
-        img = _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px)
+    fut = threads.background().submit(border_points, bank, pose0, ideal, size)
+    img = _image_side(bank, pose0, grey, intr, seg, n_channels, dt_scale, tau_px)
     border = fut.result()
     if img is None or len(border.p_obj) < 6:
         return RefineResult(reported(pose0), float("inf"), 0.0, 0, 0.0, False)
