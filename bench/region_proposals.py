@@ -21,8 +21,9 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.accuracy import DATA_DIR, gt_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
+from bench.accuracy import gt_bank, load_model_info, stage_errors  # noqa: E402
 from bench.hypotheses import read_colour  # noqa: E402
+from bench.stages import target_queries  # noqa: E402
 from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, SEARCH_PARAMS  # noqa: E402
 from service.vision.estimate import regions  # noqa: E402
 from service.vision.estimate.coarse import poses_of  # noqa: E402
@@ -45,11 +46,8 @@ def first_right(ms: list[float]) -> int:
 
 
 def run(a) -> None:
-    set_dir = Path(a.set) if Path(a.set).is_dir() else DATA_DIR / a.set
-    meta = read_meta(set_dir)
+    set_dir, meta, gts = target_queries(a)
     minfo: dict = {}
-    gts = [g for g in read_gt(set_dir) if not g.get("absent") and g.get("visible_fraction", 1) >= 0.5]
-    gts = gts[a.start::a.every][:a.limit]
     raw_at = {k: 0 for k in KS}
     ref_at = {k: 0 for k in KS}
     cpu_p, cpu_r = [], []

@@ -103,12 +103,17 @@ def edge_tensor(kind: str, image: np.ndarray, grey: np.ndarray, lsd_scale: float
     raise ValueError(kind)
 
 
-def run(a) -> None:
+def target_queries(a) -> tuple[Path, dict, list[dict]]:
+    """(set folder, its meta, the gt lines of targets at least half visible, ``--start`` / ``--every`` /
+    ``--limit`` applied) of ``--set`` (a name under the data folder, or a folder)."""
     set_dir = Path(a.set) if Path(a.set).is_dir() else DATA_DIR / a.set
-    meta = read_meta(set_dir)
-    minfo: dict = {}
     gts = [g for g in read_gt(set_dir) if not g.get("absent") and g.get("visible_fraction", 1) >= 0.5]
-    gts = gts[a.start::a.every][:a.limit]
+    return set_dir, read_meta(set_dir), gts[a.start::a.every][:a.limit]
+
+
+def run(a) -> None:
+    set_dir, meta, gts = target_queries(a)
+    minfo: dict = {}
     p = replace(SEARCH_PARAMS, fine_scale=a.fine_scale, level_scale=a.level_scale, n_peaks=a.n_peaks,
                 n_polish=a.n_polish, peak_accept_ratio=a.accept_ratio,
                 bg_norm=SEARCH_PARAMS.bg_norm if a.bg_norm is None else a.bg_norm == "on",
