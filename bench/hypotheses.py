@@ -66,8 +66,14 @@ def queries(set_dir: Path, limit: int | None) -> list[dict]:
     return gts[:limit] if limit else gts
 
 
-def proposals(set_dir: Path, *, limit: int | None, distance_given: bool, params=None) -> list[dict]:
+def proposals(set_dir: Path, *, limit: int | None, distance_given: bool, params=None,
+              regions: int = 0) -> list[dict]:
+    """``regions`` > 0: also the search's second pass (the level-A peaks' other templates) and that many
+    region proposals (``pipeline.REGION_PROPOSALS``), appended after the first pass's hypotheses with
+    their ``source`` ("second", "regions"): the pipeline checks them only when the first pass fails."""
+    from service import pipeline
     from service.pipeline import propose
+    from service.vision.geometry.camera import undistort_image
 
     meta = read_meta(set_dir)
     minfo: dict = {}
@@ -78,15 +84,27 @@ def proposals(set_dir: Path, *, limit: int | None, distance_given: bool, params=
         intr = Intrinsics.from_K(np.asarray(g["K"], float))
         dist = float(g["t_mm"][2]) if distance_given and not g.get("absent") else None
         t0 = time.perf_counter()
-        cands, _, timing = propose(bank, image, intr, distance_mm=dist, params=params)
+        deferred: list = []
+        pipeline.REGION_PROPOSALS = regions
+        try:
+            cands, _, timing = propose(bank, image, intr, distance_mm=dist, params=params,
+                                       deferred=deferred if regions else None,
+                                       colour=undistort_image(image, intr) if regions else None)
+            sources = ["first"] * len(cands)
+            for later in deferred:
+                more = later()
+                name = "regions" if later.__name__ == "from_regions" else "second"
+                cands, sources = cands + more, sources + [name] * len(more)
+        finally:
+            pipeline.REGION_PROPOSALS = 0
         wall = 1000 * (time.perf_counter() - t0)
         info = load_model_info(set_dir, g["model"], meta, minfo)
         hyps = []
-        for c in cands:
+        for c, source in zip(cands, sources, strict=True):
             e = {} if g.get("absent") else stage_errors(c.pose, g, info, np.asarray(g["K"], float),
                                                         int(g["width"]))
             hyps.append({"R": c.pose.R, "t": c.pose.t_mm, "cost": c.cost, "score": c.score,
-                         "mspd640": e.get("mspd640_px", float("inf"))})
+                         "mspd640": e.get("mspd640_px", float("inf")), "source": source})
         recs.append({"i": i, "g": g, "hyps": hyps, "wall_ms": wall, "timing": timing})
         best = min((h["mspd640"] for h in hyps), default=float("inf"))
         print(f"{i:4d} {g['image']} {g['model']:9s} n={len(hyps):2d} best_mspd={best:7.1f} "
@@ -135,13 +153,19 @@ def features(set_dir: Path, recs: list[dict], *, max_refine: int = 12) -> list[d
         intr = Intrinsics.from_K(np.asarray(g["K"], float))
         frame = colour_frame(undistort_image(image, intr))
         info = load_model_info(set_dir, g["model"], meta, minfo)
-        for j, h in enumerate(r["hyps"][:max_refine]):
+        seen: dict[str, int] = {}
+        for j, h in enumerate(r["hyps"]):
+            # the first ``max_refine`` of each source (the second pass and the regions come after)
+            seen[h.get("source", "first")] = seen.get(h.get("source", "first"), 0) + 1
+            if seen[h.get("source", "first")] > max_refine:
+                continue
             cand = PoseCandidate(Pose(np.asarray(h["R"]), np.asarray(h["t"])), h["cost"], h["score"])
             c = check_candidate(bank, cand, grey, frame, intr, distance_mm=None, distance_range_mm=None,
                                 min_score=None, n_channels=16)
             m1 = float("inf") if g.get("absent") else stage_errors(
                 c.refined.pose, g, info, np.asarray(g["K"], float), int(g["width"]))["mspd640_px"]
             rows.append({"q": r["i"], "rank": -1 if r.get("truth") else j, "absent": bool(g.get("absent")),
+                         "source": "truth" if r.get("truth") else h.get("source", "first"),
                          "image": g["image"], "model": g["model"],
                          "vis": float(g.get("visible_fraction", 0.0)), "mspd0": h["mspd640"], "mspd1": m1,
                          "ev": c.verdict.evidence, "R1": c.refined.pose.R, "t1": c.refined.pose.t_mm})
@@ -183,6 +207,9 @@ def main(argv=None) -> int:
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--distance-given", action="store_true")
     ap.add_argument("--tag", default="default")
+    ap.add_argument("--regions", type=int, default=0,
+                    help="also the second pass and this many region proposals (proposals)")
+    ap.add_argument("--max-refine", type=int, default=12, help="hypotheses refined per query (features)")
     a = ap.parse_args(argv)
     set_dir = set_dir_of(a.set, a.data)
     path = cache_path(a.set, a.tag + ("-dist" if a.distance_given else ""))
@@ -190,7 +217,8 @@ def main(argv=None) -> int:
         from service.vision.estimate.coarse import SearchParams
 
         wide = SearchParams(n_peaks=30, n_polish=12, peak_accept_ratio=3.0)
-        recs = proposals(set_dir, limit=a.limit, distance_given=a.distance_given, params=wide)
+        recs = proposals(set_dir, limit=a.limit, distance_given=a.distance_given, params=wide,
+                         regions=a.regions)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(pickle.dumps(recs))
     if a.cmd == "reevidence":  # both feature files of the set, rewritten in place
@@ -203,7 +231,8 @@ def main(argv=None) -> int:
         return 0
     recs = pickle.loads(path.read_bytes())
     if a.cmd in ("features", "truths"):
-        rows = features(set_dir, recs if a.cmd == "features" else truth_hypotheses(recs))
+        rows = features(set_dir, recs if a.cmd == "features" else truth_hypotheses(recs),
+                        max_refine=a.max_refine)
         suffix = "-features.pkl" if a.cmd == "features" else "-truth-features.pkl"
         fpath = path.with_name(path.stem + suffix)
         fpath.write_bytes(pickle.dumps(rows))
