@@ -67,8 +67,9 @@ class Verdict:
 
 
 def feature_vector(ev: dict) -> np.ndarray:
-    """The evidence in ``FEATURES`` order, (len(FEATURES),) float64."""
-    return np.array([float(ev[k]) for k in FEATURES], float)
+    """The evidence in ``FEATURES`` order, (len(FEATURES),) float64. The visible part's evidence reads 0
+    where the robust fit had nothing to fit (a pose with no pixel or outline in the image)."""
+    return np.array([float(ev[k] if k in ev or k not in VISIBLE_FEATURES else 0.0) for k in FEATURES], float)
 
 
 def verification_score(ev: dict, weights: dict | None = None) -> float:
