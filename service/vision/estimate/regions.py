@@ -16,7 +16,6 @@ edge map: the floor's texture inside it does not count).
 
 from __future__ import annotations
 
-import heapq
 import math
 from dataclasses import dataclass
 
@@ -140,7 +139,7 @@ def _solidity(mask: np.ndarray, area: float) -> float:
 class Regions:
     labels: np.ndarray  # (h, w) int32 initial region of each working pixel
     scale: float  # working px per full-resolution px
-    children: list[tuple[int, int]]  # per node: the two nodes it merged ((-1, -1): an initial region)
+    children: np.ndarray  # (C, 2) per node: the two nodes it merged ((-1, -1): an initial region)
     area: np.ndarray  # (C,) working px per node
     bbox: np.ndarray  # (C, 4) x0, y0, x1, y1 (exclusive) working px per node
     born: np.ndarray  # (C,) the boundary contrast at which the node formed (0: initial)
@@ -154,15 +153,15 @@ class Regions:
             n = stack.pop()
             a, b = self.children[n]
             if a < 0:
-                out.append(n)
+                out.append(int(n))
             else:
-                stack += [a, b]
+                stack += [int(a), int(b)]
         return out
 
 
-def segment(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> Regions:
-    """Initial regions (mean shift, then pixel-connected components of near-equal colour) and every
-    region of their hierarchical merging by weakest mean boundary contrast (``MAX_MERGE_DE`` at most)."""
+def smooth(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> tuple[float, np.ndarray]:
+    """(working px per full-resolution px, the image shrunk to ``work_width`` and mean-shift smoothed, as
+    float32 Lab: L 0..100, a and b centred on 0)."""
     H, W = image_bgr.shape[:2]
     sc = min(work_width / W, 1.0)
     w, h = max(int(round(W * sc)), 1), max(int(round(H * sc)), 1)
@@ -171,6 +170,13 @@ def segment(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> Regions:
     lab = cv2.cvtColor(ms, cv2.COLOR_BGR2LAB).astype(np.float32)
     lab[..., 0] *= 100.0 / 255.0
     lab[..., 1:] -= 128.0
+    return sc, lab
+
+
+def initial_regions(lab: np.ndarray) -> tuple[np.ndarray, int, np.ndarray, np.ndarray]:
+    """(labels (h, w) int32, their number, the Lab contrast of horizontal (h, w-1) and vertical (h-1, w)
+    neighbours): pixel-connected regions of neighbours closer than ``LINK_DE``."""
+    h, w = lab.shape[:2]
     idx = np.arange(h * w).reshape(h, w)
     dh = np.linalg.norm(lab[:, 1:] - lab[:, :-1], axis=2)
     dv = np.linalg.norm(lab[1:] - lab[:-1], axis=2)
@@ -178,8 +184,22 @@ def segment(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> Regions:
     b = np.concatenate([idx[:, :-1][dh < LINK_DE], idx[:-1][dv < LINK_DE]])
     g = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(h * w, h * w))
     n0, lab_id = connected_components(g, directed=False)
-    labels = lab_id.reshape(h, w).astype(np.int32)
-    # boundary contrast between neighbouring initial regions: sum and count over pixel pairs
+    return lab_id.reshape(h, w).astype(np.int32), int(n0), dh, dv
+
+
+@dataclass
+class RegionStats:
+    pair: np.ndarray  # (E, 2) int64 neighbouring initial regions i < j, sorted
+    s_de: np.ndarray  # (E,) sum of the Lab contrast over their boundary's pixel pairs
+    c_de: np.ndarray  # (E,) number of those pixel pairs (float)
+    area: np.ndarray  # (n0,) working px (float)
+    bbox: np.ndarray  # (n0, 4) x0, y0, x1, y1 (exclusive)
+    moments: np.ndarray  # (n0, 6) m00, m10, m01, m20, m11, m02
+
+
+def region_stats(labels: np.ndarray, n0: int, dh: np.ndarray, dv: np.ndarray) -> RegionStats:
+    """The initial regions' boundary contrasts, areas, boxes and raw moments."""
+    h, w = labels.shape
     la = np.concatenate([labels[:, 1:].ravel(), labels[1:].ravel()])
     lb = np.concatenate([labels[:, :-1].ravel(), labels[:-1].ravel()])
     de = np.concatenate([dh.ravel(), dv.ravel()])
@@ -191,7 +211,8 @@ def segment(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> Regions:
     s_de = np.bincount(inv, de)
     c_de = np.bincount(inv).astype(float)
     area0 = np.bincount(labels.ravel(), minlength=n0).astype(float)
-    ys, xs = np.divmod(idx.ravel(), w)
+    idx = np.arange(h * w)
+    ys, xs = np.divmod(idx, w)
     lr = labels.ravel()
     x0 = np.full(n0, w)
     y0 = np.full(n0, h)
@@ -205,74 +226,23 @@ def segment(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> Regions:
     xs_f, ys_f = xs.astype(float), ys.astype(float)
     mom0 = np.stack([np.bincount(lr, wts, minlength=n0) for wts in
                      (np.ones_like(xs_f), xs_f, ys_f, xs_f * xs_f, xs_f * ys_f, ys_f * ys_f)], 1)
-    mom = [mom0[i] for i in range(n0)]
-    # Hierarchical merging. Nodes: the initial regions, then one per merge (children, area, bbox, the
-    # contrast at which it formed and at which it was merged away). A live region is held by a
-    # representative id whose neighbour dict the merge keeps (the larger dict absorbs the smaller, so a
-    # floor region with thousands of neighbours is not copied at each merge); a heap entry is stale
-    # when its pair's current mean contrast differs from it.
-    nb: list[dict[int, list[float]]] = [dict() for _ in range(n0)]
-    for k, s, c in zip(uk, s_de, c_de, strict=True):
-        i, j = int(k // n0), int(k % n0)
-        nb[i][j] = [s, c]
-        nb[j][i] = [s, c]
-    children: list[tuple[int, int]] = [(-1, -1)] * n0
-    area = list(area0)
-    bbox = [[int(x0[i]), int(y0[i]), int(x1[i]), int(y1[i])] for i in range(n0)]
-    born = [0.0] * n0
-    died = [np.inf] * n0
-    node_of = list(range(n0))  # representative -> its current node
+    pair = np.stack([uk // n0, uk % n0], 1)
+    return RegionStats(pair, s_de, c_de, area0, np.stack([x0, y0, x1, y1], 1), mom0)
 
-    def key(i: int, j: int, e: list[float]) -> float:
-        # a speck (noise, a mean-shift leftover) merges before its contrast says: otherwise a part's
-        # region absorbs the specks along its outline one at a time and never stands out as one node
-        a = min(area[node_of[i]], area[node_of[j]])
-        return e[0] / e[1] * min(1.0, a / SPECK_PX)
 
-    heap = [(key(i, j, e), i, j) for i in range(n0) for j, e in nb[i].items() if i < j]
-    heapq.heapify(heap)
-    while heap:
-        d, i, j = heapq.heappop(heap)
-        if d > MAX_MERGE_DE:
-            break
-        e = nb[i].get(j)
-        if e is None:
-            continue
-        now = key(i, j, e)
-        if now > d + 1e-9:  # a side grew past a speck since: its turn comes later
-            heapq.heappush(heap, (now, i, j))
-            continue
-        if now < d - 1e-9:  # a fresher entry of the pair was pushed when its contrast changed
-            continue
-        big, small = (i, j) if len(nb[i]) >= len(nb[j]) else (j, i)
-        ni, nj = node_of[i], node_of[j]
-        k = len(children)
-        children.append((ni, nj))
-        area.append(area[ni] + area[nj])
-        bi, bj = bbox[ni], bbox[nj]
-        bbox.append([min(bi[0], bj[0]), min(bi[1], bj[1]), max(bi[2], bj[2]), max(bi[3], bj[3])])
-        born.append(d)
-        mom.append(mom[ni] + mom[nj])
-        died.append(np.inf)
-        died[ni] = died[nj] = d
-        node_of[big] = k
-        keep = nb[big]
-        del keep[small]
-        for m, (s, c) in nb[small].items():
-            if m == big:
-                continue
-            del nb[m][small]
-            if m in keep:
-                keep[m][0] += s
-                keep[m][1] += c
-                nb[m][big] = keep[m]  # one shared list per pair
-            else:
-                keep[m] = [s, c]
-                nb[m][big] = keep[m]
-            heapq.heappush(heap, (key(big, m, keep[m]), min(big, m), max(big, m)))
-        nb[small] = {}
-    return Regions(labels, sc, children, np.array(area), np.array(bbox, int).reshape(-1, 4), np.array(born),
-                   np.array(died), np.array(mom))
+def segment(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> Regions:
+    """Initial regions (mean shift, then pixel-connected components of near-equal colour) and every
+    region of their hierarchical merging by weakest mean boundary contrast (``MAX_MERGE_DE`` at most)."""
+    sc, lab = smooth(image_bgr, work_width)
+    labels, n0, dh, dv = initial_regions(lab)
+    return merge(labels, sc, region_stats(labels, n0, dh, dv))
+
+
+def merge(labels: np.ndarray, sc: float, st: RegionStats) -> Regions:
+    """Hierarchical merging of the initial regions, weakest mean boundary contrast first."""
+    from service.vision.reference.regions import merge_py
+
+    return merge_py(labels, sc, st)
 
 
 # --- proposals -------------------------------------------------------------------------------------
