@@ -20,6 +20,7 @@ import math
 from dataclasses import dataclass
 
 import cv2
+import numba as nb
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
@@ -239,10 +240,197 @@ def segment(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> Regions:
 
 
 def merge(labels: np.ndarray, sc: float, st: RegionStats) -> Regions:
-    """Hierarchical merging of the initial regions, weakest mean boundary contrast first."""
-    from service.vision.reference.regions import merge_py
+    """Hierarchical merging of the initial regions, weakest mean boundary contrast first: every merge is
+    a node (children, area, bbox, the contrast at which it formed and at which it was merged away,
+    moments). The numba kernel ``_merge_kernel`` pops the same (contrast, i, j) heap entries in the same
+    order as the Python reference (``vision/reference/regions.merge_py``), so the hierarchy is identical."""
+    n0 = len(st.area)
+    children, area, bbox, born, died, mom = _merge_kernel(
+        n0, np.ascontiguousarray(st.pair, np.int64), np.ascontiguousarray(st.s_de, np.float64),
+        np.ascontiguousarray(st.c_de, np.float64), np.ascontiguousarray(st.area, np.float64),
+        np.ascontiguousarray(st.bbox, np.int64), np.ascontiguousarray(st.moments, np.float64),
+        float(SPECK_PX), float(MAX_MERGE_DE))
+    return Regions(labels, sc, children, area, bbox, born, died, mom)
 
-    return merge_py(labels, sc, st)
+
+@nb.njit(inline="always")
+def _less(hd, hi, hj, a, b):
+    """Heap entry a before b: (contrast, i, j) compared as Python compares tuples."""
+    if hd[a] != hd[b]:
+        return hd[a] < hd[b]
+    if hi[a] != hi[b]:
+        return hi[a] < hi[b]
+    return hj[a] < hj[b]
+
+
+@nb.njit(inline="always")
+def _swap(hd, hi, hj, a, b):
+    hd[a], hd[b] = hd[b], hd[a]
+    hi[a], hi[b] = hi[b], hi[a]
+    hj[a], hj[b] = hj[b], hj[a]
+
+
+@nb.njit
+def _sift_up(hd, hi, hj, k):
+    while k > 0:
+        p = (k - 1) >> 1
+        if _less(hd, hi, hj, k, p):
+            _swap(hd, hi, hj, k, p)
+            k = p
+        else:
+            break
+
+
+@nb.njit
+def _sift_down(hd, hi, hj, k, n):
+    while True:
+        c = 2 * k + 1
+        if c >= n:
+            break
+        if c + 1 < n and _less(hd, hi, hj, c + 1, c):
+            c += 1
+        if _less(hd, hi, hj, c, k):
+            _swap(hd, hi, hj, c, k)
+            k = c
+        else:
+            break
+
+
+@nb.njit
+def _pair_key(i, j, n0):
+    return min(i, j) * n0 + max(i, j)
+
+
+@nb.njit(cache=True)
+def _merge_kernel(n0, pair, s_de, c_de, area0, bbox0, mom0, speck_px, max_de):
+    """Union of neighbouring regions, weakest (speck-discounted) mean boundary contrast first, exactly as
+    ``merge_py``: a live region is held by a representative id; each neighbouring pair has one edge (sum
+    and count of its pixel pairs' contrast) in a dict by pair and in both representatives' linked lists
+    (a slot per side); merging, the side with fewer neighbours hands its edges to the other (an edge to a
+    common neighbour is added into the existing one). Heap entries are (contrast, i < j), stale ones
+    skipped or pushed again as in the reference."""
+    E = pair.shape[0]
+    C = max(2 * n0 - 1, 1)
+    children = np.full((C, 2), -1, np.int64)
+    area = np.zeros(C)
+    bbox = np.zeros((C, 4), np.int64)
+    born = np.zeros(C)
+    died = np.full(C, np.inf)
+    mom = np.zeros((C, 6))
+    area[:n0] = area0
+    bbox[:n0] = bbox0
+    mom[:n0] = mom0
+    node_of = np.arange(n0)
+    deg = np.zeros(n0, np.int64)
+    ends = pair.copy()  # (E, 2): the edge's current representatives
+    es = s_de.copy()
+    ec = c_de.copy()
+    alive = np.ones(E, np.bool_)
+    head = np.full(n0, -1, np.int64)
+    nxt = np.full(2 * E, -1, np.int64)  # slot 2 e + side: the next slot in ends[e, side]'s list
+    where = nb.typed.Dict.empty(nb.types.int64, nb.types.int64)
+    cap = max(2 * E, 16)
+    hd = np.empty(cap)
+    hi = np.empty(cap, np.int64)
+    hj = np.empty(cap, np.int64)
+    n_heap = 0
+    for e in range(E):
+        i, j = pair[e, 0], pair[e, 1]
+        where[i * n0 + j] = e
+        for side in range(2):
+            x = pair[e, side]
+            nxt[2 * e + side] = head[x]
+            head[x] = 2 * e + side
+            deg[x] += 1
+        hd[n_heap] = es[e] / ec[e] * min(1.0, min(area0[i], area0[j]) / speck_px)
+        hi[n_heap] = i
+        hj[n_heap] = j
+        n_heap += 1
+    for k in range(n_heap // 2 - 1, -1, -1):
+        _sift_down(hd, hi, hj, k, n_heap)
+    n_nodes = n0
+    while n_heap > 0:
+        d, i, j = hd[0], hi[0], hj[0]
+        n_heap -= 1
+        if n_heap > 0:
+            hd[0], hi[0], hj[0] = hd[n_heap], hi[n_heap], hj[n_heap]
+            _sift_down(hd, hi, hj, 0, n_heap)
+        if d > max_de:
+            break
+        if i * n0 + j not in where:
+            continue
+        e = where[i * n0 + j]
+        now = es[e] / ec[e] * min(1.0, min(area[node_of[i]], area[node_of[j]]) / speck_px)
+        if now > d + 1e-9:  # a side grew past a speck since: its turn comes later
+            if n_heap == cap:
+                cap *= 2
+                hd2, hi2, hj2 = np.empty(cap), np.empty(cap, np.int64), np.empty(cap, np.int64)
+                hd2[:n_heap], hi2[:n_heap], hj2[:n_heap] = hd[:n_heap], hi[:n_heap], hj[:n_heap]
+                hd, hi, hj = hd2, hi2, hj2
+            hd[n_heap], hi[n_heap], hj[n_heap] = now, i, j
+            n_heap += 1
+            _sift_up(hd, hi, hj, n_heap - 1)
+            continue
+        if now < d - 1e-9:  # a fresher entry of the pair was pushed when its contrast changed
+            continue
+        if deg[i] >= deg[j]:
+            big, small = i, j
+        else:
+            big, small = j, i
+        ni, nj = node_of[i], node_of[j]
+        k = n_nodes
+        n_nodes += 1
+        children[k, 0], children[k, 1] = ni, nj
+        area[k] = area[ni] + area[nj]
+        bbox[k, 0] = min(bbox[ni, 0], bbox[nj, 0])
+        bbox[k, 1] = min(bbox[ni, 1], bbox[nj, 1])
+        bbox[k, 2] = max(bbox[ni, 2], bbox[nj, 2])
+        bbox[k, 3] = max(bbox[ni, 3], bbox[nj, 3])
+        born[k] = d
+        for q in range(6):
+            mom[k, q] = mom[ni, q] + mom[nj, q]
+        died[ni] = d
+        died[nj] = d
+        node_of[big] = k
+        del where[i * n0 + j]
+        alive[e] = False
+        deg[big] -= 1
+        slot = head[small]
+        while slot >= 0:
+            nslot = nxt[slot]
+            e2, side = slot >> 1, slot & 1
+            if alive[e2]:
+                m = ends[e2, 1 - side]
+                del where[_pair_key(small, m, n0)]
+                kb = _pair_key(big, m, n0)
+                f = where[kb] if kb in where else -1  # noqa: SIM401 (numba: .get gives an Optional)
+                if f >= 0:  # a common neighbour: its edge to big takes small's boundary
+                    es[f] += es[e2]
+                    ec[f] += ec[e2]
+                    alive[e2] = False
+                    deg[m] -= 1
+                else:  # small's edge becomes big's
+                    f = e2
+                    ends[e2, side] = big
+                    where[kb] = e2
+                    nxt[slot] = head[big]
+                    head[big] = slot
+                    deg[big] += 1
+                if n_heap == cap:
+                    cap *= 2
+                    hd2, hi2, hj2 = np.empty(cap), np.empty(cap, np.int64), np.empty(cap, np.int64)
+                    hd2[:n_heap], hi2[:n_heap], hj2[:n_heap] = hd[:n_heap], hi[:n_heap], hj[:n_heap]
+                    hd, hi, hj = hd2, hi2, hj2
+                hd[n_heap] = es[f] / ec[f] * min(1.0, min(area[k], area[node_of[m]]) / speck_px)
+                hi[n_heap] = min(big, m)
+                hj[n_heap] = max(big, m)
+                n_heap += 1
+                _sift_up(hd, hi, hj, n_heap - 1)
+            slot = nslot
+        head[small] = -1
+        deg[small] = 0
+    return (children[:n_nodes].copy(), area[:n_nodes].copy(), bbox[:n_nodes].copy(), born[:n_nodes].copy(),
+            died[:n_nodes].copy(), mom[:n_nodes].copy())
 
 
 # --- proposals -------------------------------------------------------------------------------------

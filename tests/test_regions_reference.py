@@ -1,0 +1,88 @@
+"""The region proposals' numba merging and batched matching (``vision/estimate/regions.py``) against the
+reference written for clarity (``vision/reference/regions.py``): the same hierarchy (every node's
+children, area, box, moments, and the contrasts at which it formed and merged away) and the same
+proposals, on random images with many equal contrasts (ties in the heap) and on real photos."""
+
+import cv2
+import numpy as np
+import pytest
+
+from service.pipeline import DEFAULT_DISTANCE_RANGE_MM
+from service.vision.estimate import regions
+from service.vision.reference import regions as ref
+
+FIELDS = ("labels", "children", "area", "bbox", "born", "died", "moments")
+
+
+def assert_same_regions(a: regions.Regions, b: regions.Regions) -> None:
+    assert a.scale == b.scale
+    for f in FIELDS:
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
+
+
+def blocky_lab(rng: np.random.Generator, h: int, w: int, n_levels: int) -> np.ndarray:
+    """A Lab image of random rectangles in a few quantised colours (so many boundaries share one mean
+    contrast exactly), with single-pixel specks."""
+    lab = np.zeros((h, w, 3), np.float32)
+    for _ in range(rng.integers(5, 40)):
+        y0, x0 = rng.integers(0, h), rng.integers(0, w)
+        y1, x1 = y0 + rng.integers(1, h // 2 + 2), x0 + rng.integers(1, w // 2 + 2)
+        lab[y0:y1, x0:x1] = rng.integers(0, n_levels, 3) * 7.0
+    ys, xs = rng.integers(0, h, 30), rng.integers(0, w, 30)
+    lab[ys, xs] = rng.integers(0, n_levels, (30, 3)) * 7.0
+    return lab
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_the_merge_kernel_builds_the_reference_hierarchy_with_ties(seed):
+    rng = np.random.default_rng(seed)
+    h, w = int(rng.integers(8, 60)), int(rng.integers(8, 80))
+    lab = blocky_lab(rng, h, w, n_levels=int(rng.integers(2, 6)))
+    labels, n0, dh, dv = regions.initial_regions(lab)
+    st = regions.region_stats(labels, n0, dh, dv)
+    a, b = ref.merge_py(labels, 0.5, st), regions.merge(labels, 0.5, st)
+    assert_same_regions(a, b)
+    # a hierarchy: every merged node's area is its children's, and it forms no weaker than they did
+    merged = a.children[:, 0] >= 0
+    assert np.array_equal(a.area[merged], a.area[a.children[merged, 0]] + a.area[a.children[merged, 1]])
+    # and the heap met ties: merges at exactly one contrast, ordered by their regions' ids
+    assert len(np.unique(a.born[merged])) < merged.sum()
+
+
+def test_a_single_region_image_has_one_node():
+    labels, n0, dh, dv = regions.initial_regions(np.zeros((6, 9, 3), np.float32))
+    reg = regions.merge(labels, 1.0, regions.region_stats(labels, n0, dh, dv))
+    assert len(reg.area) == 1 and reg.area[0] == 54 and reg.children[0].tolist() == [-1, -1]
+
+
+def noisy_scene(rng: np.random.Generator) -> np.ndarray:
+    img = (rng.random((120, 160, 3)) * 255).astype(np.uint8)
+    img = cv2.GaussianBlur(img, (0, 0), 2.0)
+    cv2.rectangle(img, (40, 30), (90, 70), (40, 150, 210), -1)
+    cv2.circle(img, (120, 80), 18, (200, 60, 60), -1)
+    return img
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_segment_matches_the_reference_on_noisy_scenes(seed):
+    img = noisy_scene(np.random.default_rng(seed))
+    assert_same_regions(ref.segment_py(img), regions.segment(img))
+
+
+@pytest.mark.slow
+def test_segment_and_proposals_match_the_reference_on_real_photos(data_dir):
+    from bench.accuracy import gt_bank, read_gt
+    from bench.hypotheses import read_colour
+
+    for name, idx in (("clutter2", 4), ("absent2", 23), ("lmo_dev", 0)):
+        set_dir = data_dir / name
+        g = read_gt(set_dir)[idx]
+        bank = gt_bank(set_dir, g["model"])
+        img = read_colour(set_dir / g["image"])[..., :3]
+        K = np.asarray(g["K"], float)
+        reg_a, reg_b = ref.segment_py(img), regions.segment(img)
+        assert_same_regions(reg_a, reg_b)
+        pa, _ = ref.propose_py(bank, img, K, DEFAULT_DISTANCE_RANGE_MM, n_out=30, reg=reg_a)
+        pb, _ = regions.propose(bank, img, K, DEFAULT_DISTANCE_RANGE_MM, n_out=30, reg=reg_b)
+        assert [(p.region, p.iou, p.hyp.view, p.hyp.phi_deg, p.hyp.z_mm, tuple(p.hyp.uv)) for p in pa] == \
+            [(p.region, p.iou, p.hyp.view, p.hyp.phi_deg, p.hyp.z_mm, tuple(p.hyp.uv)) for p in pb]
