@@ -86,3 +86,27 @@ def test_segment_and_proposals_match_the_reference_on_real_photos(data_dir):
         pb, _ = regions.propose(bank, img, K, DEFAULT_DISTANCE_RANGE_MM, n_out=30, reg=reg_b)
         assert [(p.region, p.iou, p.hyp.view, p.hyp.phi_deg, p.hyp.z_mm, tuple(p.hyp.uv)) for p in pa] == \
             [(p.region, p.iou, p.hyp.view, p.hyp.phi_deg, p.hyp.z_mm, tuple(p.hyp.uv)) for p in pb]
+
+
+@pytest.mark.parametrize("levels", [None, 40, 6])
+def test_best_fits_are_the_positive_head_of_a_full_sort(levels):
+    # continuous IoUs (no ties), coarsely quantised ones (ties at and inside the first 12) and zeros
+    rng = np.random.default_rng(7)
+    iou = rng.random((60, 826)).astype(np.float32)
+    iou[rng.random(iou.shape) < 0.6] = 0
+    iou[:5, 3:] = 0  # rows with fewer positive fits than asked
+    if levels:
+        iou = np.round(iou * levels).astype(np.float32) / np.float32(levels)
+    got = regions._best_fits(iou, 12)
+    for row, (idx, vals) in zip(iou, got, strict=True):
+        best = np.argsort(-row)[:12]
+        pos = [(int(i), float(row[i])) for i in best if row[i] > 0]
+        assert [(i, v) for i, v in zip(idx, vals, strict=True) if v > 0] == pos
+
+
+def test_region_masks_from_leaf_ranges_are_the_reference_masks():
+    reg = regions.segment(noisy_scene(np.random.default_rng(5)))
+    for c in range(len(reg.area)):
+        m = regions.region_mask(reg, c)
+        np.testing.assert_array_equal(m, ref.region_mask_py(reg, c))
+        assert m.sum() == reg.area[c]  # and every pixel of the node is in its box

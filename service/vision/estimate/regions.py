@@ -17,7 +17,7 @@ edge map: the floor's texture inside it does not count).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numba as nb
@@ -147,6 +147,18 @@ class Regions:
     died: np.ndarray  # (C,) ... at which it merged into a larger one (inf: never), specks aside: its
     # contrast to every neighbour when it stopped growing
     moments: np.ndarray  # (C, 6) m00, m10, m01, m20, m11, m02 (working px)
+
+    _leaf: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
+
+    def leaf_ranges(self) -> tuple[np.ndarray, np.ndarray]:
+        """(every working pixel's initial region's position in a leaf order where each node's initial
+        regions are contiguous (h, w) int32, each node's [first, last + 1) positions (C, 2)): a node's
+        mask is a range test, made once per hierarchy."""
+        if self._leaf is None:
+            n0 = int(np.count_nonzero(self.children[:, 0] < 0))
+            span = _leaf_spans(self.children, n0)
+            self._leaf = (span[:n0, 0].astype(np.int32)[self.labels], span)
+        return self._leaf
 
     def members(self, c: int) -> list[int]:
         out, stack = [], [c]
@@ -455,25 +467,58 @@ def projected_area_range(bank: TemplateBank, sil: Silhouettes, K: np.ndarray,
 
 
 def region_mask(reg: Regions, c: int) -> np.ndarray:
+    """(bbox-sized uint8 0/1) the pixels of node ``c``'s initial regions within its box."""
     x0, y0, x1, y1 = reg.bbox[c]
-    lab = reg.labels[y0:y1, x0:x1]
-    return np.isin(lab, reg.members(c)).astype(np.uint8)
+    pos, span = reg.leaf_ranges()
+    win = pos[y0:y1, x0:x1]
+    return ((win >= span[c, 0]) & (win < span[c, 1])).view(np.uint8)
 
 
-def canonical(mask: np.ndarray, mo: dict, angle_rad: float, area_scale: float = 1.0) -> np.ndarray:
+@nb.njit(cache=True)
+def _leaf_spans(children, n0):
+    """(C, 2) each node's [first, last + 1) in a leaf order where every node's leaves are contiguous:
+    sizes bottom-up (a node's children come before it), then the roots one after another and each
+    node's first child's leaves before its second's, top-down."""
+    C = children.shape[0]
+    size = np.ones(C, np.int64)
+    has_parent = np.zeros(C, np.bool_)
+    for k in range(C):
+        a, b = children[k, 0], children[k, 1]
+        if a >= 0:
+            size[k] = size[a] + size[b]
+            has_parent[a] = True
+            has_parent[b] = True
+    span = np.zeros((C, 2), np.int64)
+    nxt = 0
+    for k in range(C - 1, -1, -1):
+        if not has_parent[k]:
+            span[k, 0] = nxt
+            nxt += size[k]
+        span[k, 1] = span[k, 0] + size[k]
+        a, b = children[k, 0], children[k, 1]
+        if a >= 0:
+            span[a, 0] = span[k, 0]
+            span[b, 0] = span[k, 0] + size[a]
+    return span
+
+
+def canonical(mask: np.ndarray, mo: dict, angle_rad: float, area_scale: float = 1.0,
+              out: np.ndarray | None = None) -> np.ndarray:
     """``mask`` moved to a ``CANON_PX`` square: its centroid at the centre, its axis at ``angle_rad``
-    turned onto x, its area scaled to ``CANON_AREA`` x ``area_scale`` of the square (float 0..1)."""
+    turned onto x, its area scaled to ``CANON_AREA`` x ``area_scale`` of the square (float 0..1; written
+    into ``out``, (G, G) float32, when given). ``mask`` may already be float32."""
     G = CANON_PX
     s = math.sqrt(CANON_AREA * area_scale * G * G / mo["m00"])
     cx, cy = mo["m10"] / mo["m00"], mo["m01"] / mo["m00"]
     c, sn = math.cos(-angle_rad), math.sin(-angle_rad)
     A = s * np.array([[c, -sn], [sn, c]])
     off = np.array([G / 2 - 0.5, G / 2 - 0.5]) - A @ np.array([cx, cy])
-    return cv2.warpAffine(mask.astype(np.float32), np.hstack([A, off[:, None]]), (G, G),
-                          flags=cv2.INTER_LINEAR)
+    src = mask if mask.dtype == np.float32 else mask.astype(np.float32)
+    return cv2.warpAffine(src, np.hstack([A, off[:, None]]), (G, G), dst=out, flags=cv2.INTER_LINEAR)
 
 
 _CANON = Memo(8)
+_CANON_AREA = Memo(8)
 
 
 def canonical_templates(bank: TemplateBank, sil: Silhouettes) -> np.ndarray:
@@ -498,7 +543,7 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
     """Region proposals, best IoU first, mutually distinct (reference points, depths or rotations apart)."""
     sil = silhouettes(bank)
     canon = canonical_templates(bank, sil)
-    t_area = canon.sum(2)  # (S, N)
+    t_area = _CANON_AREA.get(bank, "area", lambda: canon.sum(2))  # (S, N)
     reg = reg if reg is not None else segment(image_bgr)
     sc = reg.scale
     a_lo, a_hi = projected_area_range(bank, sil, K, distance_range_mm)
@@ -513,9 +558,7 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
     # regions that stand out most from all their surroundings (merged latest) first
     el, co = moment_shape(reg.moments[cand])
     ok_t = sil.area_n > 0
-    d_shape = (np.abs(el[:, None] - sil.elong[None, ok_t])
-               + np.abs(co[:, None] - sil.compact[None, ok_t])).min(1)
-    cand = cand[d_shape < SHAPE_GATE]
+    cand = cand[_shape_gate(el, co, sil.elong[ok_t], sil.compact[ok_t], SHAPE_GATE)]
     cand = cand[np.argsort(-reg.died[cand], kind="stable")[:N_REGIONS]]
     fx, fy = float(K[0, 0]), float(K[1, 1])
     F = np.diag([fx, fy])
@@ -523,7 +566,9 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
     bad_t = ~ok_t
     # every region's canonical turns first, then one product per area scale for all of them
     info = []
-    rows: list[np.ndarray] = []
+    G2 = CANON_PX * CANON_PX
+    rows = np.empty((12 * len(cand), G2), np.float32)  # the most turns per region (lazily mapped)
+    n_rows = 0
     for c in cand:
         m = region_mask(reg, int(c))
         mo = cv2.moments(m, True)
@@ -535,51 +580,114 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
         turns = (0.0, 180.0) if el_r < ROUND_ELONG else tuple(range(0, 360, 30))
         x0, y0 = reg.bbox[c, :2]
         c_full = (np.array([mo["m10"], mo["m01"]]) / mo["m00"] + np.array([x0, y0]) + 0.5) / sc - 0.5
-        info.append((int(c), ang_r, turns, c_full, mo["m00"] / sc**2, len(rows)))
-        rows += [canonical(m, mo, ang_r + math.radians(tn)).ravel() for tn in turns]
-    if not rows:
+        info.append((int(c), ang_r, turns, c_full, mo["m00"] / sc**2, n_rows))
+        m_f = m.astype(np.float32)
+        for tn in turns:
+            canonical(m_f, mo, ang_r + math.radians(tn), out=rows[n_rows].reshape(CANON_PX, CANON_PX))
+            n_rows += 1
+    if not n_rows:
         return [], reg
-    Rc_all = np.stack(rows)  # (sum of turns, G^2)
+    Rc_all = rows[:n_rows]  # (sum of turns, G^2)
     r_area_all = Rc_all.sum(1)
     inter_all = [Rc_all @ canon[k].T for k in range(len(SCALES))]  # (sum of turns, N) per scale
+    # every region's best template fits per area scale at once, regions with as many turns together:
+    # the same IoU per (turn, template) and the same sort of each region's (turns x templates) block
+    N = bank.n_templates
+    A_r = np.array([x[4] for x in info])
+    den = np.maximum(sil.area_n, 1e-12) * fx * fy
+    kz_all = [np.sqrt(s_a * A_r[:, None] / den[None]) for s_a in SCALES]  # (regions, N) per scale
+    z_all = [z_ref / kz for kz in kz_all]
+    far = [(z < distance_range_mm[0]) | (z > distance_range_mm[1]) for z in z_all]
+    n_top = PER_REGION * 4
+    top: list[list] = [[None] * len(SCALES) for _ in info]
+    n_turns = np.array([len(x[2]) for x in info])
+    for T in np.unique(n_turns):
+        ids = np.flatnonzero(n_turns == T)
+        at = np.array([info[i][5] for i in ids])[:, None] + np.arange(T)  # (G, T) rows
+        r_area = r_area_all[at][..., None]
+        for k in range(len(SCALES)):
+            inter = inter_all[k][at]  # (G, T, N)
+            iou = inter / (r_area + t_area[k][None, None] - inter + 1e-9)
+            iou[:, :, bad_t] = 0
+            iou[np.broadcast_to(far[k][ids][:, None, :], iou.shape)] = 0
+            best = _best_fits(iou.reshape(len(ids), T * N), n_top)
+            for g, i in enumerate(ids.tolist()):
+                top[i][k] = best[g]
     out: list[RegionProposal] = []
-    for c, ang_r, turns, c_full, A_r, r0 in info:
-        sl = slice(r0, r0 + len(turns))
-        r_area = r_area_all[sl]
+    for g, (c, ang_r, turns, c_full, _, _) in enumerate(info):
         scored = []
-        for k, s_a in enumerate(SCALES):
-            inter = inter_all[k][sl]  # (T, N)
-            iou = inter / (r_area[:, None] + t_area[k][None] - inter + 1e-9)
-            iou[:, bad_t] = 0
-            kz = np.sqrt(s_a * A_r / (np.maximum(sil.area_n, 1e-12) * fx * fy))
-            z = z_ref / kz
-            iou[:, (z < distance_range_mm[0]) | (z > distance_range_mm[1])] = 0
-            top = np.unravel_index(np.argsort(-iou, axis=None)[:PER_REGION * 4], iou.shape)
-            for ti, t in zip(*top, strict=True):
-                scored.append((float(iou[ti, t]), int(t), float(turns[ti]), float(z[t]), float(kz[t])))
+        for k in range(len(SCALES)):
+            z, kz = z_all[k][g], kz_all[k][g]
+            for idx, v in zip(*top[g][k], strict=True):
+                if v <= 0:  # never taken: the fits are taken best first down to the first zero
+                    break
+                ti, t = divmod(idx, N)
+                scored.append((v, t, float(turns[ti]), float(z[t]), float(kz[t])))
         scored.sort(key=lambda x: -x[0])
-        n_kept = 0
+        mine: list[RegionProposal] = []
         for iou_v, t, tn, z, kz in scored:
-            if iou_v <= 0 or n_kept >= PER_REGION:
+            if iou_v <= 0 or len(mine) >= PER_REGION:
                 break
             # the template's axis (canonical x) is the region's axis turned by tn: in-plane angle
             phi = math.degrees(ang_r - sil.axis_rad[t]) + tn
             cp, sp = math.cos(math.radians(phi)), math.sin(math.radians(phi))
             uv_ref = c_full - F @ np.array([[cp, -sp], [sp, cp]]) @ sil.centroid_n[t] * kz
             hyp = Hypothesis(t, float(phi % 360), z, uv_ref)
-            if any(_same(hyp, q.hyp, bank) for q in out if q.region == c):
+            if any(_same(hyp, q.hyp, bank) for q in mine):
                 continue
-            out.append(RegionProposal(hyp, iou_v, c))
-            n_kept += 1
+            mine.append(RegionProposal(hyp, iou_v, c))
+        out += mine
     out.sort(key=lambda r: -r.iou)
     kept: list[RegionProposal] = []
+    kept_uv = np.zeros((n_out, 2))
     for r in out:
-        if any(_same(r.hyp, q.hyp, bank) for q in kept):
+        # ``_same`` needs the reference points within 8 px first: only those few are compared in full
+        d = r.hyp.uv - kept_uv[:len(kept)]
+        near = np.flatnonzero(np.hypot(d[:, 0], d[:, 1]) < 8.0)
+        if any(_same(r.hyp, kept[q].hyp, bank) for q in near):
             continue
+        kept_uv[len(kept)] = r.hyp.uv
         kept.append(r)
         if len(kept) >= n_out:
             break
     return kept, reg
+
+
+def _best_fits(iou: np.ndarray, n_top: int) -> list[tuple[list[int], list[float]]]:
+    """Per row of ``iou`` (regions, turns x templates): the positive entries among the first ``n_top`` of
+    ``np.argsort(-row)`` (indices, values), best first, as the reference takes them. A partition finds
+    the ``n_top`` + 1 largest; when no two positive ones among them are equal their order is the sort's
+    whatever its tie rule, else the row is sorted in full as the reference sorts it."""
+    n_rows, n_cols = iou.shape
+    if n_cols <= n_top + 1:
+        order = [np.argsort(-row)[:n_top] for row in iou]
+        return [(o.tolist(), row[o].tolist()) for o, row in zip(order, iou, strict=True)]
+    part = np.argpartition(-iou, n_top, axis=1)[:, :n_top + 1]
+    pv = np.take_along_axis(iou, part, 1)
+    o = np.argsort(-pv, axis=1, kind="stable")
+    part, pv = np.take_along_axis(part, o, 1), np.take_along_axis(pv, o, 1)
+    tied = ((pv[:, 1:] == pv[:, :-1]) & (pv[:, 1:] > 0)).any(1)
+    out = []
+    for g in range(n_rows):
+        if tied[g]:
+            best = np.argsort(-iou[g])[:n_top]
+            out.append((best.tolist(), iou[g, best].tolist()))
+        else:
+            out.append((part[g, :n_top].tolist(), pv[g, :n_top].tolist()))
+    return out
+
+
+@nb.njit(cache=True)
+def _shape_gate(el, co, el_t, co_t, gate):
+    """Whether some template's |elongation difference| + |compactness difference| is below ``gate``, per
+    region (the first such template ends the search)."""
+    ok = np.zeros(el.shape[0], np.bool_)
+    for i in range(el.shape[0]):
+        for t in range(el_t.shape[0]):
+            if abs(el[i] - el_t[t]) + abs(co[i] - co_t[t]) < gate:
+                ok[i] = True
+                break
+    return ok
 
 
 def _same(a: Hypothesis, b: Hypothesis, bank: TemplateBank) -> bool:
