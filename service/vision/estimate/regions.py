@@ -17,6 +17,7 @@ edge map: the floor's texture inside it does not count).
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 import cv2
@@ -26,6 +27,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from service.vision.bank import TemplateBank, view_neighbours
+from service.vision.deadline import NO_DEADLINE, Deadline, RunningMean
 from service.vision.estimate.chamfer import distance_tensor, quantised
 from service.vision.estimate.coarse import Hypothesis, SearchParams, local_scan, polish
 from service.vision.estimate.edges import Segments
@@ -737,12 +739,23 @@ def refine_on_boundary(bank: TemplateBank, prop: RegionProposal, reg: Regions, K
                   step_phi_deg=2.0, step_uv_px=2.0, step_z=0.04)
 
 
+# What segmenting a frame and matching its regions (``propose``) take in this process, ms: they start only
+# when a deadline leaves this much. Starts at clutter2's median after the numba merge (2 shared cores).
+_PROPOSE_MS = RunningMean(200.0)
+
+
 def region_proposals(bank: TemplateBank, image: np.ndarray, K: np.ndarray, image_shape: tuple[int, int],
                      p: SearchParams, *, distance_mm: float | None, distance_range_mm: tuple[float, float],
-                     n_out: int) -> list[Hypothesis]:
+                     n_out: int, deadline: Deadline = NO_DEADLINE,
+                     reserve_ms: float = 0.0) -> list[Hypothesis]:
     """The first ``n_out`` region proposals (``propose``), each refined on its region's outline
     (``refine_on_boundary``), in the proposals' order (silhouette IoU). With ``distance_mm`` the
-    regions' areas are judged within ``DISTANCE_SLACK`` of it."""
+    regions' areas are judged within ``DISTANCE_SLACK`` of it. Anytime: with a ``deadline`` nothing is
+    proposed unless segmenting and matching (their running mean's ``high``) and ``reserve_ms`` fit, and
+    each refinement starts only if the previous one's duration and ``reserve_ms`` do (fewer proposals,
+    best first, rather than a late answer)."""
+    if not deadline.allows(_PROPOSE_MS.high + reserve_ms):
+        return []
     if image.ndim == 2:
         image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
     image = image[..., :3]
@@ -750,5 +763,13 @@ def region_proposals(bank: TemplateBank, image: np.ndarray, K: np.ndarray, image
         image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
     rng = distance_range_mm if distance_mm is None else \
         (distance_mm / DISTANCE_SLACK, distance_mm * DISTANCE_SLACK)
+    t0 = time.perf_counter()
     props, reg = propose(bank, image, K, rng, n_out=n_out)
-    return [refine_on_boundary(bank, r, reg, K, image_shape, p, distance_mm=distance_mm) for r in props]
+    _PROPOSE_MS.add((time.perf_counter() - t0) * 1000.0)
+    out = []
+    deadline.new_loop()
+    for r in props:
+        if not deadline.allows_next(reserve_ms):
+            break
+        out.append(refine_on_boundary(bank, r, reg, K, image_shape, p, distance_mm=distance_mm))
+    return out
