@@ -5,7 +5,8 @@ and whether both give the same hierarchy and the same proposals.
 Per query (gt line, absent ones too) both run on the same image: mean shift (``smooth``), linking
 (``initial_regions``), region statistics (``region_stats``), merging (``merge_py`` / ``merge``),
 matching (``propose_py`` / ``propose`` on that hierarchy, 30 proposals), then the first ``--n`` proposals
-are refined on their outlines (``refine_on_boundary``, as ``region_proposals`` does). CPU time is
+are refined on their outlines (``refine_on_boundary`` each; ``refine_all``, as ``region_proposals``
+does). "Frames differing": the hierarchy, or the proposals or refined poses, not identical. CPU time is
 ``time.process_time`` (all this process's threads); the bank's silhouettes are made before timing.
 
     python bench/region_speed.py --sets clutter2,absent2,lmo_dev:8 [--n 5] [--limit N]
@@ -56,13 +57,18 @@ def same_proposals(a: list, b: list) -> bool:
     return [key(p) for p in a] == [key(q) for q in b]
 
 
+def same_hyps(a: list, b: list) -> bool:
+    return [(h.view, h.phi_deg, h.z_mm, tuple(h.uv)) for h in a] == [(h.view, h.phi_deg, h.z_mm, tuple(h.uv))
+                                                                    for h in b]
+
+
 def timed(f, *args, **kw):
     c0 = time.process_time()
     out = f(*args, **kw)
     return out, 1000 * (time.process_time() - c0)
 
 
-def run_frame(impl: str, bank, image, K, n_refine: int) -> tuple[dict, regions.Regions, list]:
+def run_frame(impl: str, bank, image, K, n_refine: int) -> tuple[dict, regions.Regions, list, list]:
     t: dict[str, float] = {}
     (sc, lab), t["mean shift"] = timed(regions.smooth, image)
     (labels, n0, dh, dv), t["linking"] = timed(regions.initial_regions, lab)
@@ -70,10 +76,14 @@ def run_frame(impl: str, bank, image, K, n_refine: int) -> tuple[dict, regions.R
     merge, propose = (ref.merge_py, ref.propose_py) if impl == "ref" else (regions.merge, regions.propose)
     reg, t["merge"] = timed(merge, labels, sc, st)
     (props, _), t["matching"] = timed(propose, bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=30, reg=reg)
-    _, t["refine"] = timed(lambda: [regions.refine_on_boundary(bank, r, reg, K, image.shape[:2],
-                                                               SEARCH_PARAMS) for r in props[:n_refine]])
+    shape, first = image.shape[:2], props[:n_refine]
+    if impl == "ref":
+        hs, t["refine"] = timed(lambda: [regions.refine_on_boundary(bank, r, reg, K, shape, SEARCH_PARAMS)
+                                         for r in first])
+    else:
+        hs, t["refine"] = timed(regions.refine_all, bank, first, reg, K, shape, SEARCH_PARAMS)
     t["total"] = sum(t.values())
-    return t, reg, props
+    return t, reg, props, hs
 
 
 def main() -> None:
@@ -99,11 +109,12 @@ def main() -> None:
             order = ("ref", "new") if qi % 2 == 0 else ("new", "ref")
             out = {}
             for impl in order:
-                t, reg, props = run_frame(impl, bank, image, K, a.n)
+                t, reg, props, hs = run_frame(impl, bank, image, K, a.n)
                 times[impl].append(t)
-                out[impl] = (reg, props)
+                out[impl] = (reg, props, hs)
             d_reg = not same_regions(out["ref"][0], out["new"][0])
-            d_prop = not same_proposals(out["ref"][1], out["new"][1])
+            d_prop = not same_proposals(out["ref"][1], out["new"][1]) or \
+                not same_hyps(out["ref"][2], out["new"][2])
             n_diff_reg += d_reg
             n_diff_prop += d_prop
             print(f"{name} {qi:3d} {g['image']:18s} {g['model']:9s} nodes {len(out['new'][0].area):6d} "
