@@ -724,6 +724,11 @@ def warm_up() -> EstimateOutput:
     img = render_shaded(bank.vertices_mm, bank.faces, WARM_UP_POSE, intr.K, WARM_UP_SIZE)
     estimate(bank, img, intr)  # the unknown-distance path has kernels of its own
     out = estimate(bank, img, intr, distance_mm=float(WARM_UP_POSE.t_mm[2]))
+    if REGION_PROPOSALS:  # its second pass runs only when nothing is found: load its kernels here
+        from service.vision.estimate.regions import propose as region_propose
+
+        region_propose(bank, np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else img, intr.K,
+                       DEFAULT_DISTANCE_RANGE_MM, n_out=1)
     memory.keep_mapped(memory.RESERVE_MB)  # with room for what is loaded after it
     return out
 
