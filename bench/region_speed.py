@@ -7,7 +7,8 @@ Per query (gt line, absent ones too) both run on the same image: mean shift (``s
 matching (``propose_py`` / ``propose`` on that hierarchy, 30 proposals), then the first ``--n`` proposals
 are refined on their outlines (``refine_on_boundary`` each; ``refine_all``, as ``region_proposals``
 does). "Frames differing": the hierarchy, or the proposals or refined poses, not identical. CPU time is
-``time.process_time`` (all this process's threads); the bank's silhouettes are made before timing.
+``time.process_time`` (all this process's threads); the bank's silhouettes are made before timing;
+freed memory stays mapped (``memory.keep_mapped``, as the service's warm-up sets it).
 
     python bench/region_speed.py --sets clutter2,absent2,lmo_dev:8 [--n 5] [--limit N]
 """
@@ -29,6 +30,7 @@ from bench.accuracy import gt_bank, read_gt  # noqa: E402
 from bench.detection import set_dir_of  # noqa: E402
 from bench.hypotheses import read_colour  # noqa: E402
 from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, SEARCH_PARAMS  # noqa: E402
+from service.vision import memory  # noqa: E402
 from service.vision.estimate import regions  # noqa: E402
 from service.vision.reference import regions as ref  # noqa: E402
 
@@ -92,6 +94,7 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=5, help="proposals refined (pipeline.REGION_PROPOSALS when on)")
     ap.add_argument("--limit", type=int, default=None)
     a = ap.parse_args()
+    memory.keep_mapped(memory.RESERVE_MB)  # freed buffers stay mapped, as in the service after its warm-up
     table = []
     for spec in a.sets.split(","):
         name, set_dir, gts = queries(spec)

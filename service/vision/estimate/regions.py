@@ -568,8 +568,7 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
     bad_t = ~ok_t
     # every region's canonical turns first, then one product per area scale for all of them
     info = []
-    G2 = CANON_PX * CANON_PX
-    rows = np.empty((12 * len(cand), G2), np.float32)  # the most turns per region (lazily mapped)
+    masks = []
     n_rows = 0
     for c in cand:
         m = region_mask(reg, int(c))
@@ -583,13 +582,16 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
         x0, y0 = reg.bbox[c, :2]
         c_full = (np.array([mo["m10"], mo["m01"]]) / mo["m00"] + np.array([x0, y0]) + 0.5) / sc - 0.5
         info.append((int(c), ang_r, turns, c_full, mo["m00"] / sc**2, n_rows))
-        m_f = m.astype(np.float32)
-        for tn in turns:
-            canonical(m_f, mo, ang_r + math.radians(tn), out=rows[n_rows].reshape(CANON_PX, CANON_PX))
-            n_rows += 1
+        masks.append((m.astype(np.float32), mo))
+        n_rows += len(turns)
     if not n_rows:
         return [], reg
-    Rc_all = rows[:n_rows]  # (sum of turns, G^2)
+    # every turn written straight into the product's rows (the size the reference's stack had)
+    rows = np.empty((n_rows, CANON_PX * CANON_PX), np.float32)
+    for (_, ang_r, turns, _, _, r0), (m_f, mo) in zip(info, masks, strict=True):
+        for i, tn in enumerate(turns):
+            canonical(m_f, mo, ang_r + math.radians(tn), out=rows[r0 + i].reshape(CANON_PX, CANON_PX))
+    Rc_all = rows  # (sum of turns, G^2)
     r_area_all = Rc_all.sum(1)
     inter_all = [Rc_all @ canon[k].T for k in range(len(SCALES))]  # (sum of turns, N) per scale
     # every region's best template fits per area scale at once, regions with as many turns together:
