@@ -110,3 +110,15 @@ def test_region_masks_from_leaf_ranges_are_the_reference_masks():
         m = regions.region_mask(reg, c)
         np.testing.assert_array_equal(m, ref.region_mask_py(reg, c))
         assert m.sum() == reg.area[c]  # and every pixel of the node is in its box
+
+
+def test_canonical_turns_are_canonical_at_each_turn():
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        m = (rng.random((int(rng.integers(5, 50)), int(rng.integers(5, 50)))) > 0.3).astype(np.uint8)
+        mo = cv2.moments(m, True)
+        angles = list(rng.uniform(0.0, 7.0, 12))
+        out = np.empty((12, regions.CANON_PX ** 2), np.float32)
+        regions.canonical_turns(m.astype(np.float32), mo, angles, out)
+        for a, row in zip(angles, out, strict=True):
+            np.testing.assert_array_equal(row, regions.canonical(m, mo, a).ravel())

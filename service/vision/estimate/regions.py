@@ -519,6 +519,21 @@ def canonical(mask: np.ndarray, mo: dict, angle_rad: float, area_scale: float = 
     return cv2.warpAffine(src, np.hstack([A, off[:, None]]), (G, G), dst=out, flags=cv2.INTER_LINEAR)
 
 
+def canonical_turns(mask_f: np.ndarray, mo: dict, angles_rad: list[float], out: np.ndarray) -> None:
+    """``canonical(mask_f, mo, a)`` for each of ``angles_rad`` into the rows of ``out`` (T, G^2) float32:
+    the same affine maps (the matrix products batched, which numpy computes as one at a time), one
+    ``warpAffine`` each."""
+    G = CANON_PX
+    s = math.sqrt(CANON_AREA * 1.0 * G * G / mo["m00"])
+    cx, cy = mo["m10"] / mo["m00"], mo["m01"] / mo["m00"]
+    cs = [(math.cos(-a), math.sin(-a)) for a in angles_rad]
+    A = s * np.array([[[c, -sn], [sn, c]] for c, sn in cs])  # (T, 2, 2)
+    off = np.array([G / 2 - 0.5, G / 2 - 0.5]) - A @ np.array([cx, cy])
+    M = np.concatenate([A, off[:, :, None]], axis=2)
+    for i in range(len(angles_rad)):
+        cv2.warpAffine(mask_f, M[i], (G, G), dst=out[i].reshape(G, G), flags=cv2.INTER_LINEAR)
+
+
 _CANON = Memo(8)
 _CANON_AREA = Memo(8)
 
@@ -589,8 +604,7 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
     # every turn written straight into the product's rows (the size the reference's stack had)
     rows = np.empty((n_rows, CANON_PX * CANON_PX), np.float32)
     for (_, ang_r, turns, _, _, r0), (m_f, mo) in zip(info, masks, strict=True):
-        for i, tn in enumerate(turns):
-            canonical(m_f, mo, ang_r + math.radians(tn), out=rows[r0 + i].reshape(CANON_PX, CANON_PX))
+        canonical_turns(m_f, mo, [ang_r + math.radians(tn) for tn in turns], rows[r0:r0 + len(turns)])
     Rc_all = rows  # (sum of turns, G^2)
     r_area_all = Rc_all.sum(1)
     inter_all = [Rc_all @ canon[k].T for k in range(len(SCALES))]  # (sum of turns, N) per scale
