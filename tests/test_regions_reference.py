@@ -14,6 +14,10 @@ from service.vision.reference import regions as ref
 FIELDS = ("labels", "children", "area", "bbox", "born", "died", "moments")
 
 
+def key(p: regions.RegionProposal) -> tuple:
+    return p.region, p.iou, p.hyp.view, p.hyp.phi_deg, p.hyp.z_mm, tuple(p.hyp.uv)
+
+
 def assert_same_regions(a: regions.Regions, b: regions.Regions) -> None:
     assert a.scale == b.scale
     for f in FIELDS:
@@ -82,10 +86,11 @@ def test_segment_and_proposals_match_the_reference_on_real_photos(data_dir):
         K = np.asarray(g["K"], float)
         reg_a, reg_b = ref.segment_py(img), regions.segment(img)
         assert_same_regions(reg_a, reg_b)
-        pa, _ = ref.propose_py(bank, img, K, DEFAULT_DISTANCE_RANGE_MM, n_out=30, reg=reg_a)
-        pb, _ = regions.propose(bank, img, K, DEFAULT_DISTANCE_RANGE_MM, n_out=30, reg=reg_b)
-        assert [(p.region, p.iou, p.hyp.view, p.hyp.phi_deg, p.hyp.z_mm, tuple(p.hyp.uv)) for p in pa] == \
-            [(p.region, p.iou, p.hyp.view, p.hyp.phi_deg, p.hyp.z_mm, tuple(p.hyp.uv)) for p in pb]
+        for n_out in (30, 5, 1):
+            pa, _ = ref.propose_py(bank, img, K, DEFAULT_DISTANCE_RANGE_MM, n_out=n_out, reg=reg_a)
+            pb, _ = regions.propose(bank, img, K, DEFAULT_DISTANCE_RANGE_MM, n_out=n_out, reg=reg_b)
+            assert 0 < len(pa) <= n_out
+            assert [key(p) for p in pa] == [key(p) for p in pb]
 
 
 @pytest.mark.parametrize("levels", [None, 40, 6])

@@ -16,6 +16,7 @@ edge map: the floor's texture inside it does not count).
 
 from __future__ import annotations
 
+import heapq
 import math
 import time
 from dataclasses import dataclass, field
@@ -631,21 +632,33 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
             best = _best_fits(iou.reshape(len(ids), T * N), n_top)
             for g, i in enumerate(ids.tolist()):
                 top[i][k] = best[g]
-    out: list[RegionProposal] = []
-    for g, (c, ang_r, turns, c_full, _, _) in enumerate(info):
+    # Each region's fits, best first (positive ones: the reference takes them down to the first zero).
+    fits: list[list[tuple]] = []
+    for g, (_, _, turns, _, _, _) in enumerate(info):
         scored = []
         for k in range(len(SCALES)):
             z, kz = z_all[k][g], kz_all[k][g]
             for idx, v in zip(*top[g][k], strict=True):
-                if v <= 0:  # never taken: the fits are taken best first down to the first zero
+                if v <= 0:
                     break
                 ti, t = divmod(idx, N)
                 scored.append((v, t, float(turns[ti]), float(z[t]), float(kz[t])))
         scored.sort(key=lambda x: -x[0])
-        mine: list[RegionProposal] = []
-        for iou_v, t, tn, z, kz in scored:
-            if iou_v <= 0 or len(mine) >= PER_REGION:
-                break
+        fits.append(scored)
+    # A region proposes its fits in that order, each distinct from its earlier ones, up to PER_REGION
+    # (its "survivors"); all regions' survivors are then taken best IoU first (ties: region order, then
+    # the region's order, as a stable sort of them all) while distinct from the kept ones, up to n_out.
+    # Survivors are made lazily, a region's next one when its last is taken: a merge of the regions'
+    # lists in that order, so only the few that reach the front are posed and compared.
+    nxt = [0] * len(info)  # each region's next fit to try
+    survivors: list[list[RegionProposal]] = [[] for _ in info]
+
+    def advance(g: int) -> RegionProposal | None:
+        c, ang_r, _, c_full, _, _ = info[g]
+        mine = survivors[g]
+        while nxt[g] < len(fits[g]) and len(mine) < PER_REGION:
+            iou_v, t, tn, z, kz = fits[g][nxt[g]]
+            nxt[g] += 1
             # the template's axis (canonical x) is the region's axis turned by tn: in-plane angle
             phi = math.degrees(ang_r - sil.axis_rad[t]) + tn
             cp, sp = math.cos(math.radians(phi)), math.sin(math.radians(phi))
@@ -654,11 +667,20 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
             if any(_same(hyp, q.hyp, bank) for q in mine):
                 continue
             mine.append(RegionProposal(hyp, iou_v, c))
-        out += mine
-    out.sort(key=lambda r: -r.iou)
+            return mine[-1]
+        return None
+
+    front = [(-f[0][0], g, 0) for g, f in enumerate(fits) if f]  # a region's first fit always survives
+    heapq.heapify(front)
     kept: list[RegionProposal] = []
-    kept_uv = np.zeros((n_out, 2))
-    for r in out:
+    n_keep = max(n_out, 1)  # (the reference's loop stops after the first kept one that reaches n_out)
+    kept_uv = np.zeros((n_keep, 2))
+    while front and len(kept) < n_keep:
+        _, g, pos = heapq.heappop(front)
+        r = survivors[g][pos] if pos < len(survivors[g]) else advance(g)
+        following = advance(g)
+        if following is not None:
+            heapq.heappush(front, (-following.iou, g, pos + 1))
         # ``_same`` needs the reference points within 8 px first: only those few are compared in full
         d = r.hyp.uv - kept_uv[:len(kept)]
         near = np.flatnonzero(np.hypot(d[:, 0], d[:, 1]) < 8.0)
@@ -666,8 +688,6 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
             continue
         kept_uv[len(kept)] = r.hyp.uv
         kept.append(r)
-        if len(kept) >= n_out:
-            break
     return kept, reg
 
 
