@@ -17,7 +17,7 @@ import trimesh
 
 from service.vision import memory, threads
 from service.vision.bank import TemplateBank
-from service.vision.deadline import NO_DEADLINE, Deadline
+from service.vision.deadline import NO_DEADLINE, Deadline, RunningMean
 from service.vision.estimate.chamfer import distance_tensor
 from service.vision.estimate.coarse import Hypothesis, SearchParams, coarse_search, poses_of
 from service.vision.estimate.contrast import Contrast, ContrastParams
@@ -105,24 +105,7 @@ def _ms(t0: float) -> float:
     return (time.perf_counter() - t0) * 1000.0
 
 
-class _Mean:
-    """A running mean of recent durations, ms (exponential, weight ``alpha`` on the newest), and of their
-    absolute deviation from it (``spread``; starts at a quarter of the initial mean)."""
-
-    HIGH_SPREADS = 2.0  # ``high``: about the 90th-95th percentile of durations spread like a normal's
-
-    def __init__(self, initial_ms: float, alpha: float = 0.2):
-        self.value, self.alpha = initial_ms, alpha
-        self.spread = 0.25 * initial_ms
-
-    def add(self, ms: float) -> None:
-        self.spread += self.alpha * (abs(ms - self.value) - self.spread)
-        self.value += self.alpha * (ms - self.value)
-
-    @property
-    def high(self) -> float:
-        """A duration few recent ones exceeded: the mean plus ``HIGH_SPREADS`` mean deviations."""
-        return self.value + self.HIGH_SPREADS * self.spread
+_Mean = RunningMean  # (moved to vision/deadline.py: the region proposals keep one too)
 
 
 # What checking a candidate (refine + evidence + verdict) takes in this process: a check starts only when
@@ -275,7 +258,8 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
         if deferred is not None and REGION_PROPOSALS and colour is not None and roi_uv is None:
             def from_regions() -> list[PoseCandidate]:
                 hs = region_proposals(bank, colour, intr.K, (h, w), p, distance_mm=distance_mm,
-                                      distance_range_mm=rng, n_out=REGION_PROPOSALS)
+                                      distance_range_mm=rng, n_out=REGION_PROPOSALS, deadline=deadline,
+                                      reserve_ms=_CHECK_MS.high)
                 # by pose: a region's other silhouette fits (other rotations at the same place) stay
                 return _distinct_in_roi(to_candidates(hs), bank, intr, None, True)
 
@@ -740,6 +724,11 @@ def warm_up() -> EstimateOutput:
     img = render_shaded(bank.vertices_mm, bank.faces, WARM_UP_POSE, intr.K, WARM_UP_SIZE)
     estimate(bank, img, intr)  # the unknown-distance path has kernels of its own
     out = estimate(bank, img, intr, distance_mm=float(WARM_UP_POSE.t_mm[2]))
+    if REGION_PROPOSALS:  # its second pass runs only when nothing is found: load its kernels here
+        from service.vision.estimate.regions import propose as region_propose
+
+        region_propose(bank, np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else img, intr.K,
+                       DEFAULT_DISTANCE_RANGE_MM, n_out=1)
     memory.keep_mapped(memory.RESERVE_MB)  # with room for what is loaded after it
     return out
 

@@ -90,3 +90,32 @@ def test_merging_keeps_a_two_tone_part_as_one_region_before_it_meets_the_floor()
         m[y0:y1, x0:x1] = regions.region_mask(reg, c).astype(bool)
         ious.append((m & target).sum() / (m | target).sum())
     assert max(ious) > 0.97
+
+
+def test_region_proposals_honour_a_deadline(l_block_bank):
+    from service.vision.deadline import Deadline
+
+    bank = l_block_bank
+    truth = template_pose(bank, 40, 25.0, (380.0, 210.0), 650.0)
+    image = checker_scene(bank, truth)
+    kw = dict(distance_mm=None, distance_range_mm=DEFAULT_DISTANCE_RANGE_MM, n_out=5)
+    full = regions.region_proposals(bank, image, K, (H, W), SEARCH_PARAMS, **kw)
+    assert len(full) >= 3
+    # no time for segmenting and matching: nothing is proposed, and the deadline says it stopped work
+    none = Deadline(50.0, clock=lambda: 0.0)
+    assert regions.region_proposals(bank, image, K, (H, W), SEARCH_PARAMS, deadline=none, **kw) == []
+    assert none.hit
+    # time for segmenting and matching, then 60 ms left, each reading of the clock 10 ms after the last:
+    # a refinement starts while the previous one's 20 ms fit, so the two best are refined, as without one
+    budget_ms = regions._PROPOSE_MS.high + 100.0
+    calls = iter(range(1000))
+
+    def clock() -> float:
+        k = next(calls)  # 0: the deadline's start, 1: the check before segmenting
+        return 0.0 if k < 2 else (budget_ms - 60.0) / 1000.0 + 0.010 * (k - 2)
+
+    two = Deadline(budget_ms, clock=clock)
+    hs = regions.region_proposals(bank, image, K, (H, W), SEARCH_PARAMS, deadline=two, **kw)
+    assert two.hit
+    assert [(h.view, h.phi_deg, h.z_mm, tuple(h.uv)) for h in hs] == \
+        [(h.view, h.phi_deg, h.z_mm, tuple(h.uv)) for h in full[:2]]

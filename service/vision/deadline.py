@@ -56,4 +56,24 @@ class Deadline:
         self._lap = None
 
 
+class RunningMean:
+    """A running mean of recent durations, ms (exponential, weight ``alpha`` on the newest), and of their
+    absolute deviation from it (``spread``; starts at a quarter of the initial mean)."""
+
+    HIGH_SPREADS = 2.0  # ``high``: about the 90th-95th percentile of durations spread like a normal's
+
+    def __init__(self, initial_ms: float, alpha: float = 0.2):
+        self.value, self.alpha = initial_ms, alpha
+        self.spread = 0.25 * initial_ms
+
+    def add(self, ms: float) -> None:
+        self.spread += self.alpha * (abs(ms - self.value) - self.spread)
+        self.value += self.alpha * (ms - self.value)
+
+    @property
+    def high(self) -> float:
+        """A duration few recent ones exceeded: the mean plus ``HIGH_SPREADS`` mean deviations."""
+        return self.value + self.HIGH_SPREADS * self.spread
+
+
 NO_DEADLINE = Deadline(None)

@@ -18,14 +18,17 @@ from __future__ import annotations
 
 import heapq
 import math
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 
 import cv2
+import numba as nb
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from service.vision.bank import TemplateBank, view_neighbours
+from service.vision.deadline import NO_DEADLINE, Deadline, RunningMean
 from service.vision.estimate.chamfer import distance_tensor, quantised
 from service.vision.estimate.coarse import Hypothesis, SearchParams, local_scan, polish
 from service.vision.estimate.edges import Segments
@@ -140,7 +143,7 @@ def _solidity(mask: np.ndarray, area: float) -> float:
 class Regions:
     labels: np.ndarray  # (h, w) int32 initial region of each working pixel
     scale: float  # working px per full-resolution px
-    children: list[tuple[int, int]]  # per node: the two nodes it merged ((-1, -1): an initial region)
+    children: np.ndarray  # (C, 2) per node: the two nodes it merged ((-1, -1): an initial region)
     area: np.ndarray  # (C,) working px per node
     bbox: np.ndarray  # (C, 4) x0, y0, x1, y1 (exclusive) working px per node
     born: np.ndarray  # (C,) the boundary contrast at which the node formed (0: initial)
@@ -148,21 +151,33 @@ class Regions:
     # contrast to every neighbour when it stopped growing
     moments: np.ndarray  # (C, 6) m00, m10, m01, m20, m11, m02 (working px)
 
+    _leaf: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
+
+    def leaf_ranges(self) -> tuple[np.ndarray, np.ndarray]:
+        """(every working pixel's initial region's position in a leaf order where each node's initial
+        regions are contiguous (h, w) int32, each node's [first, last + 1) positions (C, 2)): a node's
+        mask is a range test, made once per hierarchy."""
+        if self._leaf is None:
+            n0 = int(np.count_nonzero(self.children[:, 0] < 0))
+            span = _leaf_spans(self.children, n0)
+            self._leaf = (span[:n0, 0].astype(np.int32)[self.labels], span)
+        return self._leaf
+
     def members(self, c: int) -> list[int]:
         out, stack = [], [c]
         while stack:
             n = stack.pop()
             a, b = self.children[n]
             if a < 0:
-                out.append(n)
+                out.append(int(n))
             else:
-                stack += [a, b]
+                stack += [int(a), int(b)]
         return out
 
 
-def segment(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> Regions:
-    """Initial regions (mean shift, then pixel-connected components of near-equal colour) and every
-    region of their hierarchical merging by weakest mean boundary contrast (``MAX_MERGE_DE`` at most)."""
+def smooth(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> tuple[float, np.ndarray]:
+    """(working px per full-resolution px, the image shrunk to ``work_width`` and mean-shift smoothed, as
+    float32 Lab: L 0..100, a and b centred on 0)."""
     H, W = image_bgr.shape[:2]
     sc = min(work_width / W, 1.0)
     w, h = max(int(round(W * sc)), 1), max(int(round(H * sc)), 1)
@@ -171,6 +186,13 @@ def segment(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> Regions:
     lab = cv2.cvtColor(ms, cv2.COLOR_BGR2LAB).astype(np.float32)
     lab[..., 0] *= 100.0 / 255.0
     lab[..., 1:] -= 128.0
+    return sc, lab
+
+
+def initial_regions(lab: np.ndarray) -> tuple[np.ndarray, int, np.ndarray, np.ndarray]:
+    """(labels (h, w) int32, their number, the Lab contrast of horizontal (h, w-1) and vertical (h-1, w)
+    neighbours): pixel-connected regions of neighbours closer than ``LINK_DE``."""
+    h, w = lab.shape[:2]
     idx = np.arange(h * w).reshape(h, w)
     dh = np.linalg.norm(lab[:, 1:] - lab[:, :-1], axis=2)
     dv = np.linalg.norm(lab[1:] - lab[:-1], axis=2)
@@ -178,8 +200,22 @@ def segment(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> Regions:
     b = np.concatenate([idx[:, :-1][dh < LINK_DE], idx[:-1][dv < LINK_DE]])
     g = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(h * w, h * w))
     n0, lab_id = connected_components(g, directed=False)
-    labels = lab_id.reshape(h, w).astype(np.int32)
-    # boundary contrast between neighbouring initial regions: sum and count over pixel pairs
+    return lab_id.reshape(h, w).astype(np.int32), int(n0), dh, dv
+
+
+@dataclass
+class RegionStats:
+    pair: np.ndarray  # (E, 2) int64 neighbouring initial regions i < j, sorted
+    s_de: np.ndarray  # (E,) sum of the Lab contrast over their boundary's pixel pairs
+    c_de: np.ndarray  # (E,) number of those pixel pairs (float)
+    area: np.ndarray  # (n0,) working px (float)
+    bbox: np.ndarray  # (n0, 4) x0, y0, x1, y1 (exclusive)
+    moments: np.ndarray  # (n0, 6) m00, m10, m01, m20, m11, m02
+
+
+def region_stats(labels: np.ndarray, n0: int, dh: np.ndarray, dv: np.ndarray) -> RegionStats:
+    """The initial regions' boundary contrasts, areas, boxes and raw moments."""
+    h, w = labels.shape
     la = np.concatenate([labels[:, 1:].ravel(), labels[1:].ravel()])
     lb = np.concatenate([labels[:, :-1].ravel(), labels[:-1].ravel()])
     de = np.concatenate([dh.ravel(), dv.ravel()])
@@ -191,7 +227,8 @@ def segment(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> Regions:
     s_de = np.bincount(inv, de)
     c_de = np.bincount(inv).astype(float)
     area0 = np.bincount(labels.ravel(), minlength=n0).astype(float)
-    ys, xs = np.divmod(idx.ravel(), w)
+    idx = np.arange(h * w)
+    ys, xs = np.divmod(idx, w)
     lr = labels.ravel()
     x0 = np.full(n0, w)
     y0 = np.full(n0, h)
@@ -205,74 +242,279 @@ def segment(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> Regions:
     xs_f, ys_f = xs.astype(float), ys.astype(float)
     mom0 = np.stack([np.bincount(lr, wts, minlength=n0) for wts in
                      (np.ones_like(xs_f), xs_f, ys_f, xs_f * xs_f, xs_f * ys_f, ys_f * ys_f)], 1)
-    mom = [mom0[i] for i in range(n0)]
-    # Hierarchical merging. Nodes: the initial regions, then one per merge (children, area, bbox, the
-    # contrast at which it formed and at which it was merged away). A live region is held by a
-    # representative id whose neighbour dict the merge keeps (the larger dict absorbs the smaller, so a
-    # floor region with thousands of neighbours is not copied at each merge); a heap entry is stale
-    # when its pair's current mean contrast differs from it.
-    nb: list[dict[int, list[float]]] = [dict() for _ in range(n0)]
-    for k, s, c in zip(uk, s_de, c_de, strict=True):
-        i, j = int(k // n0), int(k % n0)
-        nb[i][j] = [s, c]
-        nb[j][i] = [s, c]
-    children: list[tuple[int, int]] = [(-1, -1)] * n0
-    area = list(area0)
-    bbox = [[int(x0[i]), int(y0[i]), int(x1[i]), int(y1[i])] for i in range(n0)]
-    born = [0.0] * n0
-    died = [np.inf] * n0
-    node_of = list(range(n0))  # representative -> its current node
+    pair = np.stack([uk // n0, uk % n0], 1)
+    return RegionStats(pair, s_de, c_de, area0, np.stack([x0, y0, x1, y1], 1), mom0)
 
-    def key(i: int, j: int, e: list[float]) -> float:
-        # a speck (noise, a mean-shift leftover) merges before its contrast says: otherwise a part's
-        # region absorbs the specks along its outline one at a time and never stands out as one node
-        a = min(area[node_of[i]], area[node_of[j]])
-        return e[0] / e[1] * min(1.0, a / SPECK_PX)
 
-    heap = [(key(i, j, e), i, j) for i in range(n0) for j, e in nb[i].items() if i < j]
-    heapq.heapify(heap)
-    while heap:
-        d, i, j = heapq.heappop(heap)
-        if d > MAX_MERGE_DE:
+def segment(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> Regions:
+    """Initial regions (mean shift, then pixel-connected components of near-equal colour) and every
+    region of their hierarchical merging by weakest mean boundary contrast (``MAX_MERGE_DE`` at most)."""
+    sc, lab = smooth(image_bgr, work_width)
+    labels, n0, dh, dv = initial_regions(lab)
+    return merge(labels, sc, region_stats(labels, n0, dh, dv))
+
+
+def merge(labels: np.ndarray, sc: float, st: RegionStats) -> Regions:
+    """Hierarchical merging of the initial regions, weakest mean boundary contrast first: every merge is
+    a node (children, area, bbox, the contrast at which it formed and at which it was merged away,
+    moments). The numba kernel ``_merge_kernel`` pops the same (contrast, i, j) heap entries in the same
+    order as the Python reference (``vision/reference/regions.merge_py``), so the hierarchy is identical."""
+    n0 = len(st.area)
+    children, area, bbox, born, died, mom = _merge_kernel(
+        n0, np.ascontiguousarray(st.pair, np.int64), np.ascontiguousarray(st.s_de, np.float64),
+        np.ascontiguousarray(st.c_de, np.float64), np.ascontiguousarray(st.area, np.float64),
+        np.ascontiguousarray(st.bbox, np.int64), np.ascontiguousarray(st.moments, np.float64),
+        float(SPECK_PX), float(MAX_MERGE_DE))
+    return Regions(labels, sc, children, area, bbox, born, died, mom)
+
+
+@nb.njit(inline="always")
+def _less(hd, hi, hj, a, b):
+    """Heap entry a before b: (contrast, i, j) compared as Python compares tuples."""
+    if hd[a] != hd[b]:
+        return hd[a] < hd[b]
+    if hi[a] != hi[b]:
+        return hi[a] < hi[b]
+    return hj[a] < hj[b]
+
+
+@nb.njit(inline="always")
+def _swap(hd, hi, hj, a, b):
+    hd[a], hd[b] = hd[b], hd[a]
+    hi[a], hi[b] = hi[b], hi[a]
+    hj[a], hj[b] = hj[b], hj[a]
+
+
+@nb.njit
+def _sift_up(hd, hi, hj, k):
+    while k > 0:
+        p = (k - 1) >> 1
+        if _less(hd, hi, hj, k, p):
+            _swap(hd, hi, hj, k, p)
+            k = p
+        else:
             break
-        e = nb[i].get(j)
-        if e is None:
+
+
+@nb.njit
+def _sift_down(hd, hi, hj, k, n):
+    while True:
+        c = 2 * k + 1
+        if c >= n:
+            break
+        if c + 1 < n and _less(hd, hi, hj, c + 1, c):
+            c += 1
+        if _less(hd, hi, hj, c, k):
+            _swap(hd, hi, hj, c, k)
+            k = c
+        else:
+            break
+
+
+@nb.njit
+def _table(n):
+    """An empty open-addressing table (keys, values) for ``n`` keys: 8 slots per key, a power of two;
+    key -1: empty, -2: deleted."""
+    cap = 16
+    while cap < 8 * n:
+        cap *= 2
+    return np.full(cap, -1, np.int64), np.zeros(cap, np.int64)
+
+
+@nb.njit(inline="always")
+def _slot(key, mask):
+    h = key * 0x9E3779B97F4A7C15  # Fibonacci hashing (wraps): neighbouring pair keys spread
+    return (h ^ (h >> 29)) & mask
+
+
+@nb.njit
+def _find(hk, key):
+    mask = hk.shape[0] - 1
+    i = _slot(key, mask)
+    while hk[i] != -1:
+        if hk[i] == key:
+            return i
+        i = (i + 1) & mask
+    return -1
+
+
+@nb.njit
+def _get(hk, hv, key):
+    i = _find(hk, key)
+    return hv[i] if i >= 0 else -1
+
+
+@nb.njit
+def _put(hk, hv, key, value):
+    """Insert ``key`` (not present) into the first empty or deleted slot of its probe sequence."""
+    mask = hk.shape[0] - 1
+    i = _slot(key, mask)
+    while hk[i] >= 0:
+        i = (i + 1) & mask
+    hk[i] = key
+    hv[i] = value
+
+
+@nb.njit
+def _drop(hk, hv, key):
+    hk[_find(hk, key)] = -2
+
+
+@nb.njit
+def _rehash(hk, hv):
+    n = 0
+    for q in range(hk.shape[0]):
+        n += hk[q] >= 0
+    k2, v2 = _table(n)
+    for q in range(hk.shape[0]):
+        if hk[q] >= 0:
+            _put(k2, v2, hk[q], hv[q])
+    return k2, v2
+
+
+@nb.njit
+def _pair_key(i, j, n0):
+    return min(i, j) * n0 + max(i, j)
+
+
+@nb.njit(cache=True)
+def _merge_kernel(n0, pair, s_de, c_de, area0, bbox0, mom0, speck_px, max_de):
+    """Union of neighbouring regions, weakest (speck-discounted) mean boundary contrast first, exactly as
+    ``merge_py``: a live region is held by a representative id; each neighbouring pair has one edge (sum
+    and count of its pixel pairs' contrast) in a hash table by pair and in both representatives' linked lists
+    (a slot per side); merging, the side with fewer neighbours hands its edges to the other (an edge to a
+    common neighbour is added into the existing one). Heap entries are (contrast, i < j), stale ones
+    skipped or pushed again as in the reference."""
+    E = pair.shape[0]
+    C = max(2 * n0 - 1, 1)
+    children = np.full((C, 2), -1, np.int64)
+    area = np.zeros(C)
+    bbox = np.zeros((C, 4), np.int64)
+    born = np.zeros(C)
+    died = np.full(C, np.inf)
+    mom = np.zeros((C, 6))
+    area[:n0] = area0
+    bbox[:n0] = bbox0
+    mom[:n0] = mom0
+    node_of = np.arange(n0)
+    deg = np.zeros(n0, np.int64)
+    ends = pair.copy()  # (E, 2): the edge's current representatives
+    es = s_de.copy()
+    ec = c_de.copy()
+    alive = np.ones(E, np.bool_)
+    head = np.full(n0, -1, np.int64)
+    nxt = np.full(2 * E, -1, np.int64)  # slot 2 e + side: the next slot in ends[e, side]'s list
+    hk, hv = _table(E)  # pair key -> its edge (an open-addressing table: numba's typed dict was 3x slower)
+    n_used = 0
+    cap = max(2 * E, 16)
+    hd = np.empty(cap)
+    hi = np.empty(cap, np.int64)
+    hj = np.empty(cap, np.int64)
+    n_heap = 0
+    for e in range(E):
+        i, j = pair[e, 0], pair[e, 1]
+        _put(hk, hv, i * n0 + j, e)
+        n_used += 1
+        for side in range(2):
+            x = pair[e, side]
+            nxt[2 * e + side] = head[x]
+            head[x] = 2 * e + side
+            deg[x] += 1
+        hd[n_heap] = es[e] / ec[e] * min(1.0, min(area0[i], area0[j]) / speck_px)
+        hi[n_heap] = i
+        hj[n_heap] = j
+        n_heap += 1
+    for k in range(n_heap // 2 - 1, -1, -1):
+        _sift_down(hd, hi, hj, k, n_heap)
+    n_nodes = n0
+    while n_heap > 0:
+        d, i, j = hd[0], hi[0], hj[0]
+        n_heap -= 1
+        if n_heap > 0:
+            hd[0], hi[0], hj[0] = hd[n_heap], hi[n_heap], hj[n_heap]
+            _sift_down(hd, hi, hj, 0, n_heap)
+        if d > max_de:
+            break
+        e = _get(hk, hv, i * n0 + j)
+        if e < 0:
             continue
-        now = key(i, j, e)
+        now = es[e] / ec[e] * min(1.0, min(area[node_of[i]], area[node_of[j]]) / speck_px)
         if now > d + 1e-9:  # a side grew past a speck since: its turn comes later
-            heapq.heappush(heap, (now, i, j))
+            if n_heap == cap:
+                cap *= 2
+                hd2, hi2, hj2 = np.empty(cap), np.empty(cap, np.int64), np.empty(cap, np.int64)
+                hd2[:n_heap], hi2[:n_heap], hj2[:n_heap] = hd[:n_heap], hi[:n_heap], hj[:n_heap]
+                hd, hi, hj = hd2, hi2, hj2
+            hd[n_heap], hi[n_heap], hj[n_heap] = now, i, j
+            n_heap += 1
+            _sift_up(hd, hi, hj, n_heap - 1)
             continue
         if now < d - 1e-9:  # a fresher entry of the pair was pushed when its contrast changed
             continue
-        big, small = (i, j) if len(nb[i]) >= len(nb[j]) else (j, i)
+        if deg[i] >= deg[j]:
+            big, small = i, j
+        else:
+            big, small = j, i
         ni, nj = node_of[i], node_of[j]
-        k = len(children)
-        children.append((ni, nj))
-        area.append(area[ni] + area[nj])
-        bi, bj = bbox[ni], bbox[nj]
-        bbox.append([min(bi[0], bj[0]), min(bi[1], bj[1]), max(bi[2], bj[2]), max(bi[3], bj[3])])
-        born.append(d)
-        mom.append(mom[ni] + mom[nj])
-        died.append(np.inf)
-        died[ni] = died[nj] = d
+        k = n_nodes
+        n_nodes += 1
+        children[k, 0], children[k, 1] = ni, nj
+        area[k] = area[ni] + area[nj]
+        bbox[k, 0] = min(bbox[ni, 0], bbox[nj, 0])
+        bbox[k, 1] = min(bbox[ni, 1], bbox[nj, 1])
+        bbox[k, 2] = max(bbox[ni, 2], bbox[nj, 2])
+        bbox[k, 3] = max(bbox[ni, 3], bbox[nj, 3])
+        born[k] = d
+        for q in range(6):
+            mom[k, q] = mom[ni, q] + mom[nj, q]
+        died[ni] = d
+        died[nj] = d
         node_of[big] = k
-        keep = nb[big]
-        del keep[small]
-        for m, (s, c) in nb[small].items():
-            if m == big:
-                continue
-            del nb[m][small]
-            if m in keep:
-                keep[m][0] += s
-                keep[m][1] += c
-                nb[m][big] = keep[m]  # one shared list per pair
-            else:
-                keep[m] = [s, c]
-                nb[m][big] = keep[m]
-            heapq.heappush(heap, (key(big, m, keep[m]), min(big, m), max(big, m)))
-        nb[small] = {}
-    return Regions(labels, sc, children, np.array(area), np.array(bbox, int).reshape(-1, 4), np.array(born),
-                   np.array(died), np.array(mom))
+        _drop(hk, hv, i * n0 + j)
+        alive[e] = False
+        deg[big] -= 1
+        slot = head[small]
+        while slot >= 0:
+            nslot = nxt[slot]
+            e2, side = slot >> 1, slot & 1
+            if alive[e2]:
+                m = ends[e2, 1 - side]
+                _drop(hk, hv, _pair_key(small, m, n0))
+                kb = _pair_key(big, m, n0)
+                f = _get(hk, hv, kb)
+                if f >= 0:  # a common neighbour: its edge to big takes small's boundary
+                    es[f] += es[e2]
+                    ec[f] += ec[e2]
+                    alive[e2] = False
+                    deg[m] -= 1
+                else:  # small's edge becomes big's
+                    f = e2
+                    ends[e2, side] = big
+                    if 4 * (n_used + 1) > 3 * hk.shape[0]:  # few free slots left: the live keys anew
+                        hk, hv = _rehash(hk, hv)
+                        n_used = 0
+                        for q in range(hk.shape[0]):
+                            n_used += hk[q] >= 0
+                    _put(hk, hv, kb, e2)
+                    n_used += 1
+                    nxt[slot] = head[big]
+                    head[big] = slot
+                    deg[big] += 1
+                if n_heap == cap:
+                    cap *= 2
+                    hd2, hi2, hj2 = np.empty(cap), np.empty(cap, np.int64), np.empty(cap, np.int64)
+                    hd2[:n_heap], hi2[:n_heap], hj2[:n_heap] = hd[:n_heap], hi[:n_heap], hj[:n_heap]
+                    hd, hi, hj = hd2, hi2, hj2
+                hd[n_heap] = es[f] / ec[f] * min(1.0, min(area[k], area[node_of[m]]) / speck_px)
+                hi[n_heap] = min(big, m)
+                hj[n_heap] = max(big, m)
+                n_heap += 1
+                _sift_up(hd, hi, hj, n_heap - 1)
+            slot = nslot
+        head[small] = -1
+        deg[small] = 0
+    return (children[:n_nodes].copy(), area[:n_nodes].copy(), bbox[:n_nodes].copy(), born[:n_nodes].copy(),
+            died[:n_nodes].copy(), mom[:n_nodes].copy())
 
 
 # --- proposals -------------------------------------------------------------------------------------
@@ -297,25 +539,73 @@ def projected_area_range(bank: TemplateBank, sil: Silhouettes, K: np.ndarray,
 
 
 def region_mask(reg: Regions, c: int) -> np.ndarray:
+    """(bbox-sized uint8 0/1) the pixels of node ``c``'s initial regions within its box."""
     x0, y0, x1, y1 = reg.bbox[c]
-    lab = reg.labels[y0:y1, x0:x1]
-    return np.isin(lab, reg.members(c)).astype(np.uint8)
+    pos, span = reg.leaf_ranges()
+    win = pos[y0:y1, x0:x1]
+    return ((win >= span[c, 0]) & (win < span[c, 1])).view(np.uint8)
 
 
-def canonical(mask: np.ndarray, mo: dict, angle_rad: float, area_scale: float = 1.0) -> np.ndarray:
+@nb.njit(cache=True)
+def _leaf_spans(children, n0):
+    """(C, 2) each node's [first, last + 1) in a leaf order where every node's leaves are contiguous:
+    sizes bottom-up (a node's children come before it), then the roots one after another and each
+    node's first child's leaves before its second's, top-down."""
+    C = children.shape[0]
+    size = np.ones(C, np.int64)
+    has_parent = np.zeros(C, np.bool_)
+    for k in range(C):
+        a, b = children[k, 0], children[k, 1]
+        if a >= 0:
+            size[k] = size[a] + size[b]
+            has_parent[a] = True
+            has_parent[b] = True
+    span = np.zeros((C, 2), np.int64)
+    nxt = 0
+    for k in range(C - 1, -1, -1):
+        if not has_parent[k]:
+            span[k, 0] = nxt
+            nxt += size[k]
+        span[k, 1] = span[k, 0] + size[k]
+        a, b = children[k, 0], children[k, 1]
+        if a >= 0:
+            span[a, 0] = span[k, 0]
+            span[b, 0] = span[k, 0] + size[a]
+    return span
+
+
+def canonical(mask: np.ndarray, mo: dict, angle_rad: float, area_scale: float = 1.0,
+              out: np.ndarray | None = None) -> np.ndarray:
     """``mask`` moved to a ``CANON_PX`` square: its centroid at the centre, its axis at ``angle_rad``
-    turned onto x, its area scaled to ``CANON_AREA`` x ``area_scale`` of the square (float 0..1)."""
+    turned onto x, its area scaled to ``CANON_AREA`` x ``area_scale`` of the square (float 0..1; written
+    into ``out``, (G, G) float32, when given). ``mask`` may already be float32."""
     G = CANON_PX
     s = math.sqrt(CANON_AREA * area_scale * G * G / mo["m00"])
     cx, cy = mo["m10"] / mo["m00"], mo["m01"] / mo["m00"]
     c, sn = math.cos(-angle_rad), math.sin(-angle_rad)
     A = s * np.array([[c, -sn], [sn, c]])
     off = np.array([G / 2 - 0.5, G / 2 - 0.5]) - A @ np.array([cx, cy])
-    return cv2.warpAffine(mask.astype(np.float32), np.hstack([A, off[:, None]]), (G, G),
-                          flags=cv2.INTER_LINEAR)
+    src = mask if mask.dtype == np.float32 else mask.astype(np.float32)
+    return cv2.warpAffine(src, np.hstack([A, off[:, None]]), (G, G), dst=out, flags=cv2.INTER_LINEAR)
+
+
+def canonical_turns(mask_f: np.ndarray, mo: dict, angles_rad: list[float], out: np.ndarray) -> None:
+    """``canonical(mask_f, mo, a)`` for each of ``angles_rad`` into the rows of ``out`` (T, G^2) float32:
+    the same affine maps (the matrix products batched, which numpy computes as one at a time), one
+    ``warpAffine`` each."""
+    G = CANON_PX
+    s = math.sqrt(CANON_AREA * 1.0 * G * G / mo["m00"])
+    cx, cy = mo["m10"] / mo["m00"], mo["m01"] / mo["m00"]
+    cs = [(math.cos(-a), math.sin(-a)) for a in angles_rad]
+    A = s * np.array([[[c, -sn], [sn, c]] for c, sn in cs])  # (T, 2, 2)
+    off = np.array([G / 2 - 0.5, G / 2 - 0.5]) - A @ np.array([cx, cy])
+    M = np.concatenate([A, off[:, :, None]], axis=2)
+    for i in range(len(angles_rad)):
+        cv2.warpAffine(mask_f, M[i], (G, G), dst=out[i].reshape(G, G), flags=cv2.INTER_LINEAR)
 
 
 _CANON = Memo(8)
+_CANON_AREA = Memo(8)
 
 
 def canonical_templates(bank: TemplateBank, sil: Silhouettes) -> np.ndarray:
@@ -340,7 +630,7 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
     """Region proposals, best IoU first, mutually distinct (reference points, depths or rotations apart)."""
     sil = silhouettes(bank)
     canon = canonical_templates(bank, sil)
-    t_area = canon.sum(2)  # (S, N)
+    t_area = _CANON_AREA.get(bank, "area", lambda: canon.sum(2))  # (S, N)
     reg = reg if reg is not None else segment(image_bgr)
     sc = reg.scale
     a_lo, a_hi = projected_area_range(bank, sil, K, distance_range_mm)
@@ -355,9 +645,7 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
     # regions that stand out most from all their surroundings (merged latest) first
     el, co = moment_shape(reg.moments[cand])
     ok_t = sil.area_n > 0
-    d_shape = (np.abs(el[:, None] - sil.elong[None, ok_t])
-               + np.abs(co[:, None] - sil.compact[None, ok_t])).min(1)
-    cand = cand[d_shape < SHAPE_GATE]
+    cand = cand[_shape_gate(el, co, sil.elong[ok_t], sil.compact[ok_t], SHAPE_GATE)]
     cand = cand[np.argsort(-reg.died[cand], kind="stable")[:N_REGIONS]]
     fx, fy = float(K[0, 0]), float(K[1, 1])
     F = np.diag([fx, fy])
@@ -365,7 +653,8 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
     bad_t = ~ok_t
     # every region's canonical turns first, then one product per area scale for all of them
     info = []
-    rows: list[np.ndarray] = []
+    masks = []
+    n_rows = 0
     for c in cand:
         m = region_mask(reg, int(c))
         mo = cv2.moments(m, True)
@@ -377,51 +666,135 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
         turns = (0.0, 180.0) if el_r < ROUND_ELONG else tuple(range(0, 360, 30))
         x0, y0 = reg.bbox[c, :2]
         c_full = (np.array([mo["m10"], mo["m01"]]) / mo["m00"] + np.array([x0, y0]) + 0.5) / sc - 0.5
-        info.append((int(c), ang_r, turns, c_full, mo["m00"] / sc**2, len(rows)))
-        rows += [canonical(m, mo, ang_r + math.radians(tn)).ravel() for tn in turns]
-    if not rows:
+        info.append((int(c), ang_r, turns, c_full, mo["m00"] / sc**2, n_rows))
+        masks.append((m.astype(np.float32), mo))
+        n_rows += len(turns)
+    if not n_rows:
         return [], reg
-    Rc_all = np.stack(rows)  # (sum of turns, G^2)
+    # every turn written straight into the product's rows (the size the reference's stack had)
+    rows = np.empty((n_rows, CANON_PX * CANON_PX), np.float32)
+    for (_, ang_r, turns, _, _, r0), (m_f, mo) in zip(info, masks, strict=True):
+        canonical_turns(m_f, mo, [ang_r + math.radians(tn) for tn in turns], rows[r0:r0 + len(turns)])
+    Rc_all = rows  # (sum of turns, G^2)
     r_area_all = Rc_all.sum(1)
     inter_all = [Rc_all @ canon[k].T for k in range(len(SCALES))]  # (sum of turns, N) per scale
-    out: list[RegionProposal] = []
-    for c, ang_r, turns, c_full, A_r, r0 in info:
-        sl = slice(r0, r0 + len(turns))
-        r_area = r_area_all[sl]
+    # every region's best template fits per area scale at once, regions with as many turns together:
+    # the same IoU per (turn, template) and the same sort of each region's (turns x templates) block
+    N = bank.n_templates
+    A_r = np.array([x[4] for x in info])
+    den = np.maximum(sil.area_n, 1e-12) * fx * fy
+    kz_all = [np.sqrt(s_a * A_r[:, None] / den[None]) for s_a in SCALES]  # (regions, N) per scale
+    z_all = [z_ref / kz for kz in kz_all]
+    far = [(z < distance_range_mm[0]) | (z > distance_range_mm[1]) for z in z_all]
+    n_top = PER_REGION * 4
+    top: list[list] = [[None] * len(SCALES) for _ in info]
+    n_turns = np.array([len(x[2]) for x in info])
+    for T in np.unique(n_turns):
+        ids = np.flatnonzero(n_turns == T)
+        at = np.array([info[i][5] for i in ids])[:, None] + np.arange(T)  # (G, T) rows
+        r_area = r_area_all[at][..., None]
+        for k in range(len(SCALES)):
+            inter = inter_all[k][at]  # (G, T, N)
+            iou = inter / (r_area + t_area[k][None, None] - inter + 1e-9)
+            iou[:, :, bad_t] = 0
+            iou[np.broadcast_to(far[k][ids][:, None, :], iou.shape)] = 0
+            best = _best_fits(iou.reshape(len(ids), T * N), n_top)
+            for g, i in enumerate(ids.tolist()):
+                top[i][k] = best[g]
+    # Each region's fits, best first (positive ones: the reference takes them down to the first zero).
+    fits: list[list[tuple]] = []
+    for g, (_, _, turns, _, _, _) in enumerate(info):
         scored = []
-        for k, s_a in enumerate(SCALES):
-            inter = inter_all[k][sl]  # (T, N)
-            iou = inter / (r_area[:, None] + t_area[k][None] - inter + 1e-9)
-            iou[:, bad_t] = 0
-            kz = np.sqrt(s_a * A_r / (np.maximum(sil.area_n, 1e-12) * fx * fy))
-            z = z_ref / kz
-            iou[:, (z < distance_range_mm[0]) | (z > distance_range_mm[1])] = 0
-            top = np.unravel_index(np.argsort(-iou, axis=None)[:PER_REGION * 4], iou.shape)
-            for ti, t in zip(*top, strict=True):
-                scored.append((float(iou[ti, t]), int(t), float(turns[ti]), float(z[t]), float(kz[t])))
+        for k in range(len(SCALES)):
+            z, kz = z_all[k][g], kz_all[k][g]
+            for idx, v in zip(*top[g][k], strict=True):
+                if v <= 0:
+                    break
+                ti, t = divmod(idx, N)
+                scored.append((v, t, float(turns[ti]), float(z[t]), float(kz[t])))
         scored.sort(key=lambda x: -x[0])
-        n_kept = 0
-        for iou_v, t, tn, z, kz in scored:
-            if iou_v <= 0 or n_kept >= PER_REGION:
-                break
+        fits.append(scored)
+    # A region proposes its fits in that order, each distinct from its earlier ones, up to PER_REGION
+    # (its "survivors"); all regions' survivors are then taken best IoU first (ties: region order, then
+    # the region's order, as a stable sort of them all) while distinct from the kept ones, up to n_out.
+    # Survivors are made lazily, a region's next one when its last is taken: a merge of the regions'
+    # lists in that order, so only the few that reach the front are posed and compared.
+    nxt = [0] * len(info)  # each region's next fit to try
+    survivors: list[list[RegionProposal]] = [[] for _ in info]
+
+    def advance(g: int) -> RegionProposal | None:
+        c, ang_r, _, c_full, _, _ = info[g]
+        mine = survivors[g]
+        while nxt[g] < len(fits[g]) and len(mine) < PER_REGION:
+            iou_v, t, tn, z, kz = fits[g][nxt[g]]
+            nxt[g] += 1
             # the template's axis (canonical x) is the region's axis turned by tn: in-plane angle
             phi = math.degrees(ang_r - sil.axis_rad[t]) + tn
             cp, sp = math.cos(math.radians(phi)), math.sin(math.radians(phi))
             uv_ref = c_full - F @ np.array([[cp, -sp], [sp, cp]]) @ sil.centroid_n[t] * kz
             hyp = Hypothesis(t, float(phi % 360), z, uv_ref)
-            if any(_same(hyp, q.hyp, bank) for q in out if q.region == c):
+            if any(_same(hyp, q.hyp, bank) for q in mine):
                 continue
-            out.append(RegionProposal(hyp, iou_v, c))
-            n_kept += 1
-    out.sort(key=lambda r: -r.iou)
+            mine.append(RegionProposal(hyp, iou_v, c))
+            return mine[-1]
+        return None
+
+    front = [(-f[0][0], g, 0) for g, f in enumerate(fits) if f]  # a region's first fit always survives
+    heapq.heapify(front)
     kept: list[RegionProposal] = []
-    for r in out:
-        if any(_same(r.hyp, q.hyp, bank) for q in kept):
+    n_keep = max(n_out, 1)  # (the reference's loop stops after the first kept one that reaches n_out)
+    kept_uv = np.zeros((n_keep, 2))
+    while front and len(kept) < n_keep:
+        _, g, pos = heapq.heappop(front)
+        r = survivors[g][pos] if pos < len(survivors[g]) else advance(g)
+        following = advance(g)
+        if following is not None:
+            heapq.heappush(front, (-following.iou, g, pos + 1))
+        # ``_same`` needs the reference points within 8 px first: only those few are compared in full
+        d = r.hyp.uv - kept_uv[:len(kept)]
+        near = np.flatnonzero(np.hypot(d[:, 0], d[:, 1]) < 8.0)
+        if any(_same(r.hyp, kept[q].hyp, bank) for q in near):
             continue
+        kept_uv[len(kept)] = r.hyp.uv
         kept.append(r)
-        if len(kept) >= n_out:
-            break
     return kept, reg
+
+
+def _best_fits(iou: np.ndarray, n_top: int) -> list[tuple[list[int], list[float]]]:
+    """Per row of ``iou`` (regions, turns x templates): the positive entries among the first ``n_top`` of
+    ``np.argsort(-row)`` (indices, values), best first, as the reference takes them. A partition finds
+    the ``n_top`` + 1 largest; when no two positive ones among them are equal their order is the sort's
+    whatever its tie rule, else the row is sorted in full as the reference sorts it."""
+    n_rows, n_cols = iou.shape
+    if n_cols <= n_top + 1:
+        order = [np.argsort(-row)[:n_top] for row in iou]
+        return [(o.tolist(), row[o].tolist()) for o, row in zip(order, iou, strict=True)]
+    part = np.argpartition(-iou, n_top, axis=1)[:, :n_top + 1]
+    pv = np.take_along_axis(iou, part, 1)
+    o = np.argsort(-pv, axis=1, kind="stable")
+    part, pv = np.take_along_axis(part, o, 1), np.take_along_axis(pv, o, 1)
+    tied = ((pv[:, 1:] == pv[:, :-1]) & (pv[:, 1:] > 0)).any(1)
+    out = []
+    for g in range(n_rows):
+        if tied[g]:
+            best = np.argsort(-iou[g])[:n_top]
+            out.append((best.tolist(), iou[g, best].tolist()))
+        else:
+            out.append((part[g, :n_top].tolist(), pv[g, :n_top].tolist()))
+    return out
+
+
+@nb.njit(cache=True)
+def _shape_gate(el, co, el_t, co_t, gate):
+    """Whether some template's |elongation difference| + |compactness difference| is below ``gate``, per
+    region (the first such template ends the search)."""
+    ok = np.zeros(el.shape[0], np.bool_)
+    for i in range(el.shape[0]):
+        for t in range(el_t.shape[0]):
+            if abs(el[i] - el_t[t]) + abs(co[i] - co_t[t]) < gate:
+                ok[i] = True
+                break
+    return ok
 
 
 def _same(a: Hypothesis, b: Hypothesis, bank: TemplateBank) -> bool:
@@ -471,12 +844,38 @@ def refine_on_boundary(bank: TemplateBank, prop: RegionProposal, reg: Regions, K
                   step_phi_deg=2.0, step_uv_px=2.0, step_z=0.04)
 
 
+def refine_all(bank: TemplateBank, props: list[RegionProposal], reg: Regions, K: np.ndarray,
+               image_shape: tuple[int, int], p: SearchParams, *, distance_mm: float | None = None,
+               deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0) -> list[Hypothesis]:
+    """``refine_on_boundary`` of each proposal in order, each started only if the previous one's duration
+    and ``reserve_ms`` fit the ``deadline``. (Keeping a region's outline distance tensor for its other
+    proposals saved no CPU: the kept full-frame tensors cost fresh pages instead.)"""
+    out: list[Hypothesis] = []
+    deadline.new_loop()
+    for r in props:
+        if not deadline.allows_next(reserve_ms):
+            break
+        out.append(refine_on_boundary(bank, r, reg, K, image_shape, p, distance_mm=distance_mm))
+    return out
+
+
+# What segmenting a frame and matching its regions (``propose``) take in this process, ms: they start only
+# when a deadline leaves this much. Starts at clutter2's median after the numba merge (2 shared cores).
+_PROPOSE_MS = RunningMean(200.0)
+
+
 def region_proposals(bank: TemplateBank, image: np.ndarray, K: np.ndarray, image_shape: tuple[int, int],
                      p: SearchParams, *, distance_mm: float | None, distance_range_mm: tuple[float, float],
-                     n_out: int) -> list[Hypothesis]:
+                     n_out: int, deadline: Deadline = NO_DEADLINE,
+                     reserve_ms: float = 0.0) -> list[Hypothesis]:
     """The first ``n_out`` region proposals (``propose``), each refined on its region's outline
     (``refine_on_boundary``), in the proposals' order (silhouette IoU). With ``distance_mm`` the
-    regions' areas are judged within ``DISTANCE_SLACK`` of it."""
+    regions' areas are judged within ``DISTANCE_SLACK`` of it. Anytime: with a ``deadline`` nothing is
+    proposed unless segmenting and matching (their running mean's ``high``) and ``reserve_ms`` fit, and
+    each refinement starts only if the previous one's duration and ``reserve_ms`` do (fewer proposals,
+    best first, rather than a late answer)."""
+    if not deadline.allows(_PROPOSE_MS.high + reserve_ms):
+        return []
     if image.ndim == 2:
         image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
     image = image[..., :3]
@@ -484,5 +883,8 @@ def region_proposals(bank: TemplateBank, image: np.ndarray, K: np.ndarray, image
         image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
     rng = distance_range_mm if distance_mm is None else \
         (distance_mm / DISTANCE_SLACK, distance_mm * DISTANCE_SLACK)
+    t0 = time.perf_counter()
     props, reg = propose(bank, image, K, rng, n_out=n_out)
-    return [refine_on_boundary(bank, r, reg, K, image_shape, p, distance_mm=distance_mm) for r in props]
+    _PROPOSE_MS.add((time.perf_counter() - t0) * 1000.0)
+    return refine_all(bank, props, reg, K, image_shape, p, distance_mm=distance_mm, deadline=deadline,
+                      reserve_ms=reserve_ms)
