@@ -105,17 +105,14 @@ def _ms(t0: float) -> float:
     return (time.perf_counter() - t0) * 1000.0
 
 
-_Mean = RunningMean  # (moved to vision/deadline.py: the region proposals keep one too)
-
-
 # What checking a candidate (refine + evidence + verdict) takes in this process: a check starts only when
 # the deadline leaves its ``high`` estimate (a check of a paper render took 26 ms CPU at the median and
 # 41 at the 90th percentile: started on the mean, one in ten answered ~15 ms late), and the anytime
 # search keeps that much of its deadline for the first. Starts at a paper render's (1280 x 960) on 2 cores.
-_CHECK_MS = _Mean(35.0)
+_CHECK_MS = RunningMean(35.0)
 # What the edges (grey conversion, LSD, distance tensor) take per megapixel of frame in this process: a
 # deadline that leaves less than them and one check skips the search. Starts at a paper render's.
-_EDGES_MS_PER_MP = _Mean(12.0)
+_EDGES_MS_PER_MP = RunningMean(12.0)
 EVIDENCE_MS = 10.0  # judging a refined pose again (its evidence only) on a 1280 x 960 frame
 # The search keeps a little more than one check (its ``high`` estimate) for the first candidate's: its
 # own last unit of work (a polish) overruns by a part of the mean it was judged against.

@@ -14,7 +14,7 @@ import pytest
 import trimesh
 
 from service import pipeline
-from service.vision.deadline import Deadline
+from service.vision.deadline import Deadline, RunningMean
 from service.vision.estimate import coarse
 from service.vision.estimate.chamfer import distance_tensor, pooled_distance_tensor
 from service.vision.estimate.edges import detect_segments, to_grey_u8
@@ -87,13 +87,13 @@ def test_a_passed_deadline_answers_at_once_and_says_why(bank, image):
 
 def test_a_deadline_shorter_than_the_edges_and_a_check_skips_even_the_edges(bank, image, monkeypatch):
     # Edges are taken to cost 1 s a megapixel: a 100 ms deadline on a 0.3 MP frame cannot hold them.
-    monkeypatch.setattr(pipeline, "_EDGES_MS_PER_MP", pipeline._Mean(1000.0))
+    monkeypatch.setattr(pipeline, "_EDGES_MS_PER_MP", RunningMean(1000.0))
     out = pipeline.estimate(bank, image, INTR, distance_range_mm=(300.0, 700.0), deadline_ms=100.0)
     assert out.found is False and out.deadline_reached and out.verdict.reason == "deadline"
     assert out.timing_ms["edges"] == 0.0 and out.candidates == []
     # At a millisecond a megapixel (and a check) the same deadline leaves the edges their time.
-    monkeypatch.setattr(pipeline, "_EDGES_MS_PER_MP", pipeline._Mean(1.0))
-    monkeypatch.setattr(pipeline, "_CHECK_MS", pipeline._Mean(1.0))
+    monkeypatch.setattr(pipeline, "_EDGES_MS_PER_MP", RunningMean(1.0))
+    monkeypatch.setattr(pipeline, "_CHECK_MS", RunningMean(1.0))
     out = pipeline.estimate(bank, image, INTR, distance_range_mm=(300.0, 700.0), deadline_ms=100.0)
     assert out.timing_ms["edges"] > 0.0
 
@@ -188,7 +188,7 @@ def test_service_default_deadline_applies(tmp_path, sprayer_bytes, frame, monkey
 
 
 def test_running_mean_and_its_high_estimate_by_hand():
-    m = pipeline._Mean(40.0, alpha=0.5)  # spread starts at 10
+    m = RunningMean(40.0, alpha=0.5)  # spread starts at 10
     assert m.high == pytest.approx(40.0 + 2 * 10.0)
     m.add(60.0)  # deviation 20: spread 10 + 0.5 * (20 - 10) = 15; mean 50
     assert (m.value, m.spread) == pytest.approx((50.0, 15.0))
@@ -200,7 +200,7 @@ def test_running_mean_and_its_high_estimate_by_hand():
 def test_a_check_starts_only_when_the_deadline_leaves_its_high_estimate(bank, image, monkeypatch):
     # Checks took 10 ms on average but spread 20 ms: a deadline leaving 30 ms (more than the mean, less
     # than the high estimate 10 + 2 x 20) starts none.
-    check = pipeline._Mean(10.0)
+    check = RunningMean(10.0)
     check.spread = 20.0
     monkeypatch.setattr(pipeline, "_CHECK_MS", check)
     grey = to_grey_u8(image)
