@@ -50,6 +50,12 @@ SHAPE_GATE = 0.15  # a region farther than this from every template's (elongatio
 N_REGIONS = 300  # candidate regions matched per frame, by contrast to their surroundings
 DISTANCE_SLACK = 1.25  # a given distance: the part's reference point lies within this factor of it
 SCALES = (1.0, 1.25)  # template area / region area tried (a partly hidden part's region is smaller)
+# The look-alike gate: a region is evidence for the part only if the part's silhouette explains it
+# clearly better than the best of a family of generic shapes (``generic_shapes``) does: a plain
+# cylinder's or box's region is fitted by a revolved part's side view at IoU ~0.9 too, but a cylinder
+# fits it better. Regions whose best part IoU is under best generic IoU + LOOKALIKE_MARGIN propose nothing.
+LOOKALIKE_GATE = True
+LOOKALIKE_MARGIN = 0.0  # IoU; 0.0, 0.01, 0.02, 0.03 measured (session 13)
 
 
 @dataclass(frozen=True)
@@ -525,6 +531,8 @@ class RegionProposal:
     hyp: Hypothesis
     iou: float
     region: int  # candidate index in ``Regions``
+    # the look-alike gate's reading of the region: its best part IoU - its best generic IoU (nan: gate off)
+    lookalike_gap: float = float("nan")
 
 
 def projected_area_range(bank: TemplateBank, sil: Silhouettes, K: np.ndarray,
@@ -622,6 +630,82 @@ def canonical_templates(bank: TemplateBank, sil: Silhouettes) -> np.ndarray:
         return out
 
     return _CANON.get(bank, "canon", make)
+
+
+def _poly_mask(pts: np.ndarray, size: int = 256) -> np.ndarray:
+    """The convex hull of ``pts`` (M, 2) filled on a ``size`` square (scaled to fit with a margin)."""
+    pts = np.asarray(pts, float)
+    pts = pts - (pts.max(0) + pts.min(0)) / 2
+    pts = pts * (0.4 * size / max(np.abs(pts).max(), 1e-9)) + size / 2
+    m = np.zeros((size, size), np.uint8)
+    cv2.fillConvexPoly(m, cv2.convexHull(np.round(pts * 16).astype(np.int32)), 1, cv2.LINE_8, 4)
+    return m
+
+
+def generic_shapes() -> list[np.ndarray]:
+    """The look-alike gate's family of generic silhouettes, binary masks (each shape's scale, position
+    and in-plane angle do not matter: they are compared in the canonical frame). Everything a plain
+    everyday object shows from any side, all convex: ellipses (a ball, a disc, a can seen end-on
+    obliquely) and rectangles (a slab face-on) over aspect ratios 0.1 .. 1; cylinder views (two
+    elliptical caps of semi-axes r and r |cos theta| joined by their hull: the axis tilted theta from
+    the line of sight) over length / diameter 0.25 .. 6 and theta 0 .. 90 deg, the far cap 1, 0.85 or
+    0.7 times the near one (a cylinder near the camera, seen in perspective, tapers; so does a cup); box
+    views (the hull of a box's 8 corners, orthographic) over 6 proportions x 16 orientations (a fixed
+    pseudo-random set).
+    ~310 masks: a few per cent of a bank's templates, so the gate costs little."""
+    out = []
+    t = np.linspace(0, 2 * np.pi, 96, endpoint=False)
+    circle = np.stack([np.cos(t), np.sin(t)], 1)
+    for a in np.linspace(0.1, 1.0, 12):
+        out.append(_poly_mask(circle * [1.0, a]))  # ellipse
+        out.append(_poly_mask(np.array([[-1, -a], [1, -a], [1, a], [-1, a]], float)))  # rectangle
+    for ld in (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0):  # cylinder: length / diameter
+        for th in np.radians([0, 15, 30, 45, 60, 75, 90]):  # axis tilt from the line of sight
+            half = ld * math.sin(th)  # projected half-length in radii (length 2 ld r)
+            cap = circle * [abs(math.cos(th)), 1.0]  # along the axis (x): r |cos th|, across: r
+            for rho in (1.0, 0.85, 0.7):  # far cap / near cap: perspective (or a frustum: a cup)
+                out.append(_poly_mask(np.concatenate([cap + [half, 0], rho * cap - [half, 0]])))
+    rng = np.random.default_rng(13)
+    corners = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float)
+    for dims in ((1, 1, 1), (1, 1, 0.5), (1, 0.5, 0.25), (1, 1, 0.2), (1, 0.6, 0.6), (1, 0.3, 0.3)):
+        for _ in range(16):
+            q = rng.normal(size=4)
+            w, x, y, z = q / np.linalg.norm(q)
+            R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                          [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)]])
+            out.append(_poly_mask((corners * dims) @ R.T))
+    return out
+
+
+_GENERIC: dict = {}
+
+
+def canonical_generic() -> np.ndarray:
+    """(len(SCALES), M, CANON_PX^2) float32 the generic shapes in the canonical frame, per area scale (as
+    ``canonical_templates``), made once per process."""
+    key = (CANON_PX, CANON_AREA, SCALES)
+    if key not in _GENERIC:
+        shapes = generic_shapes()
+        out = np.zeros((len(SCALES), len(shapes), CANON_PX * CANON_PX), np.float32)
+        for n, m in enumerate(shapes):
+            mo = cv2.moments(m, True)
+            ang, _ = _axes(mo)
+            for k, s_a in enumerate(SCALES):
+                out[k, n] = canonical(m, mo, ang, s_a).ravel() > 0.5
+        _GENERIC[key] = out
+    return _GENERIC[key]
+
+
+def best_iou(rows: np.ndarray, canon: np.ndarray) -> float:
+    """The largest IoU of any of ``rows`` (T, G^2) float 0..1 (a region's canonical turns) with any of
+    ``canon`` (S, M, G^2) (canonical silhouettes per area scale): one matrix product per scale."""
+    r_area = rows.sum(1)[:, None]
+    best = 0.0
+    for k in range(canon.shape[0]):
+        inter = rows @ canon[k].T
+        iou = inter / (r_area + canon[k].sum(1)[None] - inter + 1e-9)
+        best = max(best, float(iou.max()))
+    return best
 
 
 def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
@@ -722,9 +806,19 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
     nxt = [0] * len(info)  # each region's next fit to try
     survivors: list[list[RegionProposal]] = [[] for _ in info]
 
+    generic = canonical_generic() if LOOKALIKE_GATE else None
+    gap = [float("nan")] * len(info)
+
     def advance(g: int) -> RegionProposal | None:
-        c, ang_r, _, c_full, _, _ = info[g]
+        c, ang_r, turns, c_full, _, r0 = info[g]
         mine = survivors[g]
+        if generic is not None and not mine and nxt[g] == 0 and fits[g]:
+            # the look-alike gate, once per region when its first fit reaches the front: the region's
+            # turns against the generic family (a region that never gets there costs nothing)
+            gap[g] = fits[g][0][0] - best_iou(Rc_all[r0:r0 + len(turns)], generic)
+            if gap[g] < LOOKALIKE_MARGIN:
+                nxt[g] = len(fits[g])
+                return None
         while nxt[g] < len(fits[g]) and len(mine) < PER_REGION:
             iou_v, t, tn, z, kz = fits[g][nxt[g]]
             nxt[g] += 1
@@ -735,7 +829,7 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
             hyp = Hypothesis(t, float(phi % 360), z, uv_ref)
             if any(_same(hyp, q.hyp, bank) for q in mine):
                 continue
-            mine.append(RegionProposal(hyp, iou_v, c))
+            mine.append(RegionProposal(hyp, iou_v, c, gap[g]))
             return mine[-1]
         return None
 
@@ -747,6 +841,8 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
     while front and len(kept) < n_keep:
         _, g, pos = heapq.heappop(front)
         r = survivors[g][pos] if pos < len(survivors[g]) else advance(g)
+        if r is None:  # a look-alike region: none of its fits
+            continue
         following = advance(g)
         if following is not None:
             heapq.heappush(front, (-following.iou, g, pos + 1))
@@ -886,5 +982,12 @@ def region_proposals(bank: TemplateBank, image: np.ndarray, K: np.ndarray, image
     t0 = time.perf_counter()
     props, reg = propose(bank, image, K, rng, n_out=n_out)
     _PROPOSE_MS.add((time.perf_counter() - t0) * 1000.0)
-    return refine_all(bank, props, reg, K, image_shape, p, distance_mm=distance_mm, deadline=deadline,
-                      reserve_ms=reserve_ms)
+    out = refine_all(bank, props, reg, K, image_shape, p, distance_mm=distance_mm, deadline=deadline,
+                     reserve_ms=reserve_ms)
+    LAST_GAPS[:] = [(h.cost, h.score, r.lookalike_gap) for h, r in zip(out, props, strict=False)]
+    return out
+
+
+# (cost, score, look-alike gap) of the last ``region_proposals`` call's refined hypotheses: the bench
+# (``bench/hypotheses.py``) labels its region rows with their gap, to read other margins off one run.
+LAST_GAPS: list[tuple[float, float, float]] = []
