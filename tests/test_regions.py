@@ -193,3 +193,25 @@ def test_the_gate_drops_every_region_at_an_impossible_margin(l_block_bank, monke
     monkeypatch.setattr(regions, "LOOKALIKE_GATE", False)
     props, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=5)
     assert props and all(np.isnan(p.lookalike_gap) for p in props)
+
+
+def test_the_gate_without_refill_only_removes_proposals(l_block_bank, monkeypatch):
+    """``LOOKALIKE_REFILL`` off: at a margin no region can miss (-inf) the proposals are the gate-off ones,
+    each with its gap; at a margin of 1 none is left."""
+    bank = l_block_bank
+    truth = Pose(Rz(-30.0) @ Rx(50.0) @ Ry(-20.0), np.array([-40.0, 20.0, 700.0]))
+    image = checker_scene(bank, truth)
+
+    def keys(props):
+        return [(p.region, p.hyp.view, round(p.hyp.phi_deg, 6), round(p.hyp.z_mm, 6)) for p in props]
+
+    monkeypatch.setattr(regions, "LOOKALIKE_GATE", False)
+    off, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=8)
+    monkeypatch.setattr(regions, "LOOKALIKE_GATE", True)
+    monkeypatch.setattr(regions, "LOOKALIKE_REFILL", False)
+    monkeypatch.setattr(regions, "LOOKALIKE_MARGIN", -np.inf)
+    on, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=8)
+    assert off and keys(on) == keys(off)
+    assert all(np.isfinite(p.lookalike_gap) for p in on)
+    monkeypatch.setattr(regions, "LOOKALIKE_MARGIN", 1.0)
+    assert regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=8)[0] == []

@@ -56,6 +56,9 @@ SCALES = (1.0, 1.25)  # template area / region area tried (a partly hidden part'
 # fits it better. Regions whose best part IoU is under best generic IoU + LOOKALIKE_MARGIN propose nothing.
 LOOKALIKE_GATE = True
 LOOKALIKE_MARGIN = 0.0  # IoU; 0.0, 0.01, 0.02, 0.03 measured (session 13)
+# Whether a dropped region's place among the ``n_out`` proposals goes to the next region (True) or the
+# gate only removes proposals from the ungated list (False: never a proposal the gate-off run lacks).
+LOOKALIKE_REFILL = True
 
 
 @dataclass(frozen=True)
@@ -816,7 +819,7 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
             # the look-alike gate, once per region when its first fit reaches the front: the region's
             # turns against the generic family (a region that never gets there costs nothing)
             gap[g] = fits[g][0][0] - best_iou(Rc_all[r0:r0 + len(turns)], generic)
-            if gap[g] < LOOKALIKE_MARGIN:
+            if LOOKALIKE_REFILL and gap[g] < LOOKALIKE_MARGIN:
                 nxt[g] = len(fits[g])
                 return None
         while nxt[g] < len(fits[g]) and len(mine) < PER_REGION:
@@ -853,6 +856,8 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
             continue
         kept_uv[len(kept)] = r.hyp.uv
         kept.append(r)
+    if generic is not None and not LOOKALIKE_REFILL:
+        kept = [r for r in kept if r.lookalike_gap >= LOOKALIKE_MARGIN]
     return kept, reg
 
 
