@@ -59,6 +59,7 @@ LOOKALIKE_MARGIN = 0.0  # IoU; 0.0, 0.01, 0.02, 0.03 measured (session 13)
 # Whether a dropped region's place among the ``n_out`` proposals goes to the next region (True) or the
 # gate only removes proposals from the ungated list (False: never a proposal the gate-off run lacks).
 LOOKALIKE_REFILL = True
+GATE_CHUNK = 16  # regions gated per matrix product (the next ones to reach the front)
 
 
 @dataclass(frozen=True)
@@ -686,6 +687,11 @@ _GENERIC: dict = {}
 def canonical_generic() -> np.ndarray:
     """(len(SCALES), M, CANON_PX^2) float32 the generic shapes in the canonical frame, per area scale (as
     ``canonical_templates``), made once per process."""
+    return _generic()[0]
+
+
+def _generic() -> tuple[np.ndarray, np.ndarray]:
+    """(``canonical_generic``, its masks' areas (len(SCALES), M))."""
     key = (CANON_PX, CANON_AREA, SCALES)
     if key not in _GENERIC:
         shapes = generic_shapes()
@@ -695,20 +701,23 @@ def canonical_generic() -> np.ndarray:
             ang, _ = _axes(mo)
             for k, s_a in enumerate(SCALES):
                 out[k, n] = canonical(m, mo, ang, s_a).ravel() > 0.5
-        _GENERIC[key] = out
+        _GENERIC[key] = (out, out.sum(2))
     return _GENERIC[key]
 
 
+def best_iou_rows(rows: np.ndarray, canon: np.ndarray, canon_area: np.ndarray | None = None) -> np.ndarray:
+    """(T,) each of ``rows``' (T, G^2) float 0..1 (canonical masks) largest IoU with any of ``canon``
+    (S, M, G^2) (canonical silhouettes per area scale; ``canon_area`` (S, M) their sums, when known): one
+    matrix product for all scales."""
+    S, M, G2 = canon.shape
+    area = canon.sum(2) if canon_area is None else canon_area
+    inter = rows @ canon.reshape(S * M, G2).T  # (T, S M)
+    return (inter / (rows.sum(1)[:, None] + area.reshape(1, S * M) - inter + 1e-9)).max(1)
+
+
 def best_iou(rows: np.ndarray, canon: np.ndarray) -> float:
-    """The largest IoU of any of ``rows`` (T, G^2) float 0..1 (a region's canonical turns) with any of
-    ``canon`` (S, M, G^2) (canonical silhouettes per area scale): one matrix product per scale."""
-    r_area = rows.sum(1)[:, None]
-    best = 0.0
-    for k in range(canon.shape[0]):
-        inter = rows @ canon[k].T
-        iou = inter / (r_area + canon[k].sum(1)[None] - inter + 1e-9)
-        best = max(best, float(iou.max()))
-    return best
+    """The largest IoU of any of ``rows`` (a region's canonical turns) with any of ``canon``."""
+    return float(best_iou_rows(rows, canon).max())
 
 
 def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
@@ -809,8 +818,22 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
     nxt = [0] * len(info)  # each region's next fit to try
     survivors: list[list[RegionProposal]] = [[] for _ in info]
 
-    generic = canonical_generic() if LOOKALIKE_GATE else None
+    generic, generic_area = _generic() if LOOKALIKE_GATE else (None, None)
     gap = [float("nan")] * len(info)
+    # regions in the order their first fits reach the front: the gate reads them in chunks of this order
+    # (one product per chunk reads the family's masks once for many regions: one region at a time is
+    # bound by that read)
+    gate_order = sorted((g for g, f in enumerate(fits) if f), key=lambda g: -fits[g][0][0])
+    gate_pos = {g: i for i, g in enumerate(gate_order)}
+
+    def gate(g: int) -> None:
+        chunk = [q for q in gate_order[gate_pos[g]:gate_pos[g] + GATE_CHUNK] if math.isnan(gap[q])]
+        spans = [(info[q][5], info[q][5] + len(info[q][2])) for q in chunk]
+        best = best_iou_rows(np.concatenate([Rc_all[a:b] for a, b in spans]), generic, generic_area)
+        at = 0
+        for q, (a, b) in zip(chunk, spans, strict=True):
+            gap[q] = fits[q][0][0] - float(best[at:at + b - a].max())
+            at += b - a
 
     def advance(g: int) -> RegionProposal | None:
         c, ang_r, turns, c_full, _, r0 = info[g]
@@ -818,7 +841,8 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
         if generic is not None and not mine and nxt[g] == 0 and fits[g]:
             # the look-alike gate, once per region when its first fit reaches the front: the region's
             # turns against the generic family (a region that never gets there costs nothing)
-            gap[g] = fits[g][0][0] - best_iou(Rc_all[r0:r0 + len(turns)], generic)
+            if math.isnan(gap[g]):
+                gate(g)
             if LOOKALIKE_REFILL and gap[g] < LOOKALIKE_MARGIN:
                 nxt[g] = len(fits[g])
                 return None
