@@ -181,10 +181,12 @@ def test_a_part_view_with_its_own_shape_is_not_a_look_alike(data_dir, part):
     assert own - generic > max(0.05, regions.LOOKALIKE_MARGIN)  # clearly: above any margin tried
 
 
-def test_the_gate_drops_every_region_at_an_impossible_margin(l_block_bank, monkeypatch):
+@pytest.mark.parametrize("refill", [False, True])
+def test_the_gate_drops_every_region_at_an_impossible_margin(l_block_bank, monkeypatch, refill):
     """IoU is at most 1: a margin of 1 leaves no region (a generic shape always overlaps a little);
     the gate off keeps them."""
     bank = l_block_bank
+    monkeypatch.setattr(regions, "LOOKALIKE_REFILL", refill)
     truth = Pose(Rz(25.0) @ Rx(-40.0) @ Ry(30.0), np.array([60.0, -30.0, 650.0]))
     image = checker_scene(bank, truth)
     monkeypatch.setattr(regions, "LOOKALIKE_MARGIN", 1.0)

@@ -58,7 +58,9 @@ LOOKALIKE_GATE = True
 LOOKALIKE_MARGIN = 0.0  # IoU; 0.0, 0.01, 0.02, 0.03 measured (session 13)
 # Whether a dropped region's place among the ``n_out`` proposals goes to the next region (True) or the
 # gate only removes proposals from the ungated list (False: never a proposal the gate-off run lacks).
-LOOKALIKE_REFILL = True
+# Refill proposed more truths on lmo_dev (68 -> 77 queries) but also a wrong L-bracket that the
+# occlusion verdict accepted on clutter2 (wrong found 0 -> 1); removing only adds no wrong found.
+LOOKALIKE_REFILL = False
 GATE_CHUNK = 16  # regions gated per matrix product (the next ones to reach the front)
 
 
