@@ -91,10 +91,15 @@ def proposals(set_dir: Path, *, limit: int | None, distance_given: bool, params=
                                        deferred=deferred if regions else None,
                                        colour=undistort_image(image, intr) if regions else None)
             sources = ["first"] * len(cands)
+            gaps: dict = {}
             for later in deferred:
                 more = later()
                 name = "regions" if later.__name__ == "from_regions" else "second"
                 cands, sources = cands + more, sources + [name] * len(more)
+                if name == "regions":  # each region candidate's look-alike gap, by its (cost, score)
+                    from service.vision.estimate.regions import LAST_GAPS
+
+                    gaps = {(c_, s_): gp for c_, s_, gp in LAST_GAPS}
         finally:
             pipeline.REGION_PROPOSALS = 0
         wall = 1000 * (time.perf_counter() - t0)
@@ -104,7 +109,9 @@ def proposals(set_dir: Path, *, limit: int | None, distance_given: bool, params=
             e = {} if g.get("absent") else stage_errors(c.pose, g, info, np.asarray(g["K"], float),
                                                         int(g["width"]))
             hyps.append({"R": c.pose.R, "t": c.pose.t_mm, "cost": c.cost, "score": c.score,
-                         "mspd640": e.get("mspd640_px", float("inf")), "source": source})
+                         "mspd640": e.get("mspd640_px", float("inf")), "source": source,
+                         "lookalike_gap": gaps.get((c.cost, c.score), float("nan")) if source == "regions"
+                         else float("nan")})
         recs.append({"i": i, "g": g, "hyps": hyps, "wall_ms": wall, "timing": timing})
         best = min((h["mspd640"] for h in hyps), default=float("inf"))
         print(f"{i:4d} {g['image']} {g['model']:9s} n={len(hyps):2d} best_mspd={best:7.1f} "
@@ -168,7 +175,8 @@ def features(set_dir: Path, recs: list[dict], *, max_refine: int = 12) -> list[d
                          "source": "truth" if r.get("truth") else h.get("source", "first"),
                          "image": g["image"], "model": g["model"],
                          "vis": float(g.get("visible_fraction", 0.0)), "mspd0": h["mspd640"], "mspd1": m1,
-                         "ev": c.verdict.evidence, "R1": c.refined.pose.R, "t1": c.refined.pose.t_mm})
+                         "ev": c.verdict.evidence, "R1": c.refined.pose.R, "t1": c.refined.pose.t_mm,
+                         "lookalike_gap": h.get("lookalike_gap", float("nan"))})
         print(f"{r['i']:4d} {g['image']} {g['model']}", file=sys.stderr)
     return rows
 

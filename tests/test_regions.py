@@ -119,3 +119,101 @@ def test_region_proposals_honour_a_deadline(l_block_bank):
     assert two.hit
     assert [(h.view, h.phi_deg, h.z_mm, tuple(h.uv)) for h in hs] == \
         [(h.view, h.phi_deg, h.z_mm, tuple(h.uv)) for h in full[:2]]
+
+
+# --- the look-alike gate ---------------------------------------------------------------------------
+
+
+def _mask_of(mesh, R: np.ndarray, z_mm: float) -> np.ndarray:
+    """The mesh's silhouette (W x H, uint8 0/1), its bounding box's centre at depth z_mm on the axis."""
+    V = np.asarray(mesh.vertices, float)
+    c = (V.max(0) + V.min(0)) / 2
+    _, face, (u0, v0) = rasterise_roi(V, np.asarray(mesh.faces), Pose(R, np.array([0.0, 0.0, z_mm]) - R @ c),
+                                      K, (W, H))
+    m = np.zeros((H, W), np.uint8)
+    m[v0:v0 + face.shape[0], u0:u0 + face.shape[1]] = face >= 0
+    return m
+
+
+def _turns(m: np.ndarray) -> np.ndarray:
+    """The mask's canonical rows at the turns ``propose`` tries for it."""
+    import math
+
+    import cv2
+
+    mo = cv2.moments(m, True)
+    ang, el = regions._axes(mo)
+    turns = (0, 180) if el < regions.ROUND_ELONG else range(0, 360, 30)
+    return np.stack([regions.canonical(m, mo, ang + math.radians(t)).ravel() for t in turns])
+
+
+def _own(m: np.ndarray) -> np.ndarray:
+    """A silhouette as a one-template canonical bank (per area scale), as ``canonical_templates``."""
+    import cv2
+
+    mo = cv2.moments(m, True)
+    ang, _ = regions._axes(mo)
+    return np.stack([regions.canonical(m, mo, ang, s).ravel()[None] > 0.5 for s in regions.SCALES])
+
+
+@pytest.mark.parametrize("tilt_deg, z_mm", [(0, 600), (30, 600), (60, 600), (90, 600), (30, 300)])
+def test_a_rendered_cylinder_is_explained_by_the_generic_family(tilt_deg, z_mm):
+    import trimesh
+
+    cyl = trimesh.creation.cylinder(radius=40, height=150, sections=64)
+    m = _mask_of(cyl, Rx(tilt_deg), z_mm)
+    assert regions.best_iou(_turns(m), regions.canonical_generic()) > 0.9
+
+
+@pytest.mark.parametrize("part", ["sprayer", "lbracket"])
+def test_a_part_view_with_its_own_shape_is_not_a_look_alike(data_dir, part):
+    """The sprayer from the side (its neck and cap narrower than the body) and the L-bracket face-on are
+    no generic shape; the part's own silhouette (a nearby view) explains them clearly better."""
+    import trimesh
+
+    mesh = trimesh.load(data_dir / "models" / f"{part}.stl", force="mesh")
+    R = Rz(20.0) if part == "sprayer" else Ry(10.0)  # the sprayer's axis is y: across the line of sight
+    region = _turns(_mask_of(mesh, R, 600.0))
+    generic = regions.best_iou(region, regions.canonical_generic())
+    own = regions.best_iou(region, _own(_mask_of(mesh, R, 750.0)))  # the same view from farther
+    assert generic < 0.9
+    assert own > 0.95
+    assert own - generic > max(0.05, regions.LOOKALIKE_MARGIN)  # clearly: above any margin tried
+
+
+@pytest.mark.parametrize("refill", [False, True])
+def test_the_gate_drops_every_region_at_an_impossible_margin(l_block_bank, monkeypatch, refill):
+    """IoU is at most 1: a margin of 1 leaves no region (a generic shape always overlaps a little);
+    the gate off keeps them."""
+    bank = l_block_bank
+    monkeypatch.setattr(regions, "LOOKALIKE_REFILL", refill)
+    truth = Pose(Rz(25.0) @ Rx(-40.0) @ Ry(30.0), np.array([60.0, -30.0, 650.0]))
+    image = checker_scene(bank, truth)
+    monkeypatch.setattr(regions, "LOOKALIKE_MARGIN", 1.0)
+    props, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=5)
+    assert props == []
+    monkeypatch.setattr(regions, "LOOKALIKE_GATE", False)
+    props, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=5)
+    assert props and all(np.isnan(p.lookalike_gap) for p in props)
+
+
+def test_the_gate_without_refill_only_removes_proposals(l_block_bank, monkeypatch):
+    """``LOOKALIKE_REFILL`` off: at a margin no region can miss (-inf) the proposals are the gate-off ones,
+    each with its gap; at a margin of 1 none is left."""
+    bank = l_block_bank
+    truth = Pose(Rz(-30.0) @ Rx(50.0) @ Ry(-20.0), np.array([-40.0, 20.0, 700.0]))
+    image = checker_scene(bank, truth)
+
+    def keys(props):
+        return [(p.region, p.hyp.view, round(p.hyp.phi_deg, 6), round(p.hyp.z_mm, 6)) for p in props]
+
+    monkeypatch.setattr(regions, "LOOKALIKE_GATE", False)
+    off, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=8)
+    monkeypatch.setattr(regions, "LOOKALIKE_GATE", True)
+    monkeypatch.setattr(regions, "LOOKALIKE_REFILL", False)
+    monkeypatch.setattr(regions, "LOOKALIKE_MARGIN", -np.inf)
+    on, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=8)
+    assert off and keys(on) == keys(off)
+    assert all(np.isfinite(p.lookalike_gap) for p in on)
+    monkeypatch.setattr(regions, "LOOKALIKE_MARGIN", 1.0)
+    assert regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=8)[0] == []
