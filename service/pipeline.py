@@ -147,6 +147,10 @@ CONTRAST = ContrastParams(weight=0.5)
 # proposals far more often than the chamfer engine (lmo_dev 7 of 39 against 0; synthetic right found 2 -> 4),
 # but the verdict accepts the sprayer fitted to a distractor's region (wrong found 0 -> 1 on clutter2,
 # 0 -> 4 on absent2, at scores 0.98-0.99 like the new right answers): README, "Region proposals".
+# Session 13: with regions.py's look-alike gate (a region better fitted by a generic cylinder / box /
+# ellipse view proposes nothing) absent2's wrongs are 5 -> 0, but the verdict still takes no region truth
+# the first passes miss (lmo_dev: 63 proposed, 1 found at 0.98 either way), so they stay off: +~250 ms CPU
+# on every frame where nothing is found, for no answer.
 REGION_PROPOSALS = 0
 ROI_MIN_PEAKS = 4  # level-A peaks scale with the ROI's share of the image, down to this many
 INSTANCE_IOU = 0.4  # two found instances whose silhouettes overlap more than this are one instance
