@@ -73,7 +73,18 @@ def proposals(set_dir: Path, *, limit: int | None, distance_given: bool, params=
     their ``source`` ("second", "regions"): the pipeline checks them only when the first pass fails."""
     from service import pipeline
     from service.pipeline import propose
+    from service.vision.estimate import regions as regions_mod
     from service.vision.geometry.camera import undistort_image
+
+    # Each region candidate's look-alike gap, by its refined (cost, score): read where the region
+    # proposals are refined, so the vision core keeps no record of its last call for the bench.
+    gaps: dict = {}
+    refine_all = regions_mod.refine_all
+
+    def refine_all_noting_gaps(bank_, props, *args, **kw):
+        out = refine_all(bank_, props, *args, **kw)
+        gaps.update({(h.cost, h.score): r.lookalike_gap for h, r in zip(out, props, strict=False)})
+        return out
 
     meta = read_meta(set_dir)
     minfo: dict = {}
@@ -86,22 +97,20 @@ def proposals(set_dir: Path, *, limit: int | None, distance_given: bool, params=
         t0 = time.perf_counter()
         deferred: list = []
         pipeline.REGION_PROPOSALS = regions
+        regions_mod.refine_all = refine_all_noting_gaps
+        gaps.clear()
         try:
             cands, _, timing = propose(bank, image, intr, distance_mm=dist, params=params,
                                        deferred=deferred if regions else None,
                                        colour=undistort_image(image, intr) if regions else None)
             sources = ["first"] * len(cands)
-            gaps: dict = {}
             for later in deferred:
                 more = later()
                 name = "regions" if later.__name__ == "from_regions" else "second"
                 cands, sources = cands + more, sources + [name] * len(more)
-                if name == "regions":  # each region candidate's look-alike gap, by its (cost, score)
-                    from service.vision.estimate.regions import LAST_GAPS
-
-                    gaps = {(c_, s_): gp for c_, s_, gp in LAST_GAPS}
         finally:
             pipeline.REGION_PROPOSALS = 0
+            regions_mod.refine_all = refine_all
         wall = 1000 * (time.perf_counter() - t0)
         info = load_model_info(set_dir, g["model"], meta, minfo)
         hyps = []

@@ -1013,12 +1013,5 @@ def region_proposals(bank: TemplateBank, image: np.ndarray, K: np.ndarray, image
     t0 = time.perf_counter()
     props, reg = propose(bank, image, K, rng, n_out=n_out)
     _PROPOSE_MS.add((time.perf_counter() - t0) * 1000.0)
-    out = refine_all(bank, props, reg, K, image_shape, p, distance_mm=distance_mm, deadline=deadline,
-                     reserve_ms=reserve_ms)
-    LAST_GAPS[:] = [(h.cost, h.score, r.lookalike_gap) for h, r in zip(out, props, strict=False)]
-    return out
-
-
-# (cost, score, look-alike gap) of the last ``region_proposals`` call's refined hypotheses: the bench
-# (``bench/hypotheses.py``) labels its region rows with their gap, to read other margins off one run.
-LAST_GAPS: list[tuple[float, float, float]] = []
+    return refine_all(bank, props, reg, K, image_shape, p, distance_mm=distance_mm, deadline=deadline,
+                      reserve_ms=reserve_ms)
