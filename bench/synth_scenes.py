@@ -105,7 +105,8 @@ def _mesh(V, F) -> Mesh:
     return Mesh(V, np.ascontiguousarray(F, np.int32), (lo + hi) / 2, float(np.linalg.norm(hi - lo)))
 
 
-def load_model(name: str, models_dir: Path = MODELS_DIR) -> Mesh:
+def load_model(name: str, models_dir: Path | None = None) -> Mesh:
+    models_dir = MODELS_DIR if models_dir is None else models_dir
     key = f"{models_dir}/{name}"
     if key not in _MESHES:
         import trimesh
@@ -796,6 +797,9 @@ def main(argv=None) -> None:
     ap.add_argument("--absent-frac", type=float, default=0.25)
     ap.add_argument("--min-visible", type=float, default=0.5)
     ap.add_argument("--models", default=",".join(DEFAULT_MODELS))
+    ap.add_argument("--models-dir", type=Path, default=None,
+                    help="where the models' STL files are (default: the shared data's models/; e.g. "
+                         "../shared/data/lmo_dev/models for Linemod-Occluded's objects)")
     ap.add_argument("--look", choices=("flat", "real"), default="flat",
                     help="flat: Lambert per face (the older sets); real: smooth normals, highlights, "
                          "shadow maps, gamma (bench/synth_light.py)")
@@ -803,6 +807,9 @@ def main(argv=None) -> None:
                     help="clutter: an occluder in front of most targets, visible fractions spread like the "
                          "Blender clutter sets' (0.5-1.0, median ~0.75); none: the scenes as before")
     args = ap.parse_args(argv)
+    if args.models_dir is not None:
+        global MODELS_DIR
+        MODELS_DIR = args.models_dir
     w, h = (int(x) for x in args.size.lower().split("x"))
     models = [m.strip() for m in args.models.split(",") if m.strip()]
     r = generate(args.out_dir, args.n, args.seed, (w, h), models, args.absent_frac, args.min_visible,

@@ -132,6 +132,7 @@ def test_window_offsets_equal_the_template_loop(n_threads):
 def _evidence_serial(bank, pose, intr, frame, others=None):
     """``evidence.evidence`` with every piece run in turn on the calling thread."""
     from service.vision.estimate import evidence as ev
+    from service.vision.estimate.shapes import genericity
 
     H, W = frame.shape
     fid, invz, (u0, v0) = ev.face_ids_roi(bank, pose, intr, (W, H), margin_px=ev.BAND_MAX_PX + 2)
@@ -155,7 +156,8 @@ def _evidence_serial(bank, pose, intr, frame, others=None):
     s = ev._shading(win, inside)
     fit = ev._robust_shading(win, inside) if ev.VISIBLE_PART else None
     return ev.Evidence(e[0], e[1], r[0], r[1], r[2], e[2], s[0], s[1], float(in_image.mean()),
-                       visible=fit.visible if fit else None, shading_r2_robust=fit.r2 if fit else None)
+                       genericity(mask), visible=fit.visible if fit else None,
+                       shading_r2_robust=fit.r2 if fit else None)
 
 
 @pytest.mark.parametrize("visible_part", [False, True])

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, SEARCH_PARAMS
-from service.vision.estimate import regions
+from service.vision.estimate import regions, shapes
 from service.vision.estimate.coarse import Hypothesis, poses_of
 from service.vision.geometry.camera import project
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz
@@ -142,9 +142,9 @@ def _turns(m: np.ndarray) -> np.ndarray:
     import cv2
 
     mo = cv2.moments(m, True)
-    ang, el = regions._axes(mo)
-    turns = (0, 180) if el < regions.ROUND_ELONG else range(0, 360, 30)
-    return np.stack([regions.canonical(m, mo, ang + math.radians(t)).ravel() for t in turns])
+    ang, el = shapes.principal_axis(mo)
+    turns = (0, 180) if el < shapes.ROUND_ELONG else range(0, 360, 30)
+    return np.stack([shapes.canonical(m, mo, ang + math.radians(t)).ravel() for t in turns])
 
 
 def _own(m: np.ndarray) -> np.ndarray:
@@ -152,8 +152,8 @@ def _own(m: np.ndarray) -> np.ndarray:
     import cv2
 
     mo = cv2.moments(m, True)
-    ang, _ = regions._axes(mo)
-    return np.stack([regions.canonical(m, mo, ang, s).ravel()[None] > 0.5 for s in regions.SCALES])
+    ang, _ = shapes.principal_axis(mo)
+    return np.stack([shapes.canonical(m, mo, ang, s).ravel()[None] > 0.5 for s in shapes.SCALES])
 
 
 @pytest.mark.parametrize("tilt_deg, z_mm", [(0, 600), (30, 600), (60, 600), (90, 600), (30, 300)])
@@ -162,7 +162,7 @@ def test_a_rendered_cylinder_is_explained_by_the_generic_family(tilt_deg, z_mm):
 
     cyl = trimesh.creation.cylinder(radius=40, height=150, sections=64)
     m = _mask_of(cyl, Rx(tilt_deg), z_mm)
-    assert regions.best_iou(_turns(m), regions.canonical_generic()) > 0.9
+    assert shapes.best_iou(_turns(m), shapes.canonical_generic()) > 0.9
 
 
 @pytest.mark.parametrize("part", ["sprayer", "lbracket"])
@@ -174,8 +174,8 @@ def test_a_part_view_with_its_own_shape_is_not_a_look_alike(data_dir, part):
     mesh = trimesh.load(data_dir / "models" / f"{part}.stl", force="mesh")
     R = Rz(20.0) if part == "sprayer" else Ry(10.0)  # the sprayer's axis is y: across the line of sight
     region = _turns(_mask_of(mesh, R, 600.0))
-    generic = regions.best_iou(region, regions.canonical_generic())
-    own = regions.best_iou(region, _own(_mask_of(mesh, R, 750.0)))  # the same view from farther
+    generic = shapes.best_iou(region, shapes.canonical_generic())
+    own = shapes.best_iou(region, _own(_mask_of(mesh, R, 750.0)))  # the same view from farther
     assert generic < 0.9
     assert own > 0.95
     assert own - generic > max(0.05, regions.LOOKALIKE_MARGIN)  # clearly: above any margin tried

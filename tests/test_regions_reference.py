@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from service.pipeline import DEFAULT_DISTANCE_RANGE_MM
-from service.vision.estimate import regions
+from service.vision.estimate import regions, shapes
 from service.vision.reference import regions as ref
 
 FIELDS = ("labels", "children", "area", "bbox", "born", "died", "moments")
@@ -125,7 +125,7 @@ def test_canonical_turns_are_canonical_at_each_turn():
         m = (rng.random((int(rng.integers(5, 50)), int(rng.integers(5, 50)))) > 0.3).astype(np.uint8)
         mo = cv2.moments(m, True)
         angles = list(rng.uniform(0.0, 7.0, 12))
-        out = np.empty((12, regions.CANON_PX ** 2), np.float32)
-        regions.canonical_turns(m.astype(np.float32), mo, angles, out)
+        out = np.empty((12, shapes.CANON_PX ** 2), np.float32)
+        shapes.canonical_turns(m.astype(np.float32), mo, angles, out)
         for a, row in zip(angles, out, strict=True):
-            np.testing.assert_array_equal(row, regions.canonical(m, mo, a).ravel())
+            np.testing.assert_array_equal(row, shapes.canonical(m, mo, a).ravel())

@@ -39,6 +39,7 @@ import numpy as np
 
 from service.vision import threads
 from service.vision.bank import TemplateBank
+from service.vision.estimate.shapes import genericity
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
 from service.vision.geometry.render import face_normals_cam, rasterise_roi
@@ -67,6 +68,9 @@ class Evidence:
     shading_r2: float  # share of the inside's grey variance explained by a quadratic in the normals
     shading_std: float  # grey-level standard deviation inside (small: the fit above says little)
     in_image: float  # fraction of the silhouette's pixels inside the image
+    # how closely a plain shape (ellipse, rectangle, cylinder or box view) fits the pose's silhouette
+    # (``shapes.genericity``): near 1, any everyday object of that outline explains the rest as well
+    generic: float = 1.0
     # The visible part's evidence (module docstring): what an occluder does not spoil.
     # None where the fit did not run (``VISIBLE_PART``): the dict then leaves them out.
     visible: float | None = None  # inlier share of the inside under the robust colour shading fit
@@ -76,7 +80,7 @@ class Evidence:
         return {"colour_edge": self.colour_edge, "polarity": self.polarity, "region": self.region,
                 "region_low": self.region_low, "region_global": self.region_global,
                 "coherence": self.coherence, "shading_r2": self.shading_r2, "shading_std": self.shading_std,
-                "in_image": self.in_image} | (
+                "in_image": self.in_image, "generic": self.generic} | (
             {} if self.visible is None else {"visible": self.visible,
                                               "shading_r2_robust": self.shading_r2_robust})
 
@@ -428,6 +432,8 @@ def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFram
     if VISIBLE_PART:
         fit = _robust_shading(win, inside)
         visible, robust_r2 = (fit.visible, fit.r2) if fit else (0.0, 0.0)
+    generic = genericity(mask)
     region, region_low, region_global = region_fut.result()
     return Evidence(colour_edge, polarity, region, region_low, region_global, coherence, shading_r2,
-                    shading_std, float(in_image.mean()), visible=visible, shading_r2_robust=robust_r2)
+                    shading_std, float(in_image.mean()), generic, visible=visible,
+                    shading_r2_robust=robust_r2)

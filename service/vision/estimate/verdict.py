@@ -23,6 +23,8 @@ import numpy as np
 # and ``shading_std``, in grey levels).
 FEATURES = ("edge_support", "unexplained", "colour_edge", "polarity", "region", "region_low", "region_global",
             "coherence", "shading_r2", "shading_std",
+            # how closely a plain shape fits the pose's silhouette (``shapes.genericity``)
+            "generic",
             # the visible part's (``evidence``: what an occluder in front of the part does not spoil)
             "visible", "shading_r2_robust")
 # Of these, reported only where ``evidence.VISIBLE_PART`` runs the robust fit (the benchmarks; off in the
@@ -30,8 +32,8 @@ FEATURES = ("edge_support", "unexplained", "colour_edge", "polarity", "region", 
 VISIBLE_FEATURES = ("visible", "shading_r2_robust")
 # Evidence the verification score may use, and which of it counts against a pose.
 MODEL_FEATURES = ("edge_support", "unexplained", "colour_edge", "region_low", "region_global", "coherence",
-                  "shading_r2", "visible", "shading_r2_robust")
-LOWER_IS_BETTER = ("unexplained",)
+                  "shading_r2", "visible", "shading_r2_robust", "generic")
+LOWER_IS_BETTER = ("unexplained", "generic")
 # The score's weights (logistic regression, each weight's sign fixed so that better evidence never lowers
 # the score), fitted by ``bench/fit_verdict.py`` on the tuning sets (120 synthetic scenes of
 # bench/synth_scenes.py, seed 11, and clutter2 / absent2); evidence it dropped has weight 0.

@@ -17,6 +17,7 @@ import numpy as np
 
 from service.vision.bank import TemplateBank
 from service.vision.estimate import regions as rg
+from service.vision.estimate import shapes
 from service.vision.estimate.coarse import Hypothesis
 
 
@@ -148,23 +149,23 @@ def propose_py(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
         mo = cv2.moments(m, True)
         if mo["m00"] < 12:
             continue
-        ang_r, el_r = rg._axes(mo)
-        turns = (0.0, 180.0) if el_r < rg.ROUND_ELONG else tuple(range(0, 360, 30))
+        ang_r, el_r = shapes.principal_axis(mo)
+        turns = (0.0, 180.0) if el_r < shapes.ROUND_ELONG else tuple(range(0, 360, 30))
         x0, y0 = reg.bbox[c, :2]
         c_full = (np.array([mo["m10"], mo["m01"]]) / mo["m00"] + np.array([x0, y0]) + 0.5) / sc - 0.5
         info.append((int(c), ang_r, turns, c_full, mo["m00"] / sc**2, len(rows)))
-        rows += [rg.canonical(m, mo, ang_r + math.radians(tn)).ravel() for tn in turns]
+        rows += [shapes.canonical(m, mo, ang_r + math.radians(tn)).ravel() for tn in turns]
     if not rows:
         return [], reg
     Rc_all = np.stack(rows)
     r_area_all = Rc_all.sum(1)
-    inter_all = [Rc_all @ canon[k].T for k in range(len(rg.SCALES))]
+    inter_all = [Rc_all @ canon[k].T for k in range(len(shapes.SCALES))]
     out: list[rg.RegionProposal] = []
     for c, ang_r, turns, c_full, A_r, r0 in info:
         sl = slice(r0, r0 + len(turns))
         r_area = r_area_all[sl]
         scored = []
-        for k, s_a in enumerate(rg.SCALES):
+        for k, s_a in enumerate(shapes.SCALES):
             inter = inter_all[k][sl]
             iou = inter / (r_area[:, None] + t_area[k][None] - inter + 1e-9)
             iou[:, bad_t] = 0
