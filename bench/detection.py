@@ -110,7 +110,13 @@ def main(argv=None) -> int:
     ap.add_argument("--every-image", type=int, default=1, help="every n-th image of each set (a first look)")
     ap.add_argument("--weights", type=Path, default=None,
                     help="JSON verdict weights (bench/fit_verdict.py --save) instead of the service's")
+    ap.add_argument("--regions", type=int, default=None,
+                    help="region proposals per frame (pipeline.REGION_PROPOSALS) instead of the service's")
     a = ap.parse_args(argv)
+    if a.regions is not None:
+        from service import pipeline
+
+        pipeline.REGION_PROPOSALS = a.regions
     if a.weights:  # the verdict reads its module's weights at every call
         from service.vision.estimate import verdict
 

@@ -26,6 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from service.pipeline import DEFAULT_DISTANCE_RANGE_MM as DISTANCE_RANGE_MM  # noqa: E402
 from service.vision.estimate.verdict import (  # noqa: E402
     FEATURES,
     LOWER_IS_BETTER,
@@ -39,11 +40,17 @@ OUT = ROOT / "bench" / "out" / "hyps"
 RIGHT_PX = 20.0
 
 
-def load(name: str) -> list[dict]:
+def load(name: str, tag: str = "*") -> list[dict]:
     rows = []
-    for p in sorted(OUT.glob(f"{name}-*features.pkl")):
+    for p in sorted(OUT.glob(f"{name}-{tag}-*features.pkl" if tag != "*" else f"{name}-*features.pkl")):
         rows += [r | {"set": name} for r in pickle.loads(p.read_bytes())]
     return rows
+
+
+def printed_part_images(set_dir: Path) -> set[str]:
+    """The images of a ``bench/synth_scenes.py`` set with a picture of a part printed on its floor."""
+    lines = [json.loads(x) for x in (set_dir / "gt.jsonl").read_text().splitlines() if x.strip()]
+    return {g["image"] for g in lines if (g.get("floor") or {}).get("printed_part")}
 
 
 def design(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
@@ -96,6 +103,8 @@ def judge(rows: list[dict], w: np.ndarray, thr: float) -> dict:
     for r in rows:
         if r["rank"] < 0:  # a truth hypothesis: fitted on, never proposed by the search
             continue
+        if not DISTANCE_RANGE_MM[0] <= float(r["t1"][2]) <= DISTANCE_RANGE_MM[1]:
+            continue  # never returned: the search's range when the distance is not given
         by_q.setdefault((r["set"], r["q"]), []).append(r)
     n = found = right = wrong = evaluated = recall5 = recall20 = 0
     for rs in by_q.values():
@@ -126,9 +135,17 @@ def main(argv=None) -> int:
     ap.add_argument("--min-score", type=float, default=None, help="operating point to report at")
     ap.add_argument("--weights", default=None,
                     help="'service' or a JSON file: judge with these weights instead of fitting")
+    ap.add_argument("--tag", default="*", help="the caches' tag (bench/hypotheses.py --tag)")
+    ap.add_argument("--exclude-printed", default="",
+                    help="comma-separated synthetic set folders: leave their images with a picture of a part "
+                         "printed on the floor out of the fit (a photograph of the part at its size is the "
+                         "part to any monocular evidence: README, Detection)")
     ap.add_argument("--save", type=Path, default=None, help="write the fitted weights to this JSON file")
     a = ap.parse_args(argv)
-    fit_rows = [r for s in a.fit.split(",") for r in load(s)]
+    fit_rows = [r for s in a.fit.split(",") for r in load(s, a.tag)]
+    for d in [Path(x) for x in a.exclude_printed.split(",") if x]:
+        printed = printed_part_images(d)
+        fit_rows = [r for r in fit_rows if not (r["set"] == d.name and r["image"] in printed)]
     X, y = design(fit_rows)
     w = np.zeros(len(FEATURES) + 1)
     if a.weights:
@@ -160,7 +177,7 @@ def main(argv=None) -> int:
     print("| set | queries | found | right | wrong | recall<5px | recall<20px | precision |")
     print("|---|---|---|---|---|---|---|---|")
     for s in [x for x in a.report.split(",") if x]:
-        j = judge(load(s), w, thr)
+        j = judge(load(s, a.tag), w, thr)
         print(f"| {s} | {j['queries']} | {j['found']} | {j['right']} | {j['wrong']} | {j['recall5']:.0%} | "
               f"{j['recall20']:.0%} | {j['precision']:.1%} |")
     return 0

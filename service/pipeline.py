@@ -150,7 +150,8 @@ CONTRAST = ContrastParams(weight=0.5)
 # Session 13: with regions.py's look-alike gate (a region better fitted by a generic cylinder / box /
 # ellipse view proposes nothing) absent2's wrongs are 5 -> 0, but the verdict still takes no region truth
 # the first passes miss (lmo_dev: 63 proposed, 1 found at 0.98 either way), so they stay off: +~250 ms CPU
-# on every frame where nothing is found, for no answer.
+# on every frame where nothing is found, for no answer. Session 14: a verdict that weighs the outline's
+# genericity takes one more on clutter with them on, but wrong instances elsewhere (verdict.py).
 REGION_PROPOSALS = 0
 ROI_MIN_PEAKS = 4  # level-A peaks scale with the ROI's share of the image, down to this many
 INSTANCE_IOU = 0.4  # two found instances whose silhouettes overlap more than this are one instance

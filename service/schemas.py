@@ -238,11 +238,13 @@ class VerdictJSON(BaseModel):
                          "candidate when nothing is found")
     reason: str = Field(description="found | no_candidate | outside_distance_range | outside_image | "
                         "off_plane | low_support | interior_edges | region_mismatch | shading_mismatch | "
-                        "low_score | deadline (the search stopped at options.deadline_ms before finding one)")
+                        "generic_outline | low_score | deadline (the search stopped at options.deadline_ms "
+                        "before finding one)")
     evidence: dict[str, float] = Field(description="the evidence the score was computed from: edge_support, "
-                                       "unexplained, colour_edge, polarity, region, region_low, in_image "
-                                       "(fractions; see docs/API.md); with options.plane also plane_gap_mm, "
-                                       "the height of the part's lowest point above the plane, mm")
+                                       "unexplained, colour_edge, polarity, region, region_low, in_image, "
+                                       "generic (fractions; see docs/API.md); with options.plane also "
+                                       "plane_gap_mm, the height of the part's lowest point above the "
+                                       "plane, mm")
 
 
 class InstanceJSON(BaseModel):

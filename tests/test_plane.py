@@ -69,7 +69,7 @@ def test_every_placement_of_the_search_rests_on_the_plane_with_its_centre_at_the
 def test_the_verdict_rejects_a_pose_off_the_plane():
     ev = {"edge_support": 1.0, "unexplained": 0.0, "colour_edge": 1.0, "polarity": 1.0, "region": 1.0,
           "region_low": 1.0, "region_global": 1.0, "coherence": 1.0, "shading_r2": 1.0, "shading_std": 10.0,
-          "visible": 1.0, "shading_r2_robust": 1.0}
+          "visible": 1.0, "shading_r2_robust": 1.0, "generic": 0.8}
     assert decide(ev).found
     assert decide(ev, plane_gap_mm=4.0, plane_tolerance_mm=5.0).found
     for gap in (50.0, -10.0):  # floating, or through the surface

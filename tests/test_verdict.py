@@ -88,7 +88,7 @@ def test_empty_image_has_no_candidate(part_bank):
 
 TRUE_LIKE = {"edge_support": 0.98, "unexplained": 0.0, "colour_edge": 1.0, "polarity": 1.0, "region": 0.95,
              "region_low": 0.9, "region_global": 0.95, "coherence": 0.95, "shading_r2": 0.95,
-             "shading_std": 20.0, "in_image": 1.0, "visible": 1.0, "shading_r2_robust": 0.95}
+             "shading_std": 20.0, "in_image": 1.0, "visible": 1.0, "shading_r2_robust": 0.95, "generic": 0.85}
 
 
 def test_true_like_evidence_is_found():
@@ -105,6 +105,9 @@ def test_true_like_evidence_is_found():
       "coherence": 0.0}, "region_mismatch"),
     ({"shading_r2": 0.0, "shading_r2_robust": 0.0, "region_global": 0.6}, "shading_mismatch"),
     ({"in_image": 0.2}, "outside_image"),
+    # fair region and shading evidence along an outline an ellipse or a cylinder view has as well
+    ({"region_global": 0.8, "shading_r2": 0.82, "shading_r2_robust": 0.82, "generic": 0.99},
+     "generic_outline"),
 ])
 def test_each_rejection_names_its_evidence(change, reason):
     v = verdict.decide(TRUE_LIKE | change, z_mm=500.0, distance_range_mm=(300.0, 1200.0))
@@ -114,6 +117,13 @@ def test_each_rejection_names_its_evidence(change, reason):
 def test_distance_outside_range_is_rejected_whatever_the_evidence():
     v = verdict.decide(TRUE_LIKE, z_mm=1300.0, distance_range_mm=(300.0, 1200.0))
     assert not v.found and v.reason == "outside_distance_range" and v.evidence["z_mm"] == 1300.0
+
+
+def test_a_pose_with_no_pixel_in_the_image_is_judged_not_found():
+    from service.vision.estimate.evidence import NO_EVIDENCE
+
+    v = verdict.decide(NO_EVIDENCE.as_dict() | {"edge_support": 0.0, "unexplained": 0.0})
+    assert not v.found and v.score < 0.5
 
 
 def test_no_hypothesis_is_no_candidate():
