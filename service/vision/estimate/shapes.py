@@ -163,5 +163,10 @@ def genericity(mask: np.ndarray) -> float:
     rows = np.empty((len(turns), CANON_PX * CANON_PX), np.float32)
     canonical_turns(m8.astype(np.float32), mo, [ang + math.radians(t) for t in turns], rows)
     generic, area = generic_family()
-    return float(best_iou_rows(rows, generic, area).max())
+    S, M, G2 = generic.shape
+    # A few rows against the family: numpy's own loop (einsum), not BLAS, whose threads cost 10-100x the
+    # product itself on a loaded 2-core machine (measured: 0.3-0.6 ms against 3.5-66 ms CPU).
+    inter = np.einsum("tj,kj->tk", rows, generic.reshape(S * M, G2))
+    iou = inter / (rows.sum(1)[:, None] + area.reshape(1, S * M) - inter + 1e-9)
+    return float(iou.max())
 
