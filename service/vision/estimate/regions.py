@@ -58,7 +58,7 @@ SHAPE_GATE = 0.15  # a region farther than this from every template's (elongatio
 N_REGIONS = 300  # candidate regions matched per frame, by contrast to their surroundings
 DISTANCE_SLACK = 1.25  # a given distance: the part's reference point lies within this factor of it
 # The look-alike gate: a region is evidence for the part only if the part's silhouette explains it
-# clearly better than the best of a family of generic shapes (``generic_shapes``) does: a plain
+# clearly better than the best of a family of generic shapes (``shapes.generic_shapes``) does: a plain
 # cylinder's or box's region is fitted by a revolved part's side view at IoU ~0.9 too, but a cylinder
 # fits it better. Regions whose best part IoU is under best generic IoU + LOOKALIKE_MARGIN propose nothing.
 LOOKALIKE_GATE = True

@@ -23,6 +23,7 @@ MIN_SILHOUETTE_PX = 12  # a silhouette smaller than this says nothing about its 
 
 
 def principal_axis(mo: dict) -> tuple[float, float]:
+    """(angle of the major axis in rad, elongation sqrt(minor / major) in 0..1) from cv2 moments."""
     a, b, c = mo["mu20"], mo["mu11"], mo["mu02"]
     ang = 0.5 * math.atan2(2 * b, a - c)
     d = math.sqrt(max((a - c) ** 2 + 4 * b * b, 0.0))
