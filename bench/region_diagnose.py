@@ -32,16 +32,14 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.accuracy import gt_bank, load_model_info, stage_errors  # noqa: E402
-from bench.hypotheses import read_colour  # noqa: E402
+from bench.accuracy import gt_bank, load_model_info  # noqa: E402
+from bench.region_proposals import RIGHT_PX, mspds, read_bgr  # noqa: E402
 from bench.stages import target_queries  # noqa: E402
 from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, SEARCH_PARAMS  # noqa: E402
 from service.vision.estimate import regions  # noqa: E402
-from service.vision.estimate.coarse import poses_of  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
 from service.vision.geometry.render import rasterise_roi  # noqa: E402
 
-RIGHT_PX = 20.0
 N_KEEP = 12
 
 
@@ -66,42 +64,18 @@ def node_scores(reg: regions.Regions, S_w: np.ndarray, v: float) -> tuple[np.nda
 
 
 def gate_of(bank, reg, K, c: int) -> str:
-    """Which of ``propose``'s gates drops node ``c`` ('' if none), as ``propose`` applies them."""
-    sil = regions.silhouettes(bank)
-    sc = reg.scale
-    a_lo, a_hi = regions.projected_area_range(bank, sil, K, DEFAULT_DISTANCE_RANGE_MM)
-    af = reg.area[c] / sc**2
-    if not (regions.AREA_SLACK[0] * a_lo <= af <= regions.AREA_SLACK[1] * a_hi):
-        return f"area({af / a_lo:.2f}xlo)"
-    h, w = reg.labels.shape
-    bw, bh = reg.bbox[c, 2] - reg.bbox[c, 0], reg.bbox[c, 3] - reg.bbox[c, 1]
-    if not (bw < 0.9 * w and bh < 0.9 * h and reg.area[c] >= 12):
+    """Which of ``propose``'s gates drops node ``c`` ('' if none): ``regions.candidate_stages``."""
+    st = regions.candidate_stages(regions.silhouettes(bank), reg, K, bank, DEFAULT_DISTANCE_RANGE_MM)
+    if c not in st.sized:
+        return "area"
+    if c not in st.framed:
         return "border"
-    ok_t = sil.area_n > 0
-    el, co = regions.moment_shape(reg.moments[[c]])
-    d = np.abs(el[0] - sil.elong[ok_t]) + np.abs(co[0] - sil.compact[ok_t])
-    if d.min() >= regions.SHAPE_GATE:
-        return f"shape({d.min():.2f})"
-    # contrast rank among the candidates passing the earlier gates
-    areas = reg.area / sc**2
-    cand = np.flatnonzero((areas >= regions.AREA_SLACK[0] * a_lo) & (areas <= regions.AREA_SLACK[1] * a_hi))
-    bw_a, bh_a = reg.bbox[:, 2] - reg.bbox[:, 0], reg.bbox[:, 3] - reg.bbox[:, 1]
-    cand = cand[(bw_a[cand] < 0.9 * w) & (bh_a[cand] < 0.9 * h) & (reg.area[cand] >= 12)]
-    el, co = regions.moment_shape(reg.moments[cand])
-    cand = cand[regions._shape_gate(el, co, sil.elong[ok_t], sil.compact[ok_t], regions.SHAPE_GATE)]
-    order = cand[np.argsort(-reg.died[cand], kind="stable")]
-    rank = int(np.flatnonzero(order == c)[0])
-    if rank >= regions.N_REGIONS:
+    if c not in st.shaped:
+        return "shape"
+    if c not in st.ranked:
+        rank = int(np.flatnonzero(st.shaped[np.argsort(-reg.died[st.shaped], kind="stable")] == c)[0])
         return f"n_regions(rank {rank})"
     return ""
-
-
-def mspds(bank, hyps, K, g, info) -> list[float]:
-    if not hyps:
-        return []
-    Rs, ts = poses_of(bank, hyps, K, None)
-    return [stage_errors(Pose(R, t), g, info, K, int(g["width"]))["mspd640_px"]
-            for R, t in zip(Rs, ts, strict=True)]
 
 
 def run(a) -> None:
@@ -113,10 +87,7 @@ def run(a) -> None:
     for g in gts:
         bank = gt_bank(set_dir, g["model"])
         info = load_model_info(set_dir, g["model"], meta, minfo)
-        image = read_colour(set_dir / g["image"])
-        if image.ndim == 2:
-            image = np.repeat(image[..., None], 3, axis=2)
-        image = image[..., :3]
+        image = read_bgr(set_dir / g["image"])
         K = np.asarray(g["K"], float)
         v = float(g.get("visible_fraction", 1.0))
         reg = regions.segment(image)

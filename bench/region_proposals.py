@@ -41,6 +41,14 @@ def mspds(bank, hyps, K, g, info) -> list[float]:
             for R, t in zip(Rs, ts, strict=True)]
 
 
+def read_bgr(path: Path) -> np.ndarray:
+    """(H, W, 3) BGR: a grey image repeated, an alpha channel dropped (what ``regions.segment`` reads)."""
+    image = read_colour(path)
+    if image.ndim == 2:
+        image = np.repeat(image[..., None], 3, axis=2)
+    return image[..., :3]
+
+
 def first_right(ms: list[float]) -> int:
     return next((i for i, m in enumerate(ms) if m < RIGHT_PX), -1)
 
@@ -56,10 +64,7 @@ def run(a) -> None:
         bank = gt_bank(set_dir, g["model"])
         regions.silhouettes(bank)  # once per bank, not per frame
         info = load_model_info(set_dir, g["model"], meta, minfo)
-        image = read_colour(set_dir / g["image"])
-        if image.ndim == 2:
-            image = np.repeat(image[..., None], 3, axis=2)
-        image = image[..., :3]
+        image = read_bgr(set_dir / g["image"])
         K = np.asarray(g["K"], float)
         t0 = time.thread_time()
         props, reg = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=max(KS))

@@ -607,6 +607,34 @@ def canonical_templates(bank: TemplateBank, sil: Silhouettes) -> np.ndarray:
     return _CANON.get(bank, "canon", make)
 
 
+@dataclass(frozen=True)
+class CandidateStages:
+    """The regions ``propose`` matches, gate by gate (node indices, each a subset of the one before)."""
+    sized: np.ndarray  # area within the part's projected area over the distance range (AREA_SLACK)
+    framed: np.ndarray  # ... not spanning most of the image (floor), and not a speck
+    shaped: np.ndarray  # ... elongation and compactness within SHAPE_GATE of some template's
+    ranked: np.ndarray  # ... the N_REGIONS that stand out most from their surroundings, in that order
+
+
+def candidate_stages(sil: Silhouettes, reg: Regions, K: np.ndarray, bank: TemplateBank,
+                     distance_range_mm: tuple[float, float]) -> CandidateStages:
+    a_lo, a_hi = projected_area_range(bank, sil, K, distance_range_mm)
+    area_full = reg.area / reg.scale**2
+    sized = np.flatnonzero((area_full >= AREA_SLACK[0] * a_lo) & (area_full <= AREA_SLACK[1] * a_hi))
+    h, w = reg.labels.shape
+    # a region touching most of the image border is floor
+    bw = reg.bbox[:, 2] - reg.bbox[:, 0]
+    bh = reg.bbox[:, 3] - reg.bbox[:, 1]
+    framed = sized[(bw[sized] < 0.9 * w) & (bh[sized] < 0.9 * h) & (reg.area[sized] >= 12)]
+    # shaped like some template (elongation and compactness from the additive moments), then the
+    # regions that stand out most from all their surroundings (merged latest) first
+    el, co = moment_shape(reg.moments[framed])
+    ok_t = sil.area_n > 0
+    shaped = framed[_shape_gate(el, co, sil.elong[ok_t], sil.compact[ok_t], SHAPE_GATE)]
+    ranked = shaped[np.argsort(-reg.died[shaped], kind="stable")[:N_REGIONS]]
+    return CandidateStages(sized, framed, shaped, ranked)
+
+
 def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
             distance_range_mm: tuple[float, float], *, n_out: int = 30,
             reg: Regions | None = None) -> tuple[list[RegionProposal], Regions]:
@@ -616,20 +644,8 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
     t_area = _CANON_AREA.get(bank, "area", lambda: canon.sum(2))  # (S, N)
     reg = reg if reg is not None else segment(image_bgr)
     sc = reg.scale
-    a_lo, a_hi = projected_area_range(bank, sil, K, distance_range_mm)
-    area_full = reg.area / sc**2
-    cand = np.flatnonzero((area_full >= AREA_SLACK[0] * a_lo) & (area_full <= AREA_SLACK[1] * a_hi))
-    h, w = reg.labels.shape
-    # a region touching most of the image border is floor
-    bw = reg.bbox[:, 2] - reg.bbox[:, 0]
-    bh = reg.bbox[:, 3] - reg.bbox[:, 1]
-    cand = cand[(bw[cand] < 0.9 * w) & (bh[cand] < 0.9 * h) & (reg.area[cand] >= 12)]
-    # shaped like some template (elongation and compactness from the additive moments), then the
-    # regions that stand out most from all their surroundings (merged latest) first
-    el, co = moment_shape(reg.moments[cand])
+    cand = candidate_stages(sil, reg, K, bank, distance_range_mm).ranked
     ok_t = sil.area_n > 0
-    cand = cand[_shape_gate(el, co, sil.elong[ok_t], sil.compact[ok_t], SHAPE_GATE)]
-    cand = cand[np.argsort(-reg.died[cand], kind="stable")[:N_REGIONS]]
     fx, fy = float(K[0, 0]), float(K[1, 1])
     F = np.diag([fx, fy])
     z_ref = bank.reference_distance_mm

@@ -130,13 +130,15 @@ def generic_family() -> tuple[np.ndarray, np.ndarray]:
     return _GENERIC[key]
 
 
-def best_iou_rows(rows: np.ndarray, canon: np.ndarray, canon_area: np.ndarray | None = None) -> np.ndarray:
+def best_iou_rows(rows: np.ndarray, canon: np.ndarray, canon_area: np.ndarray | None = None, *,
+                  blas: bool = True) -> np.ndarray:
     """(T,) each of ``rows``' (T, G^2) float 0..1 (canonical masks) largest IoU with any of ``canon``
     (S, M, G^2) (canonical silhouettes per area scale; ``canon_area`` (S, M) their sums, when known): one
-    matrix product for all scales."""
+    matrix product for all scales (``blas`` False: numpy's own loop, for a few rows)."""
     S, M, G2 = canon.shape
     area = canon.sum(2) if canon_area is None else canon_area
-    inter = rows @ canon.reshape(S * M, G2).T  # (T, S M)
+    flat = canon.reshape(S * M, G2)
+    inter = rows @ flat.T if blas else np.einsum("tj,kj->tk", rows, flat)  # (T, S M)
     return (inter / (rows.sum(1)[:, None] + area.reshape(1, S * M) - inter + 1e-9)).max(1)
 
 
@@ -164,10 +166,7 @@ def genericity(mask: np.ndarray) -> float:
     rows = np.empty((len(turns), CANON_PX * CANON_PX), np.float32)
     canonical_turns(m8.astype(np.float32), mo, [ang + math.radians(t) for t in turns], rows)
     generic, area = generic_family()
-    S, M, G2 = generic.shape
-    # A few rows against the family: numpy's own loop (einsum), not BLAS, whose threads cost 10-100x the
-    # product itself on a loaded 2-core machine (measured: 0.3-0.6 ms against 3.5-66 ms CPU).
-    inter = np.einsum("tj,kj->tk", rows, generic.reshape(S * M, G2))
-    iou = inter / (rows.sum(1)[:, None] + area.reshape(1, S * M) - inter + 1e-9)
-    return float(iou.max())
+    # A few rows against the family: numpy's own loop, not BLAS, whose threads cost 10-100x the product
+    # itself on a loaded 2-core machine (measured: 0.3-0.6 ms against 3.5-66 ms CPU).
+    return float(best_iou_rows(rows, generic, area, blas=False).max())
 

@@ -82,18 +82,21 @@ class Verdict:
     evidence: dict[str, float] = field(default_factory=dict)
 
 
+def _read(ev: dict, k: str) -> float:
+    """``ev[k]``; the visible part's evidence reads 0 where the robust fit had nothing to fit."""
+    return float(ev[k] if k in ev or k not in VISIBLE_FEATURES else 0.0)
+
+
 def feature_vector(ev: dict) -> np.ndarray:
     """The evidence in ``FEATURES`` order, (len(FEATURES),) float64. The visible part's evidence reads 0
     where the robust fit had nothing to fit (a pose with no pixel or outline in the image)."""
-    return np.array([float(ev[k] if k in ev or k not in VISIBLE_FEATURES else 0.0) for k in FEATURES], float)
+    return np.array([_read(ev, k) for k in FEATURES], float)
 
 
 def verification_score(ev: dict, weights: dict | None = None) -> float:
     """The logistic verification score of an evidence dict, in [0, 1]."""
     w = WEIGHTS if weights is None else weights
-    # the visible part's evidence reads 0 where the robust fit had nothing to fit (``feature_vector``)
-    z = w["bias"] + sum(wk * float(ev[k] if k in ev or k not in VISIBLE_FEATURES else 0.0)
-                        for k, wk in w.items() if k != "bias")
+    z = w["bias"] + sum(wk * _read(ev, k) for k, wk in w.items() if k != "bias")
     return float(1.0 / (1.0 + np.exp(-z)))
 
 
