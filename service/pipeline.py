@@ -17,6 +17,7 @@ import trimesh
 
 from service.vision import memory, threads
 from service.vision.bank import TemplateBank
+from service.vision.build.mirror import MirrorPlanes, mirror_planes, twin_poses
 from service.vision.deadline import NO_DEADLINE, Deadline, RunningMean
 from service.vision.estimate.chamfer import distance_tensor
 from service.vision.estimate.coarse import Hypothesis, SearchParams, coarse_search, poses_of
@@ -280,6 +281,21 @@ def _distinct_in_roi(cands: list[PoseCandidate], bank: TemplateBank, intr: Intri
 
 
 _REST = Memo(8)
+TWIN_CHECK = True
+
+
+def mirror_planes_of(bank: TemplateBank) -> MirrorPlanes:
+    """The part's mirror planes (``build/mirror.py``): the bank's, or, for a bank built before banks had
+    them (format version < 3), made from its mesh once per bank."""
+    if bank.mirror_normals_obj is not None:
+        return MirrorPlanes(np.asarray(bank.mirror_normals_obj, float).reshape(-1, 3),
+                            np.asarray(bank.mirror_point_obj, float))
+
+    def make() -> MirrorPlanes:
+        mesh = trimesh.Trimesh(np.asarray(bank.vertices_mm, float), np.asarray(bank.faces), process=False)
+        return mirror_planes(mesh, axis_obj=bank.symmetry_axis_obj)
+
+    return _REST.get(bank, "mirror", make)
 
 
 def resting_rotations(bank: TemplateBank) -> np.ndarray:
@@ -407,12 +423,24 @@ def check_candidate(bank: TemplateBank, cand: PoseCandidate, grey: np.ndarray, f
                     others_depth_mm: np.ndarray | None = None) -> Checked:
     """One candidate refined, its evidence measured at the refined pose, and the verdict on it (with a
     plane, also whether the refined pose rests on it; ``others_depth_mm``: see ``judge``)."""
-    t0 = time.perf_counter()
-    kept, unexplained = _refine(bank, cand, grey, intr, distance_mm=distance_mm, n_channels=n_channels)
-    c = judge(bank, Checked(cand, kept, decide(None)), frame, intr, edge_support=kept.score,
-              unexplained=unexplained, distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
+    kw = dict(distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
               plane_tolerance_mm=plane_tolerance_mm, others_depth_mm=others_depth_mm)
-    _CHECK_MS.add(_ms(t0))
+
+    def check(c0: PoseCandidate) -> Checked:
+        t0 = time.perf_counter()
+        kept, unexplained = _refine(bank, c0, grey, intr, distance_mm=distance_mm, n_channels=n_channels)
+        c = judge(bank, Checked(cand, kept, decide(None)), frame, intr, edge_support=kept.score,
+                  unexplained=unexplained, **kw)
+        _CHECK_MS.add(_ms(t0))
+        return c
+
+    c = check(cand)
+    if TWIN_CHECK and c.verdict.found:
+        # The outline cannot tell a found pose from its mirror twin: the better-verified one is kept.
+        for twin in twin_poses(c.refined.pose, mirror_planes_of(bank)):
+            t = check(PoseCandidate(twin, cand.cost, cand.score))
+            if t.verdict.found and t.verdict.score > c.verdict.score:
+                c = t
     return c
 
 

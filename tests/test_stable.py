@@ -63,7 +63,7 @@ def test_the_bank_carries_its_stable_poses_and_a_version_1_bank_loads_without_th
                            grid={"view_step_deg": 45.0, "render_px": 64})
     assert bank.R_rest_obj.shape == (3, 3, 3) and bank.rest_probability.shape == (3,)
     arrays = bank.to_arrays()
-    assert int(arrays["format_version"]) == BANK_FORMAT_VERSION == 2
+    assert int(arrays["format_version"]) == BANK_FORMAT_VERSION == 3
     back = TemplateBank.from_arrays(arrays)
     np.testing.assert_array_equal(back.R_rest_obj, bank.R_rest_obj)
     old = {k: v for k, v in arrays.items() if k not in ("R_rest_obj", "rest_probability")}

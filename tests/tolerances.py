@@ -80,3 +80,8 @@ CELL_SPIN_GRID_DEG = 0.05  # spacing of the brute-force spin grid the closed-for
 STABLE_ATOL = 1e-9  # resting rotations and face probabilities of a box (closed form)
 PLANE_REST_TOL_MM = 1e-6  # a posed part built to rest on the plane touches it (pure geometry)
 PLANE_FOUND_T_MM = 5.0  # instances found with a plane against the rendered copies, translation
+
+# --- mirror twins ---
+MIRROR_NORMAL_DEG = 1.0  # a detected mirror plane's normal against the true one
+TWIN_OUTLINE_IOU = 0.97  # a mirror-symmetric part's twin silhouette against the pose's, seen from 20 m
+TWIN_RIGHT_PX = 2.0  # the twin check's answer against the rendered truth (MSPD, px)

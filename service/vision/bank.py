@@ -23,7 +23,9 @@ from service.vision.memo import Memo
 
 # 2: the stable resting poses (R_rest_obj, rest_probability); a version-1 bank loads with them
 # None (the estimate then computes them from the mesh, once per bank).
-BANK_FORMAT_VERSION = 2
+# 3: the mirror planes (mirror_normals_obj, mirror_point_obj); an older bank loads with them None (the
+# estimate computes them from the mesh, once per bank).
+BANK_FORMAT_VERSION = 3
 
 
 @dataclass(frozen=True)
@@ -49,6 +51,9 @@ class TemplateBank:
     # --- resting on a plane (build/stable.py): one pose per family, most probable first ---
     R_rest_obj: np.ndarray | None = None  # (S, 3, 3) float64: object -> resting frame (+z up)
     rest_probability: np.ndarray | None = None  # (S,) float64; None (both): a version-1 bank
+    # --- mirror planes (build/mirror.py): each gives every pose an outline twin ---
+    mirror_normals_obj: np.ndarray | None = None  # (M, 3) unit; M = 0: none; None (both): before version 3
+    mirror_point_obj: np.ndarray | None = None  # (3,) mm: a point of every plane
 
     @property
     def n_templates(self) -> int:
@@ -61,7 +66,7 @@ class TemplateBank:
         """Flat dict of arrays (for ``np.savez``); ``from_arrays`` inverts it exactly."""
         d = asdict(self)
         special = ("grid", "symmetry_axis_obj", "symmetry_point_obj", "reference_distance_mm", "diameter_mm",
-                   "R_rest_obj", "rest_probability")
+                   "R_rest_obj", "rest_probability", "mirror_normals_obj", "mirror_point_obj")
         out = {k: np.asarray(v) for k, v in d.items() if k not in special}
         out["reference_distance_mm"] = np.float64(self.reference_distance_mm)
         out["diameter_mm"] = np.float64(self.diameter_mm)
@@ -71,6 +76,9 @@ class TemplateBank:
         if self.R_rest_obj is not None:
             out["R_rest_obj"] = np.asarray(self.R_rest_obj, float).reshape(-1, 3, 3)
             out["rest_probability"] = np.asarray(self.rest_probability, float)
+        if self.mirror_normals_obj is not None:
+            out["mirror_normals_obj"] = np.asarray(self.mirror_normals_obj, float).reshape(-1, 3)
+            out["mirror_point_obj"] = np.asarray(self.mirror_point_obj, float)
         import json
 
         out["grid_json"] = np.frombuffer(json.dumps(self.grid, sort_keys=True).encode(), np.uint8)
@@ -99,6 +107,9 @@ class TemplateBank:
             grid=json.loads(bytes(np.asarray(a["grid_json"], np.uint8)).decode()),
             R_rest_obj=np.asarray(a["R_rest_obj"], float) if "R_rest_obj" in a else None,
             rest_probability=np.asarray(a["rest_probability"], float) if "R_rest_obj" in a else None,
+            mirror_normals_obj=(np.asarray(a["mirror_normals_obj"], float).reshape(-1, 3)
+                                if "mirror_normals_obj" in a else None),
+            mirror_point_obj=np.asarray(a["mirror_point_obj"], float) if "mirror_normals_obj" in a else None,
         )
         mesh_topology(bank.vertices_mm, bank.faces)
         return bank

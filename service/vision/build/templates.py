@@ -135,9 +135,11 @@ def build_bank(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | No
             done += 1
             if progress is not None:
                 progress(done / len(R_all))
+    from service.vision.build.mirror import mirror_planes
     from service.vision.build.stable import stable_poses
 
     stable = stable_poses(mesh, axis_obj=axis, diameter_mm=diameter)
+    mirrors = mirror_planes(mesh, axis_obj=axis)
     counts = np.array([len(r[0]) for r in results], np.int64)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     return TemplateBank(
@@ -158,6 +160,8 @@ def build_bank(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | No
         grid=g,
         R_rest_obj=stable.R_rest_obj,
         rest_probability=stable.probability,
+        mirror_normals_obj=mirrors.normals_obj,
+        mirror_point_obj=mirrors.point_obj,
     )
 
 
