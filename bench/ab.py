@@ -14,6 +14,7 @@ front_faces     the evidence rasterises a closed mesh's front faces only (``evid
 fast_evaluate   the coarse search's ``evaluate``: one matmul, a compiled read-out (``coarse.FAST_EVALUATE``)
 visible_part    the evidence's robust colour shading fit (``evidence.VISIBLE_PART``: ``visible``,
                 ``shading_r2_robust``; the score does not read them)
+twin_check      a found pose's mirror twins are checked too (``pipeline.TWIN_CHECK``)
 numba1          numba's parallel kernels on one thread (the calling one; the background pool unchanged):
                 B is one thread, A the budget (not a code path of the service: a measurement)
 """
@@ -78,7 +79,8 @@ def _numba1(on: bool) -> None:
 SWITCHES = {"numba1": _numba1,
             "interior_later": _flag("INTERIOR_LATER"), "nogil": _nogil,
             "front_faces": _flag("FRONT_FACES_ONLY", evidence),
-            "fast_evaluate": _flag("FAST_EVALUATE", coarse), "visible_part": _flag("VISIBLE_PART", evidence)}
+            "fast_evaluate": _flag("FAST_EVALUATE", coarse), "visible_part": _flag("VISIBLE_PART", evidence),
+            "twin_check": _flag("TWIN_CHECK")}
 
 
 def main(argv=None) -> int:

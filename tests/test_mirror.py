@@ -10,6 +10,7 @@ import trimesh
 from service import pipeline
 from service.pipeline import PoseCandidate
 from service.vision.build.mirror import mirror_planes, twin_poses
+from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.evidence import colour_frame
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz, rotation_angle_deg
@@ -88,11 +89,11 @@ def flipped_scene(l_block_bank):
     return bank, img, truth, flipped
 
 
-def check(bank, img, pose, *, twin_check: bool, monkeypatch):
+def check(bank, img, pose, *, twin_check: bool, monkeypatch, deadline=NO_DEADLINE):
     monkeypatch.setattr(pipeline, "TWIN_CHECK", twin_check)
     kw = dict(distance_mm=None, distance_range_mm=(300.0, 600.0), min_score=0.0, n_channels=16)
     return pipeline.check_candidate(bank, PoseCandidate(pose, 0.0, 1.0), img[..., 0], colour_frame(img), INTR,
-                                    **kw)
+                                    deadline=deadline, **kw)
 
 
 def mspd(bank, a: Pose, b: Pose) -> float:
@@ -108,6 +109,14 @@ def test_a_flipped_start_is_turned_into_the_truth(flipped_scene, monkeypatch):
     c = check(bank, img, flipped, twin_check=True, monkeypatch=monkeypatch)
     assert mspd(bank, c.refined.pose, truth) < TWIN_RIGHT_PX
     assert c.verdict.score > alone.verdict.score
+
+
+def test_no_twin_is_checked_past_the_deadline(flipped_scene, monkeypatch):
+    bank, img, truth, flipped = flipped_scene
+    fake_now = [0.0]
+    past = Deadline(100.0, start=-1.0, clock=lambda: fake_now[0])  # started 1 s ago, 100 ms allowed
+    c = check(bank, img, flipped, twin_check=True, monkeypatch=monkeypatch, deadline=past)
+    assert mspd(bank, c.refined.pose, truth) > 20.0 and past.hit  # the flipped answer stands, and says so
 
 
 def test_a_right_answer_is_kept(flipped_scene, monkeypatch):
