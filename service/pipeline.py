@@ -440,18 +440,34 @@ def check_candidate(bank: TemplateBank, cand: PoseCandidate, grey: np.ndarray, f
 
     c = check(cand)
     if TWIN_CHECK and c.verdict.found:
-        # The outline cannot tell a found pose from its mirror twin: the better-verified one is kept (a
-        # twin refined back onto the found pose is that pose, and is not judged again).
-        found_pose = c.refined.pose
-        for twin in twin_poses(found_pose, mirror_planes_of(bank)):
-            if not deadline.allows(_CHECK_MS.high):
-                break
-            if _unrefined_score(bank, twin, frame, intr, others_depth_mm) < TWIN_UNREFINED_MIN_SCORE:
-                continue
-            t = check(PoseCandidate(twin, cand.cost, cand.score), unless_at=found_pose)
-            if t is not None and t.verdict.found and t.verdict.score > c.verdict.score:
-                c = t
+        c = _against_twins(bank, c, check, frame, intr, others_depth_mm, deadline)
     return c
+
+
+def _against_twins(bank: TemplateBank, c: Checked, check: Callable[..., Checked | None], frame: ColourFrame,
+                   intr: Intrinsics, others_depth_mm: np.ndarray | None, deadline: Deadline) -> Checked:
+    """The found ``c`` or its better-verified mirror twin, with ``evidence.twin_score``: the best score
+    of the other poses (the loser, the other twins); close to ``score``, the image hardly tells them
+    apart. A twin whose unrefined evidence scores under ``TWIN_UNREFINED_MIN_SCORE`` is not refined (that
+    unrefined score is its score); one refined back onto the found pose is that pose (no score)."""
+    found_pose = c.refined.pose
+    scores: list[float] = []
+    for twin in twin_poses(found_pose, mirror_planes_of(bank)):
+        if not deadline.allows(_CHECK_MS.high):
+            break
+        unrefined = _unrefined_score(bank, twin, frame, intr, others_depth_mm)
+        if unrefined < TWIN_UNREFINED_MIN_SCORE:
+            scores.append(unrefined)
+            continue
+        t = check(PoseCandidate(twin, c.candidate.cost, c.candidate.score), unless_at=found_pose)
+        if t is None:
+            continue
+        if t.verdict.found and t.verdict.score > c.verdict.score:
+            c, t = t, c
+        scores.append(t.verdict.score)
+    if not scores:
+        return c
+    return replace(c, verdict=replace(c.verdict, evidence=c.verdict.evidence | {"twin_score": max(scores)}))
 
 
 # A twin is refined only if its unrefined pose already scores this (the refinement's own evidence read as

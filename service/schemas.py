@@ -244,7 +244,9 @@ class VerdictJSON(BaseModel):
                                        "unexplained, colour_edge, polarity, region, region_low, in_image, "
                                        "generic (fractions; see docs/API.md); with options.plane also "
                                        "plane_gap_mm, the height of the part's lowest point above the "
-                                       "plane, mm")
+                                       "plane, mm; for a found part with a mirror plane also twin_score, "
+                                       "the score of its mirror twin (the same outline, near and far "
+                                       "faces swapped)")
 
 
 class InstanceJSON(BaseModel):

@@ -109,6 +109,8 @@ def test_a_flipped_start_is_turned_into_the_truth(flipped_scene, monkeypatch):
     c = check(bank, img, flipped, twin_check=True, monkeypatch=monkeypatch)
     assert mspd(bank, c.refined.pose, truth) < TWIN_RIGHT_PX
     assert c.verdict.score > alone.verdict.score
+    # the pose that lost is reported as the twin's score: the same check as the flipped start's own
+    assert c.verdict.evidence["twin_score"] == pytest.approx(alone.verdict.score)
 
 
 def test_no_twin_is_checked_past_the_deadline(flipped_scene, monkeypatch):
@@ -123,6 +125,7 @@ def test_a_right_answer_is_kept(flipped_scene, monkeypatch):
     bank, img, truth, _ = flipped_scene
     c = check(bank, img, truth, twin_check=True, monkeypatch=monkeypatch)
     assert mspd(bank, c.refined.pose, truth) < TWIN_RIGHT_PX
+    assert c.verdict.evidence["twin_score"] < c.verdict.score
 
 
 def test_the_bank_carries_its_mirror_planes_and_an_older_bank_makes_them(l_block_bank):
