@@ -423,25 +423,45 @@ def check_candidate(bank: TemplateBank, cand: PoseCandidate, grey: np.ndarray, f
                     others_depth_mm: np.ndarray | None = None, deadline: Deadline = NO_DEADLINE) -> Checked:
     """One candidate refined, its evidence measured at the refined pose, and the verdict on it (with a
     plane, also whether the refined pose rests on it; ``others_depth_mm``: see ``judge``). A found one
-    is checked against its mirror twins (``TWIN_CHECK``, ``build/mirror.py``) while the ``deadline``
-    leaves time for a check; the better-verified is returned."""
-    kw = dict(distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
-              plane_tolerance_mm=plane_tolerance_mm, others_depth_mm=others_depth_mm)
+    is checked against its mirror twins (``twin_checked``)."""
+    check = _Checker(bank, grey, frame, intr, distance_mm, n_channels,
+                     dict(distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
+                          plane_tolerance_mm=plane_tolerance_mm))
+    return check.twin_checked(check(cand, others_depth_mm), others_depth_mm, deadline)
 
-    def check(c0: PoseCandidate, unless_at: Pose | None = None) -> Checked | None:
+
+@dataclass(frozen=True)
+class _Checker:
+    """Refine-and-judge for one frame (``check_candidate``), and the twin check of a found answer."""
+    bank: TemplateBank
+    grey: np.ndarray
+    frame: ColourFrame
+    intr: Intrinsics
+    distance_mm: float | None
+    n_channels: int
+    judge_kw: dict
+
+    def __call__(self, cand: PoseCandidate, others_depth_mm: np.ndarray | None,
+                 unless_at: Pose | None = None) -> Checked | None:
+        """``cand`` refined and judged; None if ``unless_at`` is given and the refinement ends on it."""
         t0 = time.perf_counter()
-        kept, unexplained = _refine(bank, c0, grey, intr, distance_mm=distance_mm, n_channels=n_channels)
-        if unless_at is not None and _same_place(bank, kept.pose, unless_at, intr.K):
+        kept, unexplained = _refine(self.bank, cand, self.grey, self.intr, distance_mm=self.distance_mm,
+                                    n_channels=self.n_channels)
+        if unless_at is not None and _same_place(self.bank, kept.pose, unless_at, self.intr.K):
             return None
-        c = judge(bank, Checked(cand, kept, decide(None)), frame, intr, edge_support=kept.score,
-                  unexplained=unexplained, **kw)
+        c = judge(self.bank, Checked(cand, kept, decide(None)), self.frame, self.intr,
+                  edge_support=kept.score, unexplained=unexplained, others_depth_mm=others_depth_mm,
+                  **self.judge_kw)
         _CHECK_MS.add(_ms(t0))
         return c
 
-    c = check(cand)
-    if TWIN_CHECK and c.verdict.found:
-        c = _against_twins(bank, c, check, frame, intr, others_depth_mm, deadline)
-    return c
+    def twin_checked(self, c: Checked, others_depth_mm: np.ndarray | None, deadline: Deadline) -> Checked:
+        """``c``, or if it is found, it or its better-verified mirror twin (``TWIN_CHECK``,
+        ``build/mirror.py``), checked while the ``deadline`` leaves time for a check."""
+        if not (TWIN_CHECK and c.verdict.found):
+            return c
+        return _against_twins(self.bank, c, lambda t, unless_at: self(t, others_depth_mm, unless_at),
+                              self.frame, self.intr, others_depth_mm, deadline)
 
 
 def _against_twins(bank: TemplateBank, c: Checked, check: Callable[..., Checked | None], frame: ColourFrame,
@@ -459,7 +479,7 @@ def _against_twins(bank: TemplateBank, c: Checked, check: Callable[..., Checked 
         if unrefined < TWIN_UNREFINED_MIN_SCORE:
             scores.append(unrefined)
             continue
-        t = check(PoseCandidate(twin, c.candidate.cost, c.candidate.score), unless_at=found_pose)
+        t = check(PoseCandidate(twin, c.candidate.cost, c.candidate.score), found_pose)
         if t is None:
             continue
         if t.verdict.found and t.verdict.score > c.verdict.score:
@@ -548,9 +568,10 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
     one is found are judged with it, and a rejected candidate is judged again (its evidence only: the
     refinement does not change) once an instance is found after it: a copy touching another looked
     like a part on a background of its own colour until that one was found."""
-    scene = _Instances(bank, frame, intr, max_instances, deadline,
-                       dict(distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
-                            plane_tolerance_mm=plane_tolerance_mm))
+    check = _Checker(bank, grey, frame, intr, distance_mm, n_channels,
+                     dict(distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
+                          plane_tolerance_mm=plane_tolerance_mm))
+    scene = _Instances(check, max_instances, deadline)
     size = (grey.shape[1], grey.shape[0])
     for cand in cands:
         if scene.full():
@@ -560,9 +581,8 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
             continue
         if not deadline.allows(_CHECK_MS.high):
             break
-        c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm, n_channels=n_channels,
-                            others_depth_mm=scene.others if scene.found else None, deadline=deadline,
-                            **scene.judge_kw)
+        others = scene.others if scene.found else None
+        c = check.twin_checked(check(cand, others), others, deadline)
         if not c.verdict.found:
             scene.rejected.append(c)
         elif scene.distinct(c):
@@ -593,14 +613,14 @@ class _Instances:
     """One frame's found instances (and the depth map of their pixels, ``others``) and its rejected
     candidates, for ``verify_instances``."""
 
-    def __init__(self, bank: TemplateBank, frame: ColourFrame, intr: Intrinsics, max_instances: int,
-                 deadline: Deadline, judge_kw: dict):
-        self.bank, self.frame, self.intr = bank, frame, intr
-        self.max_instances, self.deadline, self.judge_kw = max_instances, deadline, judge_kw
+    def __init__(self, check: _Checker, max_instances: int, deadline: Deadline):
+        self.check = check
+        self.bank, self.frame, self.intr, self.judge_kw = check.bank, check.frame, check.intr, check.judge_kw
+        self.max_instances, self.deadline = max_instances, deadline
         self.found: list[Checked] = []
         self.rejected: list[Checked] = []
-        self.others = np.full(frame.shape, np.inf, np.float32)
-        self.size = (frame.shape[1], frame.shape[0])
+        self.others = np.full(self.frame.shape, np.inf, np.float32)
+        self.size = (self.frame.shape[1], self.frame.shape[0])
         self.silhouettes: dict = {}  # silhouette_iou's memo: each pose rasterised once
 
     def full(self) -> bool:
@@ -613,6 +633,11 @@ class _Instances:
     def add(self, c: Checked) -> None:
         self.found.append(c)
         _paint_depth(self.others, self.bank, c.refined.pose, self.intr)
+
+    def add_checked(self, c: Checked, others_depth_mm: np.ndarray) -> None:
+        """Add a candidate found on being judged again, after its twin check (which can replace it by
+        its mirror twin, in the same place)."""
+        self.add(self.check.twin_checked(c, others_depth_mm, self.deadline))
 
     def rejudged(self, c: Checked, others: np.ndarray) -> Checked:
         """``c`` judged again with the parts in ``others`` explaining their pixels, if its rejection
@@ -632,7 +657,8 @@ class _Instances:
                     return
                 self.rejected[i] = again = self.rejudged(c, self.others)
                 if again.verdict.found and self.distinct(again):
-                    self.add(self.rejected.pop(i))
+                    self.rejected.pop(i)
+                    self.add_checked(again, self.others)
                     changed = True
                     break
 
@@ -657,7 +683,7 @@ class _Instances:
                 again = self.rejudged(self.rejected[i], scene_depth)
                 if again.verdict.found:
                     self.rejected.pop(i)
-                    self.add(again)
+                    self.add_checked(again, scene_depth)
                     self.rejudge_rejected()
                     changed = True
                     break
