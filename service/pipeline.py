@@ -491,8 +491,8 @@ def _against_twins(bank: TemplateBank, c: Checked, check: Callable[..., Checked 
 
 
 # A twin is refined only if its unrefined pose already scores this (the refinement's own evidence read as
-# perfect): bench/instances.py's twins that refined into found poses scored 0.94-0.99 unrefined, and
-# half of all twins score under 0.5 (a refinement saved: ~35 ms).
+# perfect): the twins that refined into better found poses scored 0.97 and 0.99 unrefined (bench/twins.py),
+# and half of paper's sprayer twins score under 0.5 (a refinement saved each: ~35 ms).
 TWIN_UNREFINED_MIN_SCORE = 0.5
 
 

@@ -17,6 +17,7 @@ import shutil
 import time
 import warnings
 
+import cv2
 import numpy as np
 import pytest
 
@@ -145,6 +146,14 @@ def test_operator_page_estimates_and_shows_pose_grasps_and_overlay(browser, serv
     browser.screenshot(tmp_path / "ui.png")
     if os.environ.get("POSE_UI_SCREENSHOT"):
         shutil.copyfile(tmp_path / "ui.png", os.environ["POSE_UI_SCREENSHOT"])
+    # an empty floor: nothing to find, and the page says why
+    empty = tmp_path / "empty.png"
+    empty.write_bytes(cv2.imencode(".png", np.full((H, W, 3), 90, np.uint8))[1].tobytes())
+    browser.set_files("#image", empty)
+    browser.click("#estimate")
+    verdict = browser.wait_for("(() => { const t = document.getElementById('verdict').textContent; "
+                               "return /NOT FOUND/.test(t) ? t : ''; })()")
+    assert verdict.startswith("NOT FOUND - no candidate"), verdict
 
 
 @pytest.mark.slow
