@@ -242,7 +242,8 @@ class VerdictJSON(BaseModel):
                         "before finding one)")
     evidence: dict[str, float] = Field(description="the evidence the score was computed from: edge_support, "
                                        "unexplained, colour_edge, polarity, region, region_low, in_image, "
-                                       "generic (fractions; see docs/API.md); with options.plane also "
+                                       "generic (fractions; see docs/API.md), distinct_px (pixels); with "
+                                       "options.plane also "
                                        "plane_gap_mm, the height of the part's lowest point above the "
                                        "plane, mm; for a found part with a mirror plane also twin_score, "
                                        "the score of its mirror twin (the same outline, near and far "

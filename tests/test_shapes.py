@@ -58,3 +58,24 @@ def test_a_speck_says_nothing():
     m = np.zeros((50, 50), np.uint8)
     m[10:13, 10:13] = 1
     assert shapes.genericity(m) == 1.0
+
+
+def test_distinct_px_is_the_mean_gap_between_two_near_outlines():
+    # A disc of radius r inside a concentric disc of radius r + w: IoU r^2 / (r + w)^2, and the band
+    # between the two outlines is w wide everywhere, so the measure must give back w.
+    r, w = 60, 1.5
+    disc = _ellipse(r, r, 0)
+    iou = r * r / (r + w) ** 2
+    assert shapes.distinct_px(disc, iou) == pytest.approx(w, rel=0.08)  # a digital disc's perimeter: ~3 %
+    assert shapes.distinct_px(np.zeros((20, 20), np.uint8), 0.5) == 0.0
+
+
+def test_an_outline_a_plain_shape_has_is_within_a_pixel_and_a_cross_is_not():
+    disc = _ellipse(45, 45, 0)
+    assert shapes.distinct_px(disc, shapes.genericity(disc)) < 0.5
+    u = 40.0
+    arm = [(-0.5, -1.5), (0.5, -1.5), (0.5, -0.5), (1.5, -0.5), (1.5, 0.5), (0.5, 0.5), (0.5, 1.5),
+           (-0.5, 1.5), (-0.5, 0.5), (-1.5, 0.5), (-1.5, -0.5), (-0.5, -0.5)]
+    cross = _polygon(np.array(arm) * u + [200, 150])
+    # generic < 0.8 (above): (1 - 0.8) x area 5 u^2 / perimeter 12 u = u / 12 = 3.3 px at least
+    assert shapes.distinct_px(cross, shapes.genericity(cross)) > u / 12.0

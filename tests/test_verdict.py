@@ -114,6 +114,15 @@ def test_each_rejection_names_its_evidence(change, reason):
     assert not v.found and v.reason == reason
 
 
+def test_an_outline_within_min_distinct_px_of_a_plain_shape_is_not_found_whatever_the_score(monkeypatch):
+    assert verdict.decide(TRUE_LIKE | {"distinct_px": 0.1}).found  # off in the service (0)
+    monkeypatch.setattr(verdict, "MIN_DISTINCT_PX", 0.75)
+    v = verdict.decide(TRUE_LIKE | {"distinct_px": 0.7})
+    assert not v.found and v.reason == "generic_outline" and v.score >= verdict.MIN_SCORE
+    assert verdict.decide(TRUE_LIKE | {"distinct_px": 0.8}).found
+    assert verdict.decide(TRUE_LIKE).found  # evidence made before distinct_px: not judged on it
+
+
 def test_distance_outside_range_is_rejected_whatever_the_evidence():
     v = verdict.decide(TRUE_LIKE, z_mm=1300.0, distance_range_mm=(300.0, 1200.0))
     assert not v.found and v.reason == "outside_distance_range" and v.evidence["z_mm"] == 1300.0

@@ -39,7 +39,7 @@ import numpy as np
 
 from service.vision import threads
 from service.vision.bank import TemplateBank
-from service.vision.estimate.shapes import genericity
+from service.vision.estimate.shapes import distinct_px, genericity
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
 from service.vision.geometry.render import face_normals_cam, rasterise_roi
@@ -71,6 +71,9 @@ class Evidence:
     # how closely a plain shape (ellipse, rectangle, cylinder or box view) fits the pose's silhouette
     # (``shapes.genericity``): near 1, any everyday object of that outline explains the rest as well
     generic: float = 1.0
+    # the mean distance, image pixels, of the silhouette's outline from that plain shape's
+    # (``shapes.distinct_px``): under a pixel nothing in the image can tell the part from the plain object
+    distinct_px: float = 0.0
     # The visible part's evidence (module docstring): what an occluder does not spoil.
     # None where the fit did not run (``VISIBLE_PART``): the dict then leaves them out.
     visible: float | None = None  # inlier share of the inside under the robust colour shading fit
@@ -80,7 +83,7 @@ class Evidence:
         return {"colour_edge": self.colour_edge, "polarity": self.polarity, "region": self.region,
                 "region_low": self.region_low, "region_global": self.region_global,
                 "coherence": self.coherence, "shading_r2": self.shading_r2, "shading_std": self.shading_std,
-                "in_image": self.in_image, "generic": self.generic} | (
+                "in_image": self.in_image, "generic": self.generic, "distinct_px": self.distinct_px} | (
             {} if self.visible is None else {"visible": self.visible,
                                               "shading_r2_robust": self.shading_r2_robust})
 
@@ -435,5 +438,5 @@ def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFram
     generic = genericity(mask)
     region, region_low, region_global = region_fut.result()
     return Evidence(colour_edge, polarity, region, region_low, region_global, coherence, shading_r2,
-                    shading_std, float(in_image.mean()), generic, visible=visible,
+                    shading_std, float(in_image.mean()), generic, distinct_px(mask, generic), visible=visible,
                     shading_r2_robust=robust_r2)
