@@ -69,7 +69,7 @@ def main() -> None:
             for inst in out.instances:
                 pose = inst.refined.pose
                 for twin in twin_poses(pose, planes):
-                    raw = pipeline._unrefined_score(bank, twin, frame, scenes.INTR, None)
+                    raw = pipeline.unrefined_score(bank, twin, frame, scenes.INTR, None)
                     c = pipeline.check_candidate(bank, pipeline.PoseCandidate(twin, 0.0, 0.0), img[..., 0],
                                                  frame, scenes.INTR, **kw)
                     kept = "twin" if c.verdict.found and c.verdict.score > inst.verdict.score else "found"

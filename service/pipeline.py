@@ -475,7 +475,7 @@ def _against_twins(bank: TemplateBank, c: Checked, check: Callable[..., Checked 
     for twin in twin_poses(found_pose, mirror_planes_of(bank)):
         if not deadline.allows(_CHECK_MS.high):
             break
-        unrefined = _unrefined_score(bank, twin, frame, intr, others_depth_mm)
+        unrefined = unrefined_score(bank, twin, frame, intr, others_depth_mm)
         if unrefined < TWIN_UNREFINED_MIN_SCORE:
             scores.append(unrefined)
             continue
@@ -496,8 +496,9 @@ def _against_twins(bank: TemplateBank, c: Checked, check: Callable[..., Checked 
 TWIN_UNREFINED_MIN_SCORE = 0.5
 
 
-def _unrefined_score(bank: TemplateBank, pose: Pose, frame: ColourFrame, intr: Intrinsics,
-                     others_depth_mm: np.ndarray | None) -> float:
+def unrefined_score(bank: TemplateBank, pose: Pose, frame: ColourFrame, intr: Intrinsics,
+                    others_depth_mm: np.ndarray | None) -> float:
+    """The verification score of ``pose`` as it stands, the refinement's own evidence read as perfect."""
     ev = evidence(bank, pose, intr, frame, others_depth_mm).as_dict()
     return verification_score(ev | {"edge_support": 1.0, "unexplained": 0.0})
 
