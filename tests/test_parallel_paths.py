@@ -132,7 +132,7 @@ def test_window_offsets_equal_the_template_loop(n_threads):
 def _evidence_serial(bank, pose, intr, frame, others=None):
     """``evidence.evidence`` with every piece run in turn on the calling thread."""
     from service.vision.estimate import evidence as ev
-    from service.vision.estimate.shapes import genericity
+    from service.vision.estimate.shapes import distinct_px, genericity
 
     H, W = frame.shape
     fid, invz, (u0, v0) = ev.face_ids_roi(bank, pose, intr, (W, H), margin_px=ev.BAND_MAX_PX + 2)
@@ -155,8 +155,9 @@ def _evidence_serial(bank, pose, intr, frame, others=None):
     inside = ev._inside_samples(fid, bank, pose)
     s = ev._shading(win, inside)
     fit = ev._robust_shading(win, inside) if ev.VISIBLE_PART else None
+    generic = genericity(mask)
     return ev.Evidence(e[0], e[1], r[0], r[1], r[2], e[2], s[0], s[1], float(in_image.mean()),
-                       genericity(mask), visible=fit.visible if fit else None,
+                       generic, distinct_px(mask, generic), visible=fit.visible if fit else None,
                        shading_r2_robust=fit.r2 if fit else None)
 
 
