@@ -143,3 +143,9 @@ def test_the_bank_carries_its_mirror_planes_and_an_older_bank_makes_them(l_block
     made = pipeline.mirror_planes_of(v2)
     assert normals_match(made.normals_obj, [(0.0, 0.0, 1.0)])
     np.testing.assert_allclose(made.point_obj, bank.mirror_point_obj, atol=1e-9)
+
+
+def test_a_sphere_keeps_at_most_three_planes():
+    # every plane through its centre is a mirror: the three best stand for them (one twin check each)
+    planes = mirror_planes(trimesh.creation.icosphere(subdivisions=4, radius=50.0))
+    assert len(planes.normals_obj) == 3

@@ -37,6 +37,9 @@ MIRROR_TOLERANCE = 0.01  # of the diameter: a tessellation's facets, not a lug o
 MIRROR_QUANTILE = 0.99
 SAMPLES = 4000  # surface points per sample set (two independent sets)
 SAME_NORMAL_DEG = 10.0  # passing normals closer than this are one plane (the better one is kept)
+# A box-like part passes up to six candidates (its principal axes then fall anywhere); each plane costs a
+# twin check per found frame, and its three best are the ones a box has.
+MAX_PLANES = 3
 
 
 @dataclass(frozen=True)
@@ -61,8 +64,9 @@ def mirror_planes(mesh: trimesh.Trimesh, *, axis_obj: np.ndarray | None = None) 
         if gap_mm <= MIRROR_TOLERANCE * diameter:
             passing.append((gap_mm, n))
     normals: list[np.ndarray] = []
+    same = np.cos(np.radians(SAME_NORMAL_DEG))
     for _, n in sorted(passing, key=lambda g: g[0]):
-        if all(abs(n @ m) < np.cos(np.radians(SAME_NORMAL_DEG)) for m in normals):
+        if len(normals) < MAX_PLANES and all(abs(n @ m) < same for m in normals):
             normals.append(n)
     return MirrorPlanes(np.array(normals, float).reshape(-1, 3), centroid)
 
