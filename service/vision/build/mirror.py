@@ -29,7 +29,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from service.vision.build.symmetry import _surface_centroid_and_axes
+from service.vision.build.symmetry import surface_centroid_and_axes
 from service.vision.geometry.frames import Pose
 
 MIRROR_TOLERANCE = 0.01  # of the diameter: a tessellation's facets, not a lug or a boss
@@ -50,7 +50,7 @@ class MirrorPlanes:
 
 def mirror_planes(mesh: trimesh.Trimesh, *, axis_obj: np.ndarray | None = None) -> MirrorPlanes:
     """The part's mirror planes (see the module docstring). ``axis_obj``: a revolved part's axis."""
-    centroid, axes = _surface_centroid_and_axes(mesh)
+    centroid, axes = surface_centroid_and_axes(mesh)
     lo, hi = np.asarray(mesh.bounds, float)
     diameter = float(np.linalg.norm(hi - lo))
     a = np.asarray(trimesh.sample.sample_surface(mesh, SAMPLES, seed=1)[0], float)
@@ -64,11 +64,21 @@ def mirror_planes(mesh: trimesh.Trimesh, *, axis_obj: np.ndarray | None = None) 
         if gap_mm <= MIRROR_TOLERANCE * diameter:
             passing.append((gap_mm, n))
     normals: list[np.ndarray] = []
-    same = np.cos(np.radians(SAME_NORMAL_DEG))
     for _, n in sorted(passing, key=lambda g: g[0]):
-        if len(normals) < MAX_PLANES and all(abs(n @ m) < same for m in normals):
+        if len(normals) < MAX_PLANES and not any(_one_plane(n, m, axis_obj) for m in normals):
             normals.append(n)
     return MirrorPlanes(np.array(normals, float).reshape(-1, 3), centroid)
+
+
+def _one_plane(n: np.ndarray, m: np.ndarray, axis_obj: np.ndarray | None) -> bool:
+    """Whether normals ``n`` and ``m`` give the same twins: within ``SAME_NORMAL_DEG``, or, for a revolved
+    part, both planes through its axis (their twins differ by a spin about it)."""
+    if abs(n @ m) >= np.cos(np.radians(SAME_NORMAL_DEG)):
+        return True
+    if axis_obj is None:
+        return False
+    axis = np.asarray(axis_obj, float) / np.linalg.norm(axis_obj)
+    return max(abs(n @ axis), abs(m @ axis)) < np.sin(np.radians(1.0))
 
 
 def _candidate_normals(axes: np.ndarray, axis_obj: np.ndarray | None) -> list[np.ndarray]:
@@ -76,9 +86,11 @@ def _candidate_normals(axes: np.ndarray, axis_obj: np.ndarray | None) -> list[np
     if axis_obj is None:
         return cands
     axis = np.asarray(axis_obj, float) / np.linalg.norm(axis_obj)
-    # One plane through the axis stands for all of them; the plane across the axis is checked too.
-    across = [c for c in cands if abs(c @ axis) < np.sin(np.radians(1.0))]
-    return [axis, *across[:1]]
+    # Planes through the axis (normals perpendicular to it: the candidates that are, and one made so) and
+    # the plane across it (normal along it); ``mirror_planes`` keeps one of the first kind.
+    made = np.cross(axis, np.eye(3)[int(np.argmin(np.abs(axis)))])
+    through = [c for c in cands if abs(c @ axis) < np.sin(np.radians(1.0))] + [made / np.linalg.norm(made)]
+    return [*through, axis]
 
 
 def twin_poses(pose: Pose, planes: MirrorPlanes) -> list[Pose]:

@@ -72,7 +72,7 @@ def axis_point(vertices_mm: np.ndarray, axis: np.ndarray, centroid: np.ndarray) 
     return A.T @ np.array([cx, c_al[1], cz], float)
 
 
-def _surface_centroid_and_axes(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
+def surface_centroid_and_axes(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
     tri = np.asarray(mesh.triangles, float)
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     cent = tri.mean(axis=1)
@@ -126,7 +126,7 @@ def score_candidates(mesh: trimesh.Trimesh) -> list[AxisScore]:
     F = np.asarray(mesh.faces, np.int32)
     lo, hi = np.asarray(mesh.bounds, float)
     diameter = float(np.linalg.norm(hi - lo))
-    centroid, axes = _surface_centroid_and_axes(mesh)
+    centroid, axes = surface_centroid_and_axes(mesh)
     cands: list[tuple[np.ndarray, str]] = [(a, "inertia") for a in axes]
     cands += [(e, f"model-{n}") for e, n in zip(np.eye(3), "xyz", strict=True)]
     out: list[AxisScore] = []
