@@ -57,6 +57,16 @@ def test_a_cylinder_keeps_one_plane_through_its_axis_and_the_one_across():
     assert sum(abs(n[2]) < np.sin(np.radians(MIRROR_NORMAL_DEG)) for n in planes.normals_obj) == 1
 
 
+def test_an_oblique_revolved_axis_keeps_its_plane_through_the_axis():
+    R = Rx(30.0) @ Rz(40.0)  # no model axis is perpendicular to this one
+    cyl = trimesh.creation.cylinder(radius=20.0, height=90.0, sections=64)
+    cyl.apply_transform(np.block([[R, np.zeros((3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]]))
+    axis = R @ np.array([0.0, 0.0, 1.0])
+    normals = mirror_planes(cyl, axis_obj=axis).normals_obj
+    assert len(normals) == 2
+    assert sum(abs(n @ axis) < np.sin(np.radians(MIRROR_NORMAL_DEG)) for n in normals) == 1
+
+
 def silhouette(mesh, pose, K, size) -> np.ndarray:
     return render(np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32), pose, K, size,
                   supersample=1).coverage > 0.5
