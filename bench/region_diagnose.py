@@ -33,7 +33,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench.accuracy import gt_bank, load_model_info  # noqa: E402
-from bench.region_proposals import RIGHT_PX, mspds, read_bgr  # noqa: E402
+from bench.region_proposals import RIGHT_PX, mspds, read_bgr, set_args  # noqa: E402
 from bench.stages import target_queries  # noqa: E402
 from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, SEARCH_PARAMS  # noqa: E402
 from service.vision.estimate import regions  # noqa: E402
@@ -144,12 +144,7 @@ def run(a) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--set", required=True)
-    ap.add_argument("--every", type=int, default=1)
-    ap.add_argument("--start", type=int, default=0)
-    ap.add_argument("--limit", type=int, default=None)
-    run(ap.parse_args())
+    run(set_args(argparse.ArgumentParser()).parse_args())
 
 
 if __name__ == "__main__":

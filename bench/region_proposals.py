@@ -97,12 +97,17 @@ def run(a) -> None:
           + (f"; refinement of {max(KS)} p50 {np.median(cpu_r):.0f}" if cpu_r else ""))
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
+def set_args(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options choosing a set's queries: --set, --every, --start, --limit."""
     ap.add_argument("--set", required=True)
     ap.add_argument("--every", type=int, default=1)
     ap.add_argument("--start", type=int, default=0)
     ap.add_argument("--limit", type=int, default=None)
+    return ap
+
+
+def main() -> None:
+    ap = set_args(argparse.ArgumentParser())
     ap.add_argument("--no-refine", action="store_true")
     run(ap.parse_args())
 

@@ -2,11 +2,12 @@
 
 On the cached hypotheses (``bench/hypotheses.py``; truths and candidates scoring >= 0.5 with the service's
 weights, in the searched distance range), per refined pose: the verdict's shading fit (grey level
-quadratic in the rendered face normals, ``evidence._shading``), and the same fit with the part's shadows
-as regressors. The light is the direction of the Lambert fit (grey = a + b . n, light along b); a pixel
-is in shadow when its face turns away from the light (attached) or when the part's own surface lies
-between it and the light (cast: a depth map rasterised from the light, orthographic, ``MAP_PX`` across
-the part). The shadowed pixels get their own offset and normal terms, so the fit can only explain more.
+quadratic in the rendered face normals, ``evidence._shading``, on its own pixels), and the same fit with
+the part's shadows as regressors. The light is the direction of the Lambert fit (grey = a + b . n, light
+along b); a pixel is in shadow when its face turns away from the light (attached) or when the part's own
+surface lies between it and the light (cast: a depth map rasterised from the light, orthographic,
+``MAP_PX`` across the part). The shadowed pixels get their own offset and normal terms, so the fit can
+only explain more.
 
 Prints per set the median r2 of right and wrong rows (refined MSPD < 20 px, not absent) and the AUC of
 each fit (probability that a right row has the larger r2).
@@ -35,7 +36,7 @@ from service.vision.estimate import evidence as ev  # noqa: E402
 from service.vision.estimate.verdict import verification_score  # noqa: E402
 from service.vision.geometry.camera import Intrinsics, undistort_image  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
-from service.vision.geometry.render import face_normals_cam, rasterise_roi  # noqa: E402
+from service.vision.geometry.render import rasterise_roi  # noqa: E402
 
 RIGHT_PX = 20.0
 MAP_PX = 400  # the light's depth map across the part's diameter
@@ -71,27 +72,26 @@ def _cast_shadow(bank, pose: Pose, p_cam: np.ndarray, light: np.ndarray) -> np.n
 
 
 def shading_r2(bank, pose: Pose, intr: Intrinsics, frame: ev.ColourFrame) -> tuple[float, float] | None:
-    """(the verdict's quadratic fit's r2, the shadow-aware fit's r2) at ``pose``; None: too few pixels."""
+    """(the verdict's shading r2, ``evidence._shading`` on its own pixels, and the shadow-aware fit's r2 on
+    the same pixels) at ``pose``; None: too few pixels."""
     H, W = frame.shape
     fid, invz, (u0, v0) = ev.face_ids_roi(bank, pose, intr, (W, H), margin_px=2)
-    inner = cv2.erode((fid >= 0).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-    inner[1::2, :] = False
-    inner[:, 1::2] = False
-    if inner.sum() < ev.MIN_SHADING_PIXELS:
+    inside = ev._inside_samples(fid, bank, pose)
+    if inside is None:
         return None
-    vi, ui = np.nonzero(inner)
-    grey = cv2.cvtColor(frame.bgr[vi + v0, ui + u0][None], cv2.COLOR_BGR2GRAY)[0].astype(float)
-    n = face_normals_cam(bank.vertices_mm, bank.faces, pose.R, pose.t_mm)[fid[vi, ui]].astype(float)
-    A = ev._normal_design(n)
-    plain = _r2(A, grey)
+    win = ev._window(frame, u0, v0, fid.shape[1], fid.shape[0])
+    plain = ev._shading(win, inside)[0]
+    grey = cv2.cvtColor(win.bgr[inside.v, inside.u][None], cv2.COLOR_BGR2GRAY)[0].astype(float)
+    n = inside.normals
     light = _lit_by(n, grey)
     if light is None:
         return plain, plain
-    z = 1.0 / invz[vi, ui]
-    p_cam = np.stack([(ui + u0 - intr.cx) * z / intr.fx, (vi + v0 - intr.cy) * z / intr.fy, z], axis=1)
+    z = 1.0 / invz[inside.v, inside.u]
+    u, v = inside.u + u0, inside.v + v0
+    p_cam = np.stack([(u - intr.cx) * z / intr.fx, (v - intr.cy) * z / intr.fy, z], axis=1)
     shadow = ((n @ light) < 0) | _cast_shadow(bank, pose, p_cam, light)
     s = shadow[:, None].astype(float)
-    return plain, _r2(np.hstack([A, s, s * n]), grey)
+    return plain, _r2(np.hstack([ev._normal_design(n), s, s * n]), grey)
 
 
 def rows_of(name: str, tag: str) -> list[tuple[bool, float, float]]:

@@ -28,12 +28,11 @@ from service import pipeline  # noqa: E402
 from service.vision.build.mirror import twin_poses  # noqa: E402
 from service.vision.estimate import evidence, verdict  # noqa: E402
 from service.vision.estimate.evidence import colour_frame  # noqa: E402
-from service.vision.reference.metrics import mspd_px  # noqa: E402
 
 
-def nearest_px(pose, truth, pts) -> float:
-    scale = 640.0 / scenes.SIZE[0]
-    return scale * min(mspd_px(pose.R, pose.t_mm, g.R, g.t_mm, scenes.INTR.K, pts) for g in truth)
+def nearest_px(checked, truth, pts) -> float:
+    """MSPD (px at 640 px width) of a found instance or a checked twin to the copy nearest it."""
+    return scenes.nearest_copies([checked], truth, pts)[0][1]
 
 
 def main() -> None:
@@ -74,9 +73,9 @@ def main() -> None:
                                                  frame, scenes.INTR, **kw)
                     kept = "twin" if c.verdict.found and c.verdict.score > inst.verdict.score else "found"
                     floor = "textured" if textured else "plain"
-                    print(f"| {floor} | {i} | {nearest_px(pose, truth, pts):.1f} | "
+                    print(f"| {floor} | {i} | {nearest_px(inst, truth, pts):.1f} | "
                           f"{inst.verdict.score:.3f} | {raw:.3f} | {c.verdict.score:.3f} | "
-                          f"{nearest_px(c.refined.pose, truth, pts):.1f} | {kept} |")
+                          f"{nearest_px(c, truth, pts):.1f} | {kept} |")
 
 
 if __name__ == "__main__":

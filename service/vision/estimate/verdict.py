@@ -63,7 +63,9 @@ MIN_SCORE = 0.98
 # found 0 on all; but bench/instances.py textured 0 -> 3 wrong instances and bench/plane.py's textured
 # scenes without the plane 0 -> 2, all the L-block's flipped pose on a real copy (plain grey shading
 # r2 0.03-0.71, robust 0.56-1.00). Counting a flat face's disagreeing pixels against the pose (branch
-# flip14) refuses those flips but also clutter's one find (a flange's self-shadow on its flat top).
+# flip14) refuses those flips but also clutter's one find (a flange's self-shadow on its flat top). Session
+# 15: the mirror-twin check (``pipeline``, on) replaces two of the three instance flips by the true pose and
+# both plane ones; one wrong instance is left (a copy whose true pose was never proposed).
 
 # The reasons a verdict gives.
 REASONS = ("found", "no_candidate", "outside_distance_range", "outside_image", "off_plane", "low_support",
