@@ -52,10 +52,20 @@ def set_dir_of(name: str) -> Path:
 
 
 def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: float | None,
-            every_image: int = 1) -> list[dict]:
+            every_image: int = 1, references: int = 0, half: str = "all") -> list[dict]:
+    """``references`` > 0: each part's colours are taught from that many of the set's images
+    (``bench/appearance.py``), which are then not queried; ``half``: only the even or odd half of the
+    rest."""
     set_dir = set_dir_of(name)
     meta = read_meta(set_dir)
     gts = read_gt(set_dir)
+    appearance: dict = {}
+    if references > 0:
+        from bench.appearance import half_of, taught
+
+        appearance = taught(set_dir, references)
+        halves = half_of(set_dir, references)
+        gts = [g for g in gts if g["image"] in halves and half in ("all", halves[g["image"]])]
     if every_image > 1:  # every n-th image (all its gt lines: lmo_dev has several per image)
         images = sorted({g["image"] for g in gts})[::every_image]
         gts = [g for g in gts if g["image"] in set(images)]
@@ -69,7 +79,8 @@ def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: fl
         absent = bool(g.get("absent", False))
         dist = float(g["t_mm"][2]) if distance_given and not absent else None
         t0 = time.perf_counter()
-        out = estimate(bank, image, intr, distance_mm=dist, min_score=min_score)
+        out = estimate(bank, image, intr, distance_mm=dist, min_score=min_score,
+                       appearance=appearance.get(g["model"]))
         ms = 1000 * (time.perf_counter() - t0)
         pose = (out.refined or out.coarse).pose if out.found else None
         mspd = float("inf")
@@ -112,6 +123,10 @@ def main(argv=None) -> int:
                     help="JSON verdict weights (bench/fit_verdict.py --save) instead of the service's")
     ap.add_argument("--regions", type=int, default=None,
                     help="region proposals per frame (pipeline.REGION_PROPOSALS) instead of the service's")
+    ap.add_argument("--references", type=int, default=0,
+                    help="teach each part's colours from this many of the set's images (bench/appearance.py)")
+    ap.add_argument("--half", default="all", choices=["all", "even", "odd"],
+                    help="with --references: only this half of the other images")
     a = ap.parse_args(argv)
     if a.regions is not None:
         from service import pipeline
@@ -131,7 +146,7 @@ def main(argv=None) -> int:
     for name in a.sets.split(","):
         runs = [summarise(recs) for recs in
                 [run_set(name, limit=a.limit, distance_given=a.distance_given, min_score=a.min_score,
-                         every_image=a.every_image)
+                         every_image=a.every_image, references=a.references, half=a.half)
                  for _ in range(a.repeat)]]
         dump[name] = runs
         col = {k: [r[k] for r in runs] for k in runs[0]}

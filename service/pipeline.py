@@ -17,6 +17,7 @@ import trimesh
 
 from service.vision import memory, threads
 from service.vision.bank import TemplateBank
+from service.vision.build.appearance import Appearance, ReferenceView, teach
 from service.vision.build.mirror import MirrorPlanes, mirror_planes, twin_poses
 from service.vision.deadline import NO_DEADLINE, Deadline, RunningMean
 from service.vision.estimate.chamfer import distance_tensor
@@ -87,6 +88,16 @@ def build_templates(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict
     from service.vision.build.templates import build_bank
 
     return build_bank(mesh, symmetry=symmetry, grid=grid or {}, progress=progress)
+
+
+def teach_appearance(bank: TemplateBank, views: list[tuple[np.ndarray, Intrinsics, Pose]]) -> Appearance:
+    """The part's colours (``build/appearance.py``) from reference photos: each a decoded image (BGR, or
+    grey), its camera and the part's pose in it (T_cam_obj)."""
+    refs = []
+    for image, intr, pose in views:
+        bgr = image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+        refs.append(ReferenceView(undistort_image(bgr[..., :3], intr), intr, pose))
+    return teach(bank.vertices_mm, bank.faces, refs)
 
 
 def template_picture(bank: TemplateBank, k: int) -> np.ndarray:
@@ -318,7 +329,8 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
              overlay: bool = False, params: SearchParams | None = None,
              min_score: float | None = None, roi_uv: np.ndarray | None = None, max_instances: int = 1,
              sort: str = "score", deadline_ms: float | None = None, started_at: float | None = None,
-             plane: Plane | None = None, plane_tolerance_mm: float = PLANE_TOLERANCE_MM) -> EstimateOutput:
+             plane: Plane | None = None, plane_tolerance_mm: float = PLANE_TOLERANCE_MM,
+             appearance: Appearance | None = None) -> EstimateOutput:
     """Grey (H, W) or BGR (H, W, 3) image + intrinsics -> ranked poses and the verdict on the best.
 
     The coarse search proposes; up to ``N_VERIFY`` candidates are refined (also with ``refine``
@@ -339,6 +351,9 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
 
     ``plane``: the supporting plane (see ``propose``); a refined pose whose lowest point lies more than
     ``plane_tolerance_mm`` above or below it is not found (verdict reason "off_plane").
+
+    ``appearance``: the part's colours taught from reference photos (``build/appearance.py``): every
+    candidate is then judged on them too (``verdict.APPEARANCE_WEIGHTS``).
     """
     if sort == "height" and plane is None:
         raise ValueError("sort 'height' needs a plane")
@@ -365,7 +380,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
     frame = colour_frame(ideal)
     kw = dict(distance_mm=distance_mm, distance_range_mm=rng, min_score=min_score, n_channels=p.n_channels,
-              deadline=deadline, plane=plane, plane_tolerance_mm=plane_tolerance_mm)
+              deadline=deadline, plane=plane, plane_tolerance_mm=plane_tolerance_mm, appearance=appearance)
     if max_instances <= 1:
         checked = verify_candidates(bank, cands, grey, frame, intr, **kw)
         for later_pass in second:
@@ -420,13 +435,14 @@ def check_candidate(bank: TemplateBank, cand: PoseCandidate, grey: np.ndarray, f
                     distance_range_mm: tuple[float, float] | None, min_score: float | None,
                     n_channels: int, plane: Plane | None = None,
                     plane_tolerance_mm: float = PLANE_TOLERANCE_MM,
-                    others_depth_mm: np.ndarray | None = None, deadline: Deadline = NO_DEADLINE) -> Checked:
+                    others_depth_mm: np.ndarray | None = None, deadline: Deadline = NO_DEADLINE,
+                    appearance: Appearance | None = None) -> Checked:
     """One candidate refined, its evidence measured at the refined pose, and the verdict on it (with a
     plane, also whether the refined pose rests on it; ``others_depth_mm``: see ``judge``). A found one
     is checked against its mirror twins (``twin_checked``)."""
     check = _Checker(bank, grey, frame, intr, distance_mm, n_channels,
                      dict(distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
-                          plane_tolerance_mm=plane_tolerance_mm))
+                          plane_tolerance_mm=plane_tolerance_mm, appearance=appearance))
     return check.twin_checked(check(cand, others_depth_mm), others_depth_mm, deadline)
 
 
@@ -461,11 +477,13 @@ class _Checker:
         if not (TWIN_CHECK and c.verdict.found):
             return c
         return _against_twins(self.bank, c, lambda t, unless_at: self(t, others_depth_mm, unless_at),
-                              self.frame, self.intr, others_depth_mm, deadline)
+                              self.frame, self.intr, others_depth_mm, deadline,
+                              self.judge_kw.get("appearance"))
 
 
 def _against_twins(bank: TemplateBank, c: Checked, check: Callable[..., Checked | None], frame: ColourFrame,
-                   intr: Intrinsics, others_depth_mm: np.ndarray | None, deadline: Deadline) -> Checked:
+                   intr: Intrinsics, others_depth_mm: np.ndarray | None, deadline: Deadline,
+                   appearance: Appearance | None = None) -> Checked:
     """The found ``c`` or its better-verified mirror twin, with ``evidence.twin_score``: the best score
     of the other poses (the loser, the other twins); close to ``score``, the image hardly tells them
     apart. A twin whose unrefined evidence scores under ``TWIN_UNREFINED_MIN_SCORE`` is not refined (that
@@ -475,7 +493,7 @@ def _against_twins(bank: TemplateBank, c: Checked, check: Callable[..., Checked 
     for twin in twin_poses(found_pose, mirror_planes_of(bank)):
         if not deadline.allows(_CHECK_MS.high):
             break
-        unrefined = unrefined_score(bank, twin, frame, intr, others_depth_mm)
+        unrefined = unrefined_score(bank, twin, frame, intr, others_depth_mm, appearance)
         if unrefined < TWIN_UNREFINED_MIN_SCORE:
             scores.append(unrefined)
             continue
@@ -497,10 +515,14 @@ TWIN_UNREFINED_MIN_SCORE = 0.5
 
 
 def unrefined_score(bank: TemplateBank, pose: Pose, frame: ColourFrame, intr: Intrinsics,
-                    others_depth_mm: np.ndarray | None) -> float:
+                    others_depth_mm: np.ndarray | None, appearance: Appearance | None = None) -> float:
     """The verification score of ``pose`` as it stands, the refinement's own evidence read as perfect."""
-    ev = evidence(bank, pose, intr, frame, others_depth_mm).as_dict()
+    ev = evidence(bank, pose, intr, frame, others_depth_mm, _face_bgr(appearance)).as_dict()
     return verification_score(ev | {"edge_support": 1.0, "unexplained": 0.0})
+
+
+def _face_bgr(appearance: Appearance | None) -> np.ndarray | None:
+    return None if appearance is None else appearance.face_bgr
 
 
 SAME_PLACE_PX = 2.0  # two poses whose model vertices project this close on average are one pose
@@ -518,12 +540,12 @@ def judge(bank: TemplateBank, c: Checked, frame: ColourFrame, intr: Intrinsics, 
           unexplained: float | Callable[[], float], distance_range_mm: tuple[float, float] | None,
           min_score: float | None,
           plane: Plane | None = None, plane_tolerance_mm: float = PLANE_TOLERANCE_MM,
-          others_depth_mm: np.ndarray | None = None) -> Checked:
+          others_depth_mm: np.ndarray | None = None, appearance: Appearance | None = None) -> Checked:
     """``c`` with the verdict on its refined pose: the evidence measured there (``evidence``; the
     refinement's ``edge_support`` and ``unexplained`` edges with it), the distance range and the
     plane. ``unexplained`` may be a callable giving it (read after the evidence is measured)."""
     pose = c.refined.pose
-    ev = evidence(bank, pose, intr, frame, others_depth_mm).as_dict()
+    ev = evidence(bank, pose, intr, frame, others_depth_mm, _face_bgr(appearance)).as_dict()
     ev |= {"edge_support": edge_support, "unexplained": float(unexplained() if callable(unexplained)
                                                               else unexplained)}
     gap = rest_gap_mm(bank, pose, plane) if plane is not None else None
@@ -536,7 +558,8 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
                       intr: Intrinsics, *, distance_mm: float | None,
                       distance_range_mm: tuple[float, float] | None, min_score: float | None,
                       n_channels: int, deadline: Deadline = NO_DEADLINE, plane: Plane | None = None,
-                      plane_tolerance_mm: float = PLANE_TOLERANCE_MM) -> list[Checked]:
+                      plane_tolerance_mm: float = PLANE_TOLERANCE_MM,
+                      appearance: Appearance | None = None) -> list[Checked]:
     """Refine and verify the best ``N_VERIFY`` candidates, best verification first. Stops at the first
     found one: the search ranks by chamfer cost (over the local background's), and on a clean frame
     the first is the truth; and before a check the ``deadline`` leaves no time for."""
@@ -546,7 +569,8 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
             break
         c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm,
                             distance_range_mm=distance_range_mm, min_score=min_score, n_channels=n_channels,
-                            plane=plane, plane_tolerance_mm=plane_tolerance_mm, deadline=deadline)
+                            plane=plane, plane_tolerance_mm=plane_tolerance_mm, deadline=deadline,
+                            appearance=appearance)
         out.append(c)
         if c.verdict.found:
             break
@@ -558,7 +582,8 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
                      intr: Intrinsics, *, max_instances: int, distance_mm: float | None,
                      distance_range_mm: tuple[float, float] | None, min_score: float | None,
                      n_channels: int, deadline: Deadline = NO_DEADLINE, plane: Plane | None = None,
-                     plane_tolerance_mm: float = PLANE_TOLERANCE_MM) -> tuple[list[Checked], list[Checked]]:
+                     plane_tolerance_mm: float = PLANE_TOLERANCE_MM,
+                     appearance: Appearance | None = None) -> tuple[list[Checked], list[Checked]]:
     """Refine and verify candidates (best chamfer cost first) until ``max_instances`` distinct ones are
     found or the candidates run out -> (found, in the order found; rejected, best verification first).
     A candidate whose silhouette overlaps a found instance's by more than ``INSTANCE_IOU`` (IoU) is the
@@ -571,7 +596,7 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
     like a part on a background of its own colour until that one was found."""
     check = _Checker(bank, grey, frame, intr, distance_mm, n_channels,
                      dict(distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
-                          plane_tolerance_mm=plane_tolerance_mm))
+                          plane_tolerance_mm=plane_tolerance_mm, appearance=appearance))
     scene = _Instances(check, max_instances, deadline)
     size = (grey.shape[1], grey.shape[0])
     for cand in cands:
@@ -602,7 +627,8 @@ def _paint_depth(depth_mm: np.ndarray, bank: TemplateBank, pose: Pose, intr: Int
     np.minimum(win, depth, out=win)
 
 
-REJUDGE_REASONS = ("region_mismatch", "shading_mismatch", "low_score")  # what a touching copy can cause
+# What a touching copy can cause:
+REJUDGE_REASONS = ("region_mismatch", "shading_mismatch", "appearance_mismatch", "low_score")
 # Two copies that hide or touch each other can each fail alone for the other's pixels, and neither is
 # found first to explain them. Candidates nearly found alone (at least this score, rejected for a
 # reason another part's pixels can cause) are judged with each other explaining their pixels.

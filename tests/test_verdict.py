@@ -49,7 +49,8 @@ def test_part_on_a_plain_floor_is_found_at_its_pose(part_bank):
     assert out.found and out.verdict.found and out.verdict.reason == "found"
     assert out.verdict.score >= verdict.MIN_SCORE
     assert np.linalg.norm(out.refined.pose.t_mm - POSE.t_mm) <= FOUND_POSE_T_MM
-    assert set(verdict.FEATURES) - set(verdict.VISIBLE_FEATURES) <= set(out.verdict.evidence)
+    assert set(verdict.FEATURES) - {*verdict.VISIBLE_FEATURES, *verdict.TAUGHT_FEATURES} <= set(
+            out.verdict.evidence)
 
 
 def test_checkerboard_without_the_part_is_not_found_and_says_why(part_bank):

@@ -32,7 +32,7 @@ weight, and they cost ~5 ms a hypothesis.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -78,6 +78,9 @@ class Evidence:
     # None where the fit did not run (``VISIBLE_PART``): the dict then leaves them out.
     visible: float | None = None  # inlier share of the inside under the robust colour shading fit
     shading_r2_robust: float | None = None  # colour variance of the inliers the fit explains
+    # The taught appearance's evidence (``appearance``), None for a part with no reference photos.
+    appearance: float | None = None  # correlation of the image's colours with the taught face colours
+    appearance_known: float | None = None  # share of the inside whose face colour was taught
 
     def as_dict(self) -> dict[str, float]:
         return {"colour_edge": self.colour_edge, "polarity": self.polarity, "region": self.region,
@@ -85,7 +88,9 @@ class Evidence:
                 "coherence": self.coherence, "shading_r2": self.shading_r2, "shading_std": self.shading_std,
                 "in_image": self.in_image, "generic": self.generic, "distinct_px": self.distinct_px} | (
             {} if self.visible is None else {"visible": self.visible,
-                                              "shading_r2_robust": self.shading_r2_robust})
+                                              "shading_r2_robust": self.shading_r2_robust}) | (
+            {} if self.appearance is None else {"appearance": self.appearance,
+                                                 "appearance_known": self.appearance_known})
 
 
 NO_EVIDENCE = Evidence(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -394,8 +399,39 @@ def _robust_shading(win: _Window, inside: _Inside | None) -> ColourFit | None:
     return ColourFit(float(inl.mean()), max(r2, 0.0))
 
 
+def appearance(win: _Window, fid: np.ndarray, inside: _Inside | None, face_bgr: np.ndarray
+               ) -> tuple[float, float]:
+    """How well the taught face colours (``build/appearance.py``) predict the inside's colours ->
+    (correlation, share of the inside whose face colour is known).
+
+    The correlation is Pearson's over the three channels pooled, after each channel's mean is removed,
+    on the ``1 - APPEARANCE_TRIM`` share of the known pixels an affine colour map from taught to seen
+    colours fits best: the light differs between the reference photos and this one (an affine map per
+    channel absorbs a change of gain and offset), and an occluder's pixels are the ones it fits worst.
+    A printed or painted part at its true pose scores high; a pose fitted to texture or to another
+    object sees colours unrelated to the part's pattern and scores near 0."""
+    if inside is None:
+        return 0.0, 0.0
+    taught = face_bgr[fid[inside.v, inside.u]]
+    known = np.isfinite(taught[:, 0])
+    share = float(known.mean())
+    if known.sum() < MIN_SHADING_PIXELS:
+        return 0.0, share
+    P = taught[known].astype(np.float64)
+    O = win.bgr[inside.v[known], inside.u[known]].astype(np.float64)
+    A = np.column_stack([P, np.ones(len(P))])
+    res = np.linalg.norm(O - A @ np.linalg.lstsq(A.T @ A, A.T @ O, rcond=None)[0], axis=1)
+    keep = res <= np.quantile(res, 1.0 - APPEARANCE_TRIM)
+    Oc, Pc = O[keep] - O[keep].mean(axis=0), P[keep] - P[keep].mean(axis=0)
+    denom = float(np.sqrt((Oc * Oc).sum() * (Pc * Pc).sum()))
+    return (float((Oc * Pc).sum() / denom) if denom > 0 else 0.0), share
+
+
+APPEARANCE_TRIM = 0.25  # the share of the known pixels left out as an occluder's (``appearance``)
+
+
 def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFrame,
-             others_depth_mm: np.ndarray | None = None) -> Evidence:
+             others_depth_mm: np.ndarray | None = None, face_bgr: np.ndarray | None = None) -> Evidence:
     """The colour, polarity and region evidence for ``pose`` (T_cam_obj) in ``frame`` (ideal camera
     ``intr``, i.e. undistorted image coordinates).
 
@@ -403,7 +439,10 @@ def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFram
     there are none). Their pixels are explained: where one is nearer than this pose's surface it hides
     the part (left out of the inside and the shading fit), and next to the outline it is not the
     background (left out of the outside). Touching copies otherwise look like a part on a background
-    of its own colour."""
+    of its own colour.
+
+    ``face_bgr``: the part's taught colours (``build/appearance.Appearance.face_bgr``), if it has any:
+    the evidence then includes ``appearance`` and ``appearance_known``."""
     H, W = frame.shape
     fid, invz, (u0, v0) = face_ids_roi(bank, pose, intr, (W, H), margin_px=BAND_MAX_PX + 2)
     mask = fid >= 0
@@ -416,8 +455,10 @@ def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFram
         explained = ~mask & np.isfinite(others)
         fid = np.where(hidden, -1, fid)
     n_px = int(mask.sum())
+    # (a part with taught colours keeps reporting its appearance: the verdict it gets reads it)
+    nothing = NO_EVIDENCE if face_bgr is None else replace(NO_EVIDENCE, appearance=0.0, appearance_known=0.0)
     if n_px == 0:
-        return NO_EVIDENCE
+        return nothing
     win = _window(frame, u0, v0, mask.shape[1], mask.shape[0])
     band = int(np.clip(BAND_FRACTION * np.sqrt(n_px / np.pi), BAND_MIN_PX, BAND_MAX_PX))
     # The region test (its distance transforms release the GIL) on the second core meanwhile.
@@ -425,7 +466,7 @@ def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFram
     p, n = _outline(mask)
     if len(p) == 0:
         region_fut.result()
-        return NO_EVIDENCE
+        return nothing
     u, v = p[:, 0] + u0, p[:, 1] + v0
     in_image = (u >= 1) & (u < W - 1) & (v >= 1) & (v < H - 1)
     colour_edge, polarity, coherence = _edge_and_polarity(win, p, n, in_image)
@@ -435,8 +476,11 @@ def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFram
     if VISIBLE_PART:
         fit = _robust_shading(win, inside)
         visible, robust_r2 = (fit.visible, fit.r2) if fit else (0.0, 0.0)
+    taught = known = None
+    if face_bgr is not None:
+        taught, known = appearance(win, fid, inside, face_bgr)
     generic = genericity(mask)
     region, region_low, region_global = region_fut.result()
     return Evidence(colour_edge, polarity, region, region_low, region_global, coherence, shading_r2,
                     shading_std, float(in_image.mean()), generic, distinct_px(mask, generic), visible=visible,
-                    shading_r2_robust=robust_r2)
+                    shading_r2_robust=robust_r2, appearance=taught, appearance_known=known)

@@ -33,13 +33,17 @@ FEATURES = ("edge_support", "unexplained", "colour_edge", "polarity", "region", 
             # apart, in image pixels, the two outlines lie on average (``shapes.distinct_px``)
             "generic", "distinct_px",
             # the visible part's (``evidence``: what an occluder in front of the part does not spoil)
-            "visible", "shading_r2_robust")
+            "visible", "shading_r2_robust",
+            # the taught appearance's (``evidence.appearance``): only for a part with reference photos
+            "appearance", "appearance_known")
 # Of these, reported only where ``evidence.VISIBLE_PART`` runs the robust fit (the benchmarks; off in the
 # service, whose score does not read them).
 VISIBLE_FEATURES = ("visible", "shading_r2_robust")
 # Evidence an older record (a bench cache made before it existed) may lack: read as 0 in a feature vector.
-LATER_FEATURES = (*VISIBLE_FEATURES, "distinct_px")
-# Evidence the verification score may use, and which of it counts against a pose.
+# Of these, reported only for a part with taught colours (scored by ``APPEARANCE_WEIGHTS`` then).
+TAUGHT_FEATURES = ("appearance", "appearance_known")
+LATER_FEATURES = (*VISIBLE_FEATURES, "distinct_px", *TAUGHT_FEATURES)
+# Evidence the verification score of an untaught part may use, and which of it counts against a pose.
 MODEL_FEATURES = ("edge_support", "unexplained", "colour_edge", "region_low", "region_global", "coherence",
                   "shading_r2", "visible", "shading_r2_robust", "generic")
 LOWER_IS_BETTER = ("unexplained", "generic")
@@ -47,6 +51,11 @@ LOWER_IS_BETTER = ("unexplained", "generic")
 # the score), fitted by ``bench/fit_verdict.py`` on the tuning sets (120 synthetic scenes of
 # bench/synth_scenes.py, seed 11, and clutter2 / absent2); evidence it dropped has weight 0.
 WEIGHTS = {"bias": -3.935, "unexplained": -0.339, "region_global": 5.265, "shading_r2": 4.329}
+# The score of a part with taught colours (``build/appearance.py``; its evidence has ``appearance``): the
+# untextured shading model says nothing about a printed or painted part, the taught colours do. Fitted by
+# ``bench/appearance.py`` (logistic, signs fixed) on half of lmo_dev's images (the even ones among those
+# not used as reference photos), reported on the other half.
+APPEARANCE_WEIGHTS = {"bias": -5.58, "appearance": 4.43, "appearance_known": 3.76, "region_global": 4.29}
 # Operating point (``options.min_score`` moves it).
 MIN_SCORE = 0.98
 # Measured in session 12 and not switched on (README, Detection): the refit on occluded realistic scenes
@@ -70,13 +79,13 @@ MIN_SCORE = 0.98
 # The reasons a verdict gives.
 REASONS = ("found", "no_candidate", "outside_distance_range", "outside_image", "off_plane", "low_support",
            "interior_edges", "region_mismatch", "shading_mismatch", "generic_outline", "low_score",
-           "deadline")
+           "deadline", "appearance_mismatch")
 # "deadline": the search stopped early (``deadline_ms``) before a candidate was found; the pipeline
 # sets it (``decide`` judges one hypothesis and never returns it).
 # A rejected pose is said to fail on the evidence furthest below a true pose's typical value (medians
 # over the truth hypotheses of the tuning sets): the reason names the one a person should look at.
 TYPICAL_RIGHT = {"edge_support": 0.9, "unexplained": 0.1, "colour_edge": 0.95, "region_global": 0.85,
-                 "shading_r2": 0.9, "generic": 0.88}
+                 "shading_r2": 0.9, "generic": 0.88, "appearance": 0.74}
 MIN_IN_IMAGE = 0.5  # a pose whose outline is mostly outside the image cannot be checked
 # A pose whose outline lies within this many image pixels (mean, ``distinct_px``) of a plain shape's is not
 # found, whatever its score ("generic_outline"): the image cannot tell the part from a can, a box or a disc
@@ -108,9 +117,14 @@ def feature_vector(ev: dict) -> np.ndarray:
     return np.array([_read(ev, k) for k in FEATURES], float)
 
 
+def weights_for(ev: dict) -> dict:
+    """The score's weights for this evidence: ``APPEARANCE_WEIGHTS`` where the part's colours were taught."""
+    return APPEARANCE_WEIGHTS if "appearance" in ev else WEIGHTS
+
+
 def verification_score(ev: dict, weights: dict | None = None) -> float:
-    """The logistic verification score of an evidence dict, in [0, 1]."""
-    w = WEIGHTS if weights is None else weights
+    """The logistic verification score of an evidence dict, in [0, 1] (default weights: ``weights_for``)."""
+    w = weights_for(ev) if weights is None else weights
     z = w["bias"] + sum(wk * _read(ev, k) for k, wk in w.items() if k != "bias")
     return float(1.0 / (1.0 + np.exp(-z)))
 
@@ -126,6 +140,9 @@ def rejection_reason(ev: dict) -> str:
         # (evidence made before ``generic`` existed lacks it: never the reason then)
         "generic_outline": ev.get("generic", 0.0) - TYPICAL_RIGHT["generic"],
     }
+    if "appearance" in ev:  # taught colours: they, not the untextured shading model, judge the inside
+        del gaps["shading_mismatch"]
+        gaps["appearance_mismatch"] = TYPICAL_RIGHT["appearance"] - ev["appearance"]
     reason, gap = max(gaps.items(), key=lambda kv: kv[1])
     return reason if gap > 0 else "low_score"
 

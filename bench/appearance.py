@@ -1,0 +1,188 @@
+"""Taught appearance (``service/vision/build/appearance.py``): does the part's colour, taught from a few
+reference photos at known poses, tell a printed or painted part at its true pose from the wrong poses?
+
+Protocol on a set with several images of the same parts (lmo_dev): ``--references N`` images, spread
+evenly over the sorted image list (0, n/N, 2n/N, ...), are the reference photos, taught with their
+ground-truth poses (the other annotated parts' pixels hidden: a fixture shot shows the part alone);
+the remaining images are split into two halves by position (even / odd). The verdict's
+``APPEARANCE_WEIGHTS`` are fitted on the even half (``--fit-half``) and reported on both.
+
+``evidence``: the appearance evidence of every cached candidate and truth of
+``bench/hypotheses.py features`` (``bench/out/hyps/<set>-r13-features.pkl``, ``-truth-features``) at its
+refined pose; prints the truths' and wrong candidates' medians and AUC, the fitted weights (``--save``
+writes them as JSON) and, per half and operating point, what the verdict would find (best score per
+query among the cached candidates, distance 300-1200 mm).
+
+    python bench/appearance.py evidence [--set lmo_dev] [--references 4] [--save w.json]
+
+The pipeline run with the taught colours is ``bench/detection.py --references 4 --half odd``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pickle
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from bench.accuracy import DATA_DIR, gt_bank, read_gt  # noqa: E402
+from bench.fit_verdict import fit_monotone  # noqa: E402
+from bench.hypotheses import read_colour  # noqa: E402
+from bench.truth_evidence import auc  # noqa: E402
+from service.vision.build.appearance import Appearance, ReferenceView, teach  # noqa: E402
+from service.vision.estimate import evidence as _evidence  # noqa: E402
+from service.vision.geometry.camera import Intrinsics  # noqa: E402
+from service.vision.geometry.frames import Pose  # noqa: E402
+from service.vision.geometry.render import rasterise_roi  # noqa: E402
+
+HYPS = ROOT / "bench" / "out" / "hyps"
+RIGHT_PX = 20.0
+RANGE_MM = (300.0, 1200.0)
+FEATURES = ("appearance", "appearance_known", "region_global")
+
+
+def set_dir_of(name: str) -> Path:
+    p = Path(name)
+    return p if p.is_dir() else DATA_DIR / name
+
+
+def reference_images(set_dir: Path, n: int) -> list[str]:
+    """``n`` images spread evenly over the set's sorted image list (the first one included)."""
+    images = sorted({g["image"] for g in read_gt(set_dir)})
+    return [images[i * len(images) // n] for i in range(n)] if n > 0 else []
+
+
+def half_of(set_dir: Path, n_references: int) -> dict[str, str]:
+    """Each non-reference image's half: "even" or "odd" by its position among them."""
+    refs = set(reference_images(set_dir, n_references))
+    rest = [im for im in sorted({g["image"] for g in read_gt(set_dir)}) if im not in refs]
+    return {im: ("even", "odd")[i % 2] for i, im in enumerate(rest)}
+
+
+def _pose(g: dict) -> Pose:
+    return Pose(np.asarray(g["R"], float), np.asarray(g["t_mm"], float))
+
+
+def taught(set_dir: Path, n_references: int) -> dict[str, Appearance]:
+    """Each model's appearance taught from the reference images it appears in."""
+    by_image: dict[str, list[dict]] = defaultdict(list)
+    for g in read_gt(set_dir):
+        if not g.get("absent"):
+            by_image[g["image"]].append(g)
+    views: dict[str, list[ReferenceView]] = defaultdict(list)
+    for im in reference_images(set_dir, n_references):
+        image = read_colour(set_dir / im)
+        h, w = image.shape[:2]
+        depths = {}
+        for g in by_image[im]:
+            bank = gt_bank(set_dir, g["model"])
+            d, _, (u0, v0) = rasterise_roi(bank.vertices_mm, bank.faces, _pose(g), np.asarray(g["K"], float),
+                                           (w, h))
+            full = np.full((h, w), np.inf, np.float32)
+            full[v0:v0 + d.shape[0], u0:u0 + d.shape[1]] = d
+            depths[g["model"]] = full
+        for g in by_image[im]:
+            others = [d for m, d in depths.items() if m != g["model"]]
+            hidden = (np.min(others, axis=0) < depths[g["model"]]) if others else None
+            views[g["model"]].append(ReferenceView(image, Intrinsics.from_K(np.asarray(g["K"], float)),
+                                                   _pose(g), hidden))
+    return {m: teach(gt_bank(set_dir, m).vertices_mm, gt_bank(set_dir, m).faces, v) for m, v in views.items()}
+
+
+def appearance_rows(name: str, n_references: int) -> list[dict]:
+    """The cached candidates and truths of the non-reference images, with their appearance evidence."""
+    set_dir = set_dir_of(name)
+    app = taught(set_dir, n_references)
+    halves = half_of(set_dir, n_references)
+    rows = []
+    for kind in ("features", "truth-features"):
+        cached = pickle.loads((HYPS / f"{name}-r13-{kind}.pkl").read_bytes())
+        rows += [r for r in cached if r["image"] in halves]
+    rows.sort(key=lambda r: r["image"])
+    K = {g["image"]: np.asarray(g["K"], float) for g in read_gt(set_dir)}
+    current, frame = None, None
+    out = []
+    for r in rows:
+        if r["image"] != current:
+            current = r["image"]
+            frame = _evidence.colour_frame(read_colour(set_dir / current))
+        ev = _evidence.evidence(gt_bank(set_dir, r["model"]), Pose(np.asarray(r["R1"]), np.asarray(r["t1"])),
+                                Intrinsics.from_K(K[current]), frame, face_bgr=app[r["model"]].face_bgr)
+        out.append(r | {"half": halves[current], "ev": r["ev"] | {
+            "appearance": ev.appearance, "appearance_known": ev.appearance_known}})
+    return out
+
+
+def _X(rows: list[dict]) -> np.ndarray:
+    return np.array([[r["ev"][k] for k in FEATURES] for r in rows], float)
+
+
+def _score(w: np.ndarray, rows: list[dict]) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-(w[0] + _X(rows) @ w[1:])))
+
+
+def judge(rows: list[dict], w: np.ndarray, thr: float) -> tuple[int, int, int, int]:
+    """Per query the best-scoring cached candidate in range is the answer -> (found, right, wrong,
+    queries)."""
+    by_q: dict = defaultdict(list)
+    for r in rows:
+        if r["rank"] >= 0 and RANGE_MM[0] <= float(r["t1"][2]) <= RANGE_MM[1]:
+            by_q[r["q"]].append(r)
+    found = right = 0
+    for rs in by_q.values():
+        s = _score(w, rs)
+        b = int(np.argmax(s))
+        if s[b] >= thr:
+            found += 1
+            right += rs[b]["mspd1"] < RIGHT_PX
+    return found, right, found - right, len({r["q"] for r in rows})
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("command", choices=["evidence"])
+    ap.add_argument("--set", default="lmo_dev")
+    ap.add_argument("--references", type=int, default=4)
+    ap.add_argument("--fit-half", default="even", choices=["even", "odd"])
+    ap.add_argument("--save", type=Path, default=None)
+    a = ap.parse_args(argv)
+    rows = appearance_rows(a.set, a.references)
+    truths = [r for r in rows if r["rank"] < 0 and r["mspd1"] < RIGHT_PX]
+    wrong = [r for r in rows if r["rank"] >= 0 and r["mspd1"] >= RIGHT_PX]
+    print(f"{a.set}: {a.references} reference images; {len(truths)} truths, {len(wrong)} wrong candidates\n")
+    print("| evidence | truth p10 / p50 / p90 | wrong p10 / p50 / p90 | AUC truth vs wrong |")
+    print("|---|---|---|---|")
+    for k in (*FEATURES, "shading_r2"):
+        t = np.array([r["ev"][k] for r in truths])
+        n = np.array([r["ev"][k] for r in wrong])
+        q = lambda v: " / ".join(f"{x:.2f}" for x in np.quantile(v, [0.1, 0.5, 0.9]))  # noqa: E731
+        print(f"| {k} | {q(t)} | {q(n)} | {auc(t, n):.3f} |")
+    fit = [r for r in rows if r["half"] == a.fit_half]
+    y = np.array([r["mspd1"] < RIGHT_PX for r in fit], float)
+    w = fit_monotone(_X(fit), y, np.ones(len(FEATURES)))
+    weights = {"bias": round(float(w[0]), 3)} | {k: round(float(v), 3) for k, v in zip(FEATURES, w[1:],
+                                                                                        strict=True)}
+    print(f"\nweights fitted on the {a.fit_half} half: {json.dumps(weights)}\n")
+    print("| operating point | even half: found / right / wrong (queries) | odd half |")
+    print("|---|---|---|")
+    for thr in (0.9, 0.95, 0.97, 0.98, 0.99):
+        cells = []
+        for half in ("even", "odd"):
+            f, ri, wr, nq = judge([r for r in rows if r["half"] == half], w, thr)
+            cells.append(f"{f} / {ri} / **{wr}** ({nq})")
+        print(f"| {thr:.2f} | " + " | ".join(cells) + " |")
+    if a.save:
+        a.save.write_text(json.dumps(weights))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

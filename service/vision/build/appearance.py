@@ -1,0 +1,142 @@
+"""The part's appearance, taught from reference photos: the colour of each face of the mesh.
+
+An STL carries no colour, and printed or painted parts defeat the verdict's untextured shading model:
+at the true pose of a Linemod part the shading explains less of the image than at the wrong poses the
+verdict must refuse (README, Detection). A cell integrator can show the part to the camera at poses it
+knows (a fixture, a robot holding it, or an estimate an operator confirmed). Each such reference photo
+gives the colour of every face it shows over at least ``MIN_FACE_PIXELS`` pixels (their median: a
+CAD model's large flat faces) and of every vertex it sees (a scanned model's faces are smaller than a
+pixel, their vertices are not); the median over the photos is the part's colour there (a face hidden
+in one photo by something else is outvoted by the others). A face no photo covers with pixels takes
+its seen vertices' mean. The estimate compares it with the image (``estimate/evidence.py``,
+``appearance``).
+
+A vertex is read only where the photo shows it well: in front (not behind the surface the z-buffer
+keeps), facing the camera (``MIN_FACING``: grazing faces smear into their neighbours), and more than
+``OUTLINE_MARGIN_PX`` inside the part's silhouette (the outline's pixels mix in the background, and
+the given pose's last pixel of error).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from service.vision.geometry.camera import Intrinsics, project
+from service.vision.geometry.frames import Pose
+from service.vision.geometry.render import rasterise_roi
+
+MIN_FACING = 0.3  # cosine between a vertex normal and the ray to the camera
+OUTLINE_MARGIN_PX = 2
+DEPTH_TOLERANCE = 0.01  # a vertex this share of its depth behind the z-buffer's surface is hidden
+MIN_FACE_PIXELS = 4  # a face shown on fewer pixels is coloured from its vertices
+
+
+@dataclass(frozen=True)
+class ReferenceView:
+    """One reference photo: the part at a known pose. ``image_bgr`` is the ideal camera's (undistorted)
+    (H, W, 3) uint8 image; ``hidden``, optional (H, W) bool: pixels where something else hides the part."""
+    image_bgr: np.ndarray
+    intr: Intrinsics
+    T_cam_obj: Pose
+    hidden: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Appearance:
+    """The taught colours: (F, 3) float32 BGR per face, NaN where no reference photo saw the face."""
+    face_bgr: np.ndarray
+    n_views: int
+
+    @property
+    def known_fraction(self) -> float:
+        """The share of the faces whose colour is known."""
+        return float(np.isfinite(self.face_bgr[:, 0]).mean()) if len(self.face_bgr) else 0.0
+
+
+def vertex_normals(vertices_mm: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V, 3) unit normals: the area-weighted mean of the adjacent faces' (consistently wound) normals."""
+    v = np.asarray(vertices_mm, np.float64)
+    f = np.asarray(faces, np.int64)
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    out = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(out, f[:, k], n)
+    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
+
+
+def view_colours(vertices_mm: np.ndarray, faces: np.ndarray, view: ReferenceView
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The colours one photo shows well (module docstring): (V, 3) per vertex and (F, 3) per face,
+    float32 BGR, NaN elsewhere."""
+    img = view.image_bgr
+    h, w = img.shape[:2]
+    depth, fid, (u0, v0) = rasterise_roi(vertices_mm, faces, view.T_cam_obj, view.intr, (w, h))
+    out = np.full((len(vertices_mm), 3), np.nan, np.float32)
+    face_bgr = np.full((len(faces), 3), np.nan, np.float32)
+    if depth.size == 0:
+        return out, face_bgr
+    own = fid >= 0
+    if view.hidden is not None:
+        own &= ~view.hidden[v0:v0 + own.shape[0], u0:u0 + own.shape[1]]
+    k = 2 * OUTLINE_MARGIN_PX + 1
+    own = cv2.erode(own.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+    face_bgr = _face_medians(fid[own], img[v0:v0 + own.shape[0], u0:u0 + own.shape[1]][own], len(faces))
+    R, t = np.asarray(view.T_cam_obj.R, float), np.asarray(view.T_cam_obj.t_mm, float)
+    p_cam = np.asarray(vertices_mm, float) @ R.T + t
+    ahead = p_cam[:, 2] > 1e-6
+    uv = project(np.where(ahead[:, None], p_cam, 1.0), view.intr.K)
+    facing = -(vertex_normals(vertices_mm, faces) @ R.T * p_cam).sum(1) / np.linalg.norm(p_cam, axis=1)
+    ui, vi = np.rint(uv[:, 0]).astype(np.int64) - u0, np.rint(uv[:, 1]).astype(np.int64) - v0
+    ok = ahead & (facing > MIN_FACING) & (ui >= 0) & (ui < own.shape[1]) & (vi >= 0) & (vi < own.shape[0])
+    idx = np.flatnonzero(ok)
+    seen = own[vi[idx], ui[idx]] & (p_cam[idx, 2] <= depth[vi[idx], ui[idx]] * (1.0 + DEPTH_TOLERANCE))
+    idx = idx[seen]
+    if len(idx) == 0:
+        return out, face_bgr
+    # A light blur: a vertex's colour is its neighbourhood's, not one noisy pixel's.
+    blur = cv2.GaussianBlur(img, (3, 3), 0).astype(np.float32)
+    map_u = uv[idx, 0].astype(np.float32)[:, None]
+    map_v = uv[idx, 1].astype(np.float32)[:, None]
+    out[idx] = cv2.remap(blur, map_u, map_v, cv2.INTER_LINEAR)[:, 0]
+    return out, face_bgr
+
+
+def _face_medians(face_of_pixel: np.ndarray, bgr: np.ndarray, n_faces: int) -> np.ndarray:
+    """(F, 3) float32: each face's median pixel colour, NaN for faces under ``MIN_FACE_PIXELS`` pixels."""
+    out = np.full((n_faces, 3), np.nan, np.float32)
+    order = np.argsort(face_of_pixel, kind="stable")
+    f, c = face_of_pixel[order], bgr[order].astype(np.float32)
+    starts = np.flatnonzero(np.r_[True, f[1:] != f[:-1]]) if len(f) else np.zeros(0, np.int64)
+    ends = np.r_[starts[1:], len(f)]
+    for a, b in zip(starts, ends, strict=True):
+        if b - a >= MIN_FACE_PIXELS:
+            out[f[a]] = np.median(c[a:b], axis=0)
+    return out
+
+
+def _median_over_views(per_view: np.ndarray) -> np.ndarray:
+    """(views, N, 3) with NaN rows -> (N, 3) the median over the views that have each row."""
+    seen = np.isfinite(per_view[..., 0]).any(axis=0)
+    out = np.full(per_view.shape[1:], np.nan, np.float32)
+    out[seen] = np.nanmedian(per_view[:, seen], axis=0)
+    return out
+
+
+def teach(vertices_mm: np.ndarray, faces: np.ndarray, views: Sequence[ReferenceView]) -> Appearance:
+    """The part's appearance from reference photos: per face the median over the photos of its pixels'
+    median colour; for a face no photo shows on enough pixels, the mean of its vertices' colours (each
+    the median over the photos that see it)."""
+    if not views:
+        return Appearance(np.full((len(faces), 3), np.nan, np.float32), 0)
+    per_view = [view_colours(vertices_mm, faces, v) for v in views]
+    vertex_bgr = _median_over_views(np.stack([vc for vc, _ in per_view]))
+    face_bgr = _median_over_views(np.stack([fc for _, fc in per_view]))
+    corners = vertex_bgr[np.asarray(faces, np.int64)]  # (F, 3 corners, 3 channels)
+    n_seen = np.isfinite(corners[..., 0]).sum(axis=1)
+    fill = ~np.isfinite(face_bgr[:, 0]) & (n_seen > 0)
+    face_bgr[fill] = np.nansum(corners[fill], axis=1) / n_seen[fill, None]
+    return Appearance(face_bgr, len(views))

@@ -1,0 +1,176 @@
+"""Taught appearance: reference photos of a painted part give its colours back, and the evidence tells
+the part's colour pattern from another pattern of the same outline."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import trimesh
+
+from service.vision.build.appearance import ReferenceView, teach, vertex_normals
+from service.vision.estimate.evidence import ColourFrame, evidence
+from service.vision.estimate.verdict import (
+    APPEARANCE_WEIGHTS,
+    TYPICAL_RIGHT,
+    WEIGHTS,
+    rejection_reason,
+    weights_for,
+)
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose, Rx, Ry, Rz
+from service.vision.geometry.render import render
+
+# One colour per side of the box (+x, -x, +y, -y, +z, -z), BGR, far apart.
+SIDE_BGR = np.array([[200, 40, 40], [40, 200, 40], [40, 40, 200], [200, 200, 40], [200, 40, 200],
+                     [40, 200, 200]], float)
+FLOOR_BGR = (110.0, 110.0, 110.0)
+INTR = Intrinsics(500.0, 500.0, 159.5, 119.5)
+SIZE = (320, 240)
+COLOUR_TOL = 3.0  # grey levels: the rendered colours are exact, the photo's pixels are rounded
+
+
+def _box():
+    mesh = trimesh.creation.box((60.0, 40.0, 30.0))
+    for _ in range(3):  # interior vertices: their colour is one side's, not a mix across an edge
+        mesh = mesh.subdivide()
+    return SimpleNamespace(vertices_mm=np.asarray(mesh.vertices, float), faces=np.asarray(mesh.faces))
+
+
+BOX = _box()
+
+
+def _side_of_face(part) -> np.ndarray:
+    """(F,) index into SIDE_BGR of each face's side (its normal's axis and sign)."""
+    v, f = part.vertices_mm, part.faces
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    axis = np.argmax(np.abs(n), axis=1)
+    return 2 * axis + (n[np.arange(len(n)), axis] < 0)
+
+
+def _photo(pose: Pose, side_bgr=SIDE_BGR, gain: float = 1.0, offset: float = 0.0, seed: int = 0):
+    """The painted box at ``pose`` on a grey floor with sensor noise, its colours mapped by gain and
+    offset (another light): (H, W, 3) uint8, and the render."""
+    r = render(BOX.vertices_mm, BOX.faces, pose, INTR.K, SIZE)
+    img = np.empty((SIZE[1], SIZE[0], 3))
+    img[:] = FLOOR_BGR
+    on = r.face_id >= 0
+    img[on] = gain * np.asarray(side_bgr, float)[_side_of_face(BOX)[r.face_id[on]]] + offset
+    img += np.random.default_rng(seed).normal(0.0, 1.0, img.shape)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8), r
+
+
+POSE_A = Pose(Rx(-35.0) @ Ry(30.0), np.array([0.0, 0.0, 400.0]))  # sees +z, -y... three sides
+POSE_B = Pose(Rx(140.0) @ Ry(-40.0) @ Rz(20.0), np.array([10.0, -5.0, 420.0]))  # the other three
+POSE_C = Pose(Rx(-30.0) @ Ry(-35.0) @ Rz(10.0), np.array([-8.0, 6.0, 380.0]))
+
+
+def _interior_faces() -> np.ndarray:
+    """Faces all of whose vertices lie inside one side (their normals are the side's): no colour edge."""
+    vn = vertex_normals(BOX.vertices_mm, BOX.faces)
+    flat = np.abs(vn).max(axis=1) > 0.999
+    return flat[BOX.faces].all(axis=1)
+
+
+def test_one_photo_teaches_the_colour_of_every_side_it_shows_and_nothing_else():
+    img, r = _photo(POSE_A)
+    app = teach(BOX.vertices_mm, BOX.faces, [ReferenceView(img, INTR, POSE_A)])
+    side = _side_of_face(BOX)
+    seen_sides = np.unique(side[r.face_id[r.face_id >= 0]])
+    assert len(seen_sides) == 3
+    known = np.isfinite(app.face_bgr[:, 0])
+    interior = _interior_faces()
+    for s in range(6):
+        faces = interior & (side == s)
+        if s in seen_sides:
+            # Most of a side seen face-on is read; what is read is the side's colour.
+            assert known[faces].mean() > 0.8, s
+            err = np.abs(app.face_bgr[faces & known] - SIDE_BGR[s]).max()
+            assert err < COLOUR_TOL, (s, err)
+        else:
+            assert not known[faces].any(), s  # a side the photo does not show stays unknown
+
+
+def test_hidden_pixels_are_not_read_and_the_median_outvotes_a_covered_photo():
+    img, r = _photo(POSE_A)
+    covered = img.copy()
+    cover = np.zeros(r.mask.shape, bool)
+    cover[:, : SIZE[0] // 2] = True
+    covered[cover] = (30, 160, 90)  # something in front of the left half, the part's pose unchanged
+    side = _side_of_face(BOX)
+    interior = _interior_faces()
+    hid = teach(BOX.vertices_mm, BOX.faces, [ReferenceView(covered, INTR, POSE_A, hidden=cover)])
+    known = np.isfinite(hid.face_bgr[:, 0]) & interior
+    assert known.any()
+    assert np.abs(hid.face_bgr[known] - SIDE_BGR[side[known]]).max() < COLOUR_TOL
+    # Not marked hidden: one covered photo among three is outvoted vertex by vertex.
+    other, _ = _photo(POSE_A, seed=1)
+    third, _ = _photo(POSE_A, seed=2)
+    views = [ReferenceView(covered, INTR, POSE_A), ReferenceView(other, INTR, POSE_A),
+             ReferenceView(third, INTR, POSE_A)]
+    app = teach(BOX.vertices_mm, BOX.faces, views)
+    known = np.isfinite(app.face_bgr[:, 0]) & interior
+    assert np.abs(app.face_bgr[known] - SIDE_BGR[side[known]]).max() < COLOUR_TOL
+    assert app.n_views == 3
+
+
+def _taught():
+    views = [ReferenceView(_photo(p)[0], INTR, p) for p in (POSE_A, POSE_B)]
+    return teach(BOX.vertices_mm, BOX.faces, views)
+
+
+def test_appearance_is_high_at_the_truth_under_another_light_and_low_for_another_pattern():
+    app = _taught()
+    # Two photos show all six sides; the vertices along the outline each photo sees are not read.
+    assert app.known_fraction > 0.75
+    for gain, offset in ((1.0, 0.0), (0.6, 30.0)):  # an affine change of light is no evidence against
+        img, _ = _photo(POSE_C, gain=gain, offset=offset, seed=3)
+        ev = evidence(BOX, POSE_C, INTR, ColourFrame(img), face_bgr=app.face_bgr)
+        assert ev.appearance > 0.95, (gain, ev.appearance)
+        assert ev.appearance_known > 0.85
+    # The same outline painted with the sides' colours swapped: the silhouette's edges and regions are
+    # as good as the truth's, the colour pattern is not the part's.
+    swapped, _ = _photo(POSE_C, side_bgr=SIDE_BGR[[3, 5, 1, 0, 2, 4]], seed=3)
+    ev = evidence(BOX, POSE_C, INTR, ColourFrame(swapped), face_bgr=app.face_bgr)
+    assert ev.appearance < 0.3, ev.appearance
+    # Without taught colours the evidence has none of it.
+    plain = evidence(BOX, POSE_C, INTR, ColourFrame(swapped))
+    assert plain.appearance is None and "appearance" not in plain.as_dict()
+
+
+def test_an_occluder_covering_a_fifth_of_the_part_barely_lowers_the_appearance():
+    app = _taught()
+    img, r = _photo(POSE_C, seed=4)
+    cols = np.nonzero(r.mask.any(axis=0))[0]
+    counts = np.cumsum(r.mask.sum(axis=0))
+    cut = int(np.searchsorted(counts, 0.2 * counts[-1]))
+    img[:, cols[0]:cut + 1] = (30, 160, 90)
+    ev = evidence(BOX, POSE_C, INTR, ColourFrame(img), face_bgr=app.face_bgr)
+    assert ev.appearance > 0.9, ev.appearance
+
+
+def test_untaught_faces_lower_the_known_share_by_their_pixels():
+    one = teach(BOX.vertices_mm, BOX.faces, [ReferenceView(_photo(POSE_A)[0], INTR, POSE_A)])
+    img, r = _photo(POSE_B, seed=5)  # the sides POSE_A did not show
+    ev = evidence(BOX, POSE_B, INTR, ColourFrame(img), face_bgr=one.face_bgr)
+    assert ev.appearance_known < 0.1
+    assert ev.appearance == 0.0  # too few known pixels to correlate: no evidence for the pose
+
+
+def test_taught_evidence_switches_the_score_and_names_the_appearance_when_it_fails():
+    typical = {"edge_support": 0.9, "unexplained": 0.1, "colour_edge": 0.95, "region_global": 0.85,
+               "shading_r2": 0.9, "generic": 0.5}
+    assert weights_for(typical) is WEIGHTS
+    taught = typical | {"appearance": 0.05, "appearance_known": 0.9}
+    assert weights_for(taught) is APPEARANCE_WEIGHTS
+    # Everything but the appearance looks like a true pose's: the appearance is the reason.
+    assert rejection_reason(taught) == "appearance_mismatch"
+    # The untextured shading model is no reason for a taught part.
+    assert rejection_reason(taught | {"shading_r2": 0.0, "appearance": TYPICAL_RIGHT["appearance"]}) != (
+        "shading_mismatch")
+
+
+@pytest.mark.parametrize("k", ["appearance", "appearance_known", "region_global"])
+def test_appearance_weights_never_lower_the_score_for_better_evidence(k):
+    assert APPEARANCE_WEIGHTS[k] > 0
