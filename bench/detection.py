@@ -144,18 +144,20 @@ def main(argv=None) -> int:
     rows = []
     dump = {}
     for name in a.sets.split(","):
-        runs = [summarise(recs) for recs in
-                [run_set(name, limit=a.limit, distance_given=a.distance_given, min_score=a.min_score,
-                         every_image=a.every_image, references=a.references, half=a.half)
-                 for _ in range(a.repeat)]]
-        dump[name] = runs
-        col = {k: [r[k] for r in runs] for k in runs[0]}
-        cells = [Path(name).name, f"{col['queries'][0]} ({col['targets'][0]})", _cell(col["found"], "d"),
-                 _cell(col["right"], "d"), f"**{_cell(col['wrong'], 'd')}**", _cell(col["recall5"], ".0%"),
-                 _cell(col["recall20"], ".0%"), _cell(col["precision"], ".0%"),
-                 f"{_cell(col['p50'], '.0f')} / {_cell(col['p95'], '.0f')}"]
-        rows.append("| " + " | ".join(cells) + " |")
-        print(rows[-1], file=sys.stderr)
+        all_recs = [run_set(name, limit=a.limit, distance_given=a.distance_given, min_score=a.min_score,
+                            every_image=a.every_image, references=a.references, half=a.half)
+                    for _ in range(a.repeat)]
+        dump[name] = {"runs": [summarise(recs) for recs in all_recs], "records": all_recs}
+        parts = [("", all_recs)]
+        if a.references and a.half == "all":  # each half too: the weights were fitted on the even one
+            from bench.appearance import half_of
+
+            halves = half_of(set_dir_of(name), a.references)
+            parts += [(f", {h} half", [[r for r in recs if halves[r["image"]] == h] for recs in all_recs])
+                      for h in ("even", "odd")]
+        for suffix, recs_runs in parts:
+            rows.append(_row(Path(name).name + suffix, [summarise(recs) for recs in recs_runs]))
+            print(rows[-1], file=sys.stderr)
     dist = "given" if a.distance_given else "not given"
     print(f"\nDistance {dist}; MSPD at 640 px width; recall over targets >= {MIN_VISIBLE:.0%} visible.\n")
     print("| set | queries (targets) | found | right | wrong found | recall <5px | recall <20px | precision "
@@ -165,6 +167,15 @@ def main(argv=None) -> int:
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     (OUT_DIR / "detection.json").write_text(json.dumps(dump, indent=1))
     return 0
+
+
+def _row(name: str, runs: list[dict]) -> str:
+    col = {k: [r[k] for r in runs] for k in runs[0]}
+    cells = [name, f"{col['queries'][0]} ({col['targets'][0]})", _cell(col["found"], "d"),
+             _cell(col["right"], "d"), f"**{_cell(col['wrong'], 'd')}**", _cell(col["recall5"], ".0%"),
+             _cell(col["recall20"], ".0%"), _cell(col["precision"], ".0%"),
+             f"{_cell(col['p50'], '.0f')} / {_cell(col['p95'], '.0f')}"]
+    return "| " + " | ".join(cells) + " |"
 
 
 if __name__ == "__main__":

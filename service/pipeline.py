@@ -165,6 +165,12 @@ CONTRAST = ContrastParams(weight=0.5)
 # on every frame where nothing is found, for no answer. Session 14: a verdict that weighs the outline's
 # genericity takes one more on clutter with them on, but wrong instances elsewhere (verdict.py).
 REGION_PROPOSALS = 0
+# A part with taught colours (``appearance``) has the region proposals on, and every later pass's
+# candidates are checked in the order of their unrefined verification score (``unrefined_score``, the
+# taught colours included) instead of the search's: on lmo_dev the true poses come from the region
+# proposals (cached checks, bench/appearance.py), and the taught colours refuse the distractors' regions
+# that made the untaught verdict take them.
+REGION_PROPOSALS_TAUGHT = 12
 ROI_MIN_PEAKS = 4  # level-A peaks scale with the ROI's share of the image, down to this many
 INSTANCE_IOU = 0.4  # two found instances whose silhouettes overlap more than this are one instance
 
@@ -187,7 +193,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
             roi_uv: np.ndarray | None = None, deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0,
             plane: Plane | None = None, several: bool = False,
             deferred: list[Callable[[], list[PoseCandidate]]] | None = None,
-            colour: np.ndarray | None = None):
+            colour: np.ndarray | None = None, n_regions: int | None = None):
     """The proposal engine (the paper's method): LSD edges, their distance tensor and the coarse
     search -> (distinct candidates, lowest chamfer cost first; full-image segments; timing_ms with
     "edges" and "coarse").
@@ -269,10 +275,11 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
         cands = to_candidates(hyps)
         if deferred is not None and later:
             deferred.append(lambda: _distinct_in_roi(to_candidates(later[0]()), bank, intr, roi_uv, several))
-        if deferred is not None and REGION_PROPOSALS and colour is not None and roi_uv is None:
+        n_regions = REGION_PROPOSALS if n_regions is None else n_regions
+        if deferred is not None and n_regions and colour is not None and roi_uv is None:
             def from_regions() -> list[PoseCandidate]:
                 hs = region_proposals(bank, colour, intr.K, (h, w), p, distance_mm=distance_mm,
-                                      distance_range_mm=rng, n_out=REGION_PROPOSALS, deadline=deadline,
+                                      distance_range_mm=rng, n_out=n_regions, deadline=deadline,
                                       reserve_ms=_CHECK_MS.high)
                 # by pose: a region's other silhouette fits (other rotations at the same place) stay
                 return _distinct_in_roi(to_candidates(hs), bank, intr, None, True)
@@ -374,7 +381,8 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
                                reserve_ms=_CHECK_MS.high + SEARCH_RESERVE_CHECKS * _CHECK_MS.value,
                                plane=plane, several=max_instances > 1,
                                deferred=second if max_instances <= 1 else None,
-                               colour=ideal)
+                               colour=ideal,
+                               n_regions=REGION_PROPOSALS_TAUGHT if appearance is not None else None)
     t0 = time.perf_counter()
     t_second = 0.0
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
@@ -390,6 +398,8 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
             # the region proposals (REGION_PROPOSALS), each checked up to N_VERIFY.
             t2 = time.perf_counter()
             more = later_pass()
+            if appearance is not None:
+                more = by_unrefined_score(bank, more, frame, intr, appearance, deadline)
             dt = _ms(t2)
             timing["coarse"] += dt
             t_second += dt
@@ -519,6 +529,20 @@ def unrefined_score(bank: TemplateBank, pose: Pose, frame: ColourFrame, intr: In
     """The verification score of ``pose`` as it stands, the refinement's own evidence read as perfect."""
     ev = evidence(bank, pose, intr, frame, others_depth_mm, _face_bgr(appearance)).as_dict()
     return verification_score(ev | {"edge_support": 1.0, "unexplained": 0.0})
+
+
+def by_unrefined_score(bank: TemplateBank, cands: list[PoseCandidate], frame: ColourFrame, intr: Intrinsics,
+                       appearance: Appearance | None, deadline: Deadline = NO_DEADLINE
+                       ) -> list[PoseCandidate]:
+    """``cands`` by their unrefined verification score, highest first (stable; those the ``deadline``
+    left no time to score keep their order after the scored ones)."""
+    scored: list[tuple[float, int]] = []
+    for i, c in enumerate(cands):
+        if not deadline.allows(EVIDENCE_MS + _CHECK_MS.high):
+            break
+        scored.append((unrefined_score(bank, c.pose, frame, intr, None, appearance), i))
+    order = [i for _, i in sorted(scored, key=lambda si: -si[0])] + list(range(len(scored), len(cands)))
+    return [cands[i] for i in order]
 
 
 def _face_bgr(appearance: Appearance | None) -> np.ndarray | None:

@@ -49,11 +49,12 @@ def _side_of_face(part) -> np.ndarray:
     return 2 * axis + (n[np.arange(len(n)), axis] < 0)
 
 
-def _photo(pose: Pose, side_bgr=SIDE_BGR, gain: float = 1.0, offset: float = 0.0, seed: int = 0):
+def _photo(pose: Pose, side_bgr=SIDE_BGR, gain: float = 1.0, offset: float = 0.0, seed: int = 0,
+           intr: Intrinsics = INTR, size=SIZE):
     """The painted box at ``pose`` on a grey floor with sensor noise, its colours mapped by gain and
     offset (another light): (H, W, 3) uint8, and the render."""
-    r = render(BOX.vertices_mm, BOX.faces, pose, INTR.K, SIZE)
-    img = np.empty((SIZE[1], SIZE[0], 3))
+    r = render(BOX.vertices_mm, BOX.faces, pose, intr.K, size)
+    img = np.empty((size[1], size[0], 3))
     img[:] = FLOOR_BGR
     on = r.face_id >= 0
     img[on] = gain * np.asarray(side_bgr, float)[_side_of_face(BOX)[r.face_id[on]]] + offset
@@ -174,3 +175,55 @@ def test_taught_evidence_switches_the_score_and_names_the_appearance_when_it_fai
 @pytest.mark.parametrize("k", ["appearance", "appearance_known", "region_global"])
 def test_appearance_weights_never_lower_the_score_for_better_evidence(k):
     assert APPEARANCE_WEIGHTS[k] > 0
+
+
+POSE_T = Pose(Rx(-50.0) @ Ry(25.0) @ Rz(15.0), np.array([12.0, -8.0, 450.0]))
+TAUGHT_FOUND_ROT_DEG = 3.0  # a found pose is the painted truth, not one of its silhouette's other poses
+INTR_E2E = Intrinsics(800.0, 800.0, 319.5, 239.5)  # the search needs the box larger than at INTR
+SIZE_E2E = (640, 480)
+
+
+def _rot_deg(Ra, Rb) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))))
+
+
+def test_the_outline_and_the_shading_fit_cannot_tell_a_turned_box_the_taught_colours_can():
+    """A box's silhouette is the same turned 180 degrees about its axis, and a quadratic in the normals
+    fits any three side colours: untaught, both poses verify. Taught, only the painted truth does."""
+    from service.pipeline import unrefined_score
+    from service.vision.estimate.verdict import MIN_SCORE
+
+    app = _taught()
+    img, _ = _photo(POSE_T, seed=8)
+    turned = Pose(POSE_T.R @ Rz(180.0), POSE_T.t_mm)
+    same = render(BOX.vertices_mm, BOX.faces, turned, INTR.K, SIZE).mask
+    truth = render(BOX.vertices_mm, BOX.faces, POSE_T, INTR.K, SIZE).mask
+    assert (same & truth).sum() / (same | truth).sum() > 0.99
+    frame = ColourFrame(img)
+    for pose in (POSE_T, turned):
+        assert unrefined_score(BOX, pose, frame, INTR, None) >= MIN_SCORE
+    assert unrefined_score(BOX, POSE_T, frame, INTR, None, app) >= MIN_SCORE
+    assert unrefined_score(BOX, turned, frame, INTR, None, app) < MIN_SCORE
+
+
+@pytest.fixture(scope="module")
+def box_bank():
+    from service import pipeline
+
+    mesh = trimesh.Trimesh(BOX.vertices_mm, BOX.faces, process=False)
+    return pipeline.build_templates(mesh, symmetry="none", grid={"view_step_deg": 15.0, "render_px": 160})
+
+
+def test_estimate_with_taught_colours_finds_the_painted_pose(box_bank):
+    """End to end: taught from two photos at other poses (``pipeline.teach_appearance``), the estimate
+    reports the taught evidence and finds the box at the painted truth."""
+    from service import pipeline
+
+    photos = [(_photo(p, seed=7, intr=INTR_E2E, size=SIZE_E2E)[0], INTR_E2E, p) for p in (POSE_A, POSE_B)]
+    app = pipeline.teach_appearance(box_bank, photos)
+    img, _ = _photo(POSE_T, seed=8, intr=INTR_E2E, size=SIZE_E2E)
+    out = pipeline.estimate(box_bank, img, INTR_E2E, distance_range_mm=(350.0, 550.0), appearance=app)
+    assert out.found and out.verdict.reason == "found", out.verdict
+    assert out.verdict.evidence["appearance"] > 0.9
+    assert _rot_deg(out.refined.pose.R, POSE_T.R) < TAUGHT_FOUND_ROT_DEG
+    assert np.linalg.norm(out.refined.pose.t_mm - POSE_T.t_mm) < 5.0
