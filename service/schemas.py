@@ -238,8 +238,8 @@ class VerdictJSON(BaseModel):
                          "candidate when nothing is found")
     reason: str = Field(description="found | no_candidate | outside_distance_range | outside_image | "
                         "off_plane | low_support | interior_edges | region_mismatch | shading_mismatch | "
-                        "generic_outline | low_score | deadline (the search stopped at options.deadline_ms "
-                        "before finding one)")
+                        "appearance_mismatch | generic_outline | low_score | deadline (the search stopped at "
+                        "options.deadline_ms before finding one)")
     evidence: dict[str, float] = Field(description="the evidence the score was computed from: edge_support, "
                                        "unexplained, colour_edge, polarity, region, region_low, in_image, "
                                        "generic (fractions; see docs/API.md), distinct_px (pixels); with "
@@ -247,7 +247,10 @@ class VerdictJSON(BaseModel):
                                        "plane_gap_mm, the height of the part's lowest point above the "
                                        "plane, mm; for a found part with a mirror plane also twin_score, "
                                        "the score of its mirror twin (the same outline, near and far "
-                                       "faces swapped)")
+                                       "faces swapped); for a part with reference photos also "
+                                       "appearance (-1..1, the taught colours' correlation with the "
+                                       "image's) and appearance_known (the share of the inside whose "
+                                       "colour was taught)")
 
 
 class InstanceJSON(BaseModel):
