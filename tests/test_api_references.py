@@ -252,6 +252,22 @@ def test_not_an_image_and_a_wrong_size_camera_are_refused_as_the_estimate_does(u
     assert_error(post(client, image, {"name": "no-such-camera"}, truth), 422)
 
 
+def test_a_photo_over_the_image_limits_is_413_as_for_the_estimate(untaught, frame, truth):
+    client, (image, camera) = untaught, frame
+    settings = client.app.state.settings
+    saved = settings.max_image_bytes, settings.max_image_pixels
+    try:
+        settings.max_image_bytes = len(image) - 1  # within the request limit: the part check stops it
+        assert "bytes" in assert_error(post(client, image, camera, truth), 413)
+        settings.max_image_bytes = 1000  # over the request limit: refused before the body is read
+        assert_error(post(client, image * 2, camera, truth), 413)
+        settings.max_image_bytes, settings.max_image_pixels = saved[0], 1280 * 960 - 1
+        assert "pixels" in assert_error(post(client, image, camera, truth), 413)
+    finally:
+        settings.max_image_bytes, settings.max_image_pixels = saved
+    assert client.get(f"/models/{client.model_id}").json()["references"] == 0
+
+
 def test_unknown_model_is_404_everywhere(client, frame, truth):
     image, camera = frame
     mid = "0123456789abcdef0000"
