@@ -10,6 +10,8 @@ The estimate never teaches on its hot path: ``appearance_of`` keeps each model's
 small per-process memo keyed by the model id and the record's ``references_version``, which the store
 renews in the same transaction as every change of the photos, so a photo added or cleared by any
 process (one Redis, several replicas) is seen at the next estimate and taught once per process.
+A revolved part is taught per ring about its axis (``spins``, ``SPIN_VIEWS``): the estimate reports one
+of its equivalent spins, not the photo's.
 
 Plain numpy and the service's wire models; no HTTP here (``service.api.references`` is the glue).
 """
@@ -135,7 +137,9 @@ def teach_stored(bank: TemplateBank, references: list[dict[str, Any]]) -> Appear
 
 def appearance_of(store: Store, record: dict[str, Any], bank: TemplateBank) -> Appearance | None:
     """The model's taught appearance, None when it has no reference photos: taught once per reference
-    set and process (the memo's key, the record's ``references_version``, is new at every change)."""
+    set and process (the memo's key, the record's ``references_version``, is new at every change). A set
+    changed between reading ``record`` and reading the photos is taught under the older version, which
+    only requests still holding the older record ask for."""
     if not record.get("references"):
         return None
     key = (record["id"], record.get("references_version"), len(bank.faces))

@@ -317,14 +317,15 @@ class RedisStore(Store):
 
     @_reachable
     def references(self, mid: str, *, images: bool = False) -> list[dict[str, Any]]:
+        if not images:
+            return [json.loads(d) for d in self.r.lrange(_k("refs", mid), 0, -1)]
         pipe = self.r.pipeline(transaction=True)  # both lists as one MULTI saw them
         pipe.lrange(_k("refs", mid), 0, -1)
-        pipe.lrange(_k("refimg", mid), 0, -1) if images else pipe.llen(_k("refimg", mid))
+        pipe.lrange(_k("refimg", mid), 0, -1)
         described, imgs = pipe.execute()
         out = [json.loads(d) for d in described]
-        if images:
-            for item, data in zip(out, imgs, strict=True):
-                item["image"] = data
+        for item, data in zip(out, imgs, strict=True):
+            item["image"] = data
         return out
 
     @_reachable
