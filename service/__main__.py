@@ -189,6 +189,7 @@ def _camera_text(arg: str) -> str:
 
 def cmd_estimate(args: argparse.Namespace) -> int:
     from service.cell_io import check_robot_pose, estimate_options, estimate_result, grasps_of, resolve_camera
+    from service.references import appearance_of
     from service.schemas import parse_json_object
     from service.store import Store
 
@@ -208,7 +209,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         result = estimate_result(record, bank, image.read_bytes(), cam, opts,
                                  max_pixels=settings.max_image_pixels, camera_name=camera_name,
                                  grasps=grasps_of(store.grasps(record["id"])),
-                                 default_deadline_ms=settings.deadline_ms)
+                                 default_deadline_ms=settings.deadline_ms,
+                                 appearance=appearance_of(store, record, bank))  # its reference photos
     if args.overlay_out and result.overlay_png_base64 is not None:
         Path(args.overlay_out).write_bytes(base64.b64decode(result.overlay_png_base64))
         result.overlay_png_base64 = None

@@ -28,6 +28,7 @@ from service.schemas import (
     validate_part,
 )
 from service.vision.bank import TemplateBank
+from service.vision.build.appearance import Appearance
 
 
 def resolve_camera(text: str | None, store) -> tuple[CellCamera, str | None]:
@@ -126,14 +127,17 @@ def add_cell_frames(result: EstimateResult, bank: TemplateBank, cam: CellCamera,
 
 def estimate_result(record: dict[str, Any], bank: TemplateBank, data: bytes, cam: Camera, opts: Options, *,
                     max_pixels: int, camera_name: str | None = None, grasps: list[Grasp] | None = None,
-                    default_deadline_ms: float | None = None) -> EstimateResult:
+                    default_deadline_ms: float | None = None,
+                    appearance: Appearance | None = None) -> EstimateResult:
     """Image bytes -> EstimateResult (blocking: the API calls it from a worker thread; the CLI calls it
     too).
 
     The intrinsics and distances are held to the plausibility bounds (``service.bounds``) for the
     decoded image's size before the search. With a ``CellCamera`` (image size, extrinsics) the image
     size is checked too and the result gains the robot-frame poses and the placed ``grasps``.
-    ``default_deadline_ms`` (the service's setting; None or 0: none) applies when ``opts`` give none."""
+    ``default_deadline_ms`` (the service's setting; None or 0: none) applies when ``opts`` give none.
+    ``appearance``: the model's colours taught from its reference photos (``references.appearance_of``),
+    which every candidate is then judged on too."""
     cell = isinstance(cam, CellCamera)
     if cell:
         size = image_size(data)
@@ -148,6 +152,7 @@ def estimate_result(record: dict[str, Any], bank: TemplateBank, data: bytes, cam
     kwargs = opts.estimate_kwargs()
     if kwargs["deadline_ms"] is None:
         kwargs["deadline_ms"] = default_deadline_ms or None
+    kwargs["appearance"] = appearance
     out = estimate_image(bank, data, cam.to_intrinsics(), max_pixels=max_pixels, check=check, **kwargs)
     result = EstimateResult.from_output(record["id"], out)
     result.warnings = ModelInfo.from_record(record).warnings

@@ -22,7 +22,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service import monitoring, pipeline, ui
-from service.api import cameras, error_responses, estimate, grasps, health, metrics, models
+from service.api import cameras, error_responses, estimate, grasps, health, metrics, models, references
 from service.api.deps import ApiKeyDocumented
 from service.api.health import VERSION
 from service.builder import make_builder
@@ -58,7 +58,7 @@ class UploadLimit:
         path = scope.get("path", "")
         if scope.get("method") == "POST" and path.rstrip("/") == "/models":
             return self.settings.max_mesh_bytes + FORM_OVERHEAD_BYTES, "mesh upload (POSE_MAX_MESH_BYTES)"
-        if scope.get("method") == "POST" and path.rstrip("/").endswith("/estimate"):
+        if scope.get("method") == "POST" and path.rstrip("/").endswith(("/estimate", "/references")):
             return self.settings.max_image_bytes + FORM_OVERHEAD_BYTES, "image upload (POSE_MAX_IMAGE_BYTES)"
         return FORM_OVERHEAD_BYTES, "request body"
 
@@ -138,7 +138,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(RequestContext)
     for module in (health, metrics):
         app.include_router(module.router)
-    for module in (models, grasps, estimate, cameras):  # behind the optional API key
+    for module in (models, grasps, references, estimate, cameras):  # behind the optional API key
         app.include_router(module.router, dependencies=[ApiKeyDocumented],
                            responses=error_responses(401))
     ui.install(app)  # /ui, /docs, /redoc and their files

@@ -238,8 +238,8 @@ class VerdictJSON(BaseModel):
                          "candidate when nothing is found")
     reason: str = Field(description="found | no_candidate | outside_distance_range | outside_image | "
                         "off_plane | low_support | interior_edges | region_mismatch | shading_mismatch | "
-                        "generic_outline | low_score | deadline (the search stopped at options.deadline_ms "
-                        "before finding one)")
+                        "appearance_mismatch | generic_outline | low_score | deadline (the search stopped at "
+                        "options.deadline_ms before finding one)")
     evidence: dict[str, float] = Field(description="the evidence the score was computed from: edge_support, "
                                        "unexplained, colour_edge, polarity, region, region_low, in_image, "
                                        "generic (fractions; see docs/API.md), distinct_px (pixels); with "
@@ -247,7 +247,10 @@ class VerdictJSON(BaseModel):
                                        "plane_gap_mm, the height of the part's lowest point above the "
                                        "plane, mm; for a found part with a mirror plane also twin_score, "
                                        "the score of its mirror twin (the same outline, near and far "
-                                       "faces swapped)")
+                                       "faces swapped); for a part with reference photos also "
+                                       "appearance (-1..1, the taught colours' correlation with the "
+                                       "image's) and appearance_known (the share of the inside whose "
+                                       "colour was taught)")
 
 
 class InstanceJSON(BaseModel):
@@ -326,12 +329,15 @@ class ModelInfo(BaseModel):
     warnings: list[str] = Field(
         default_factory=list, description="what looks wrong about the upload, e.g. a size that suggests the "
         "wrong units (largest side outside 1 mm .. 3 m); empty when nothing does")
+    references: int = Field(0, description="reference photos the part's colours are taught from "
+                            "(POST /models/{id}/references); 0: untaught")
 
     @classmethod
     def from_record(cls, record: dict[str, Any]) -> ModelInfo:
-        fields = {k: record.get(k) for k in cls.model_fields if k != "warnings"}
-        return cls.model_validate({**fields, "warnings": extent_warnings(record.get("extents_mm") or [],
-                                                                         record.get("units") or "mm")})
+        fields = {k: record.get(k) for k in cls.model_fields if k not in ("warnings", "references")}
+        return cls.model_validate({**fields, "references": int(record.get("references") or 0),
+                                   "warnings": extent_warnings(record.get("extents_mm") or [],
+                                                               record.get("units") or "mm")})
 
 
 class Health(BaseModel):
@@ -548,6 +554,44 @@ class PlacedGraspJSON(BaseModel):
         "without extrinsics, the camera's viewing direction (+z): the sort key, smallest first")
     spin_deg: float = Field(description="rotation about a revolved part's symmetry axis applied to the grasp "
                             "to make it the most reachable of its equivalent ones; 0 for other parts")
+
+
+# --- reference photos (service.references) ----------------------------------------------------------
+
+class ReferencePhoto(BaseModel):
+    """One stored reference photo (without its image bytes)."""
+
+    index: int = Field(description="0-based, in the order the photos were posted")
+    camera: CellCamera = Field(description="the camera as the post gave it, resolved (a registered camera's "
+                               "intrinsics as they were then)")
+    camera_name: str | None = Field(description="the registered camera the post named, else null")
+    T_cam_obj: Transform = Field(description="the part's pose in the photo (R snapped to a rotation)")
+    width: int = Field(description="image width, pixels")
+    height: int = Field(description="image height, pixels")
+
+
+class ReferenceAdded(BaseModel):
+    """``POST /models/{id}/references``: the photo is stored and taught."""
+
+    model_id: str
+    index: int = Field(description="the new photo's index")
+    references: int = Field(description="reference photos the model has now")
+    max_references: int = Field(description="the most it keeps (DELETE them to start again)")
+    known_fraction: float = Field(description="0..1, share of the mesh's faces whose colour all the photos "
+                                  "teach")
+    faces_taught_by_this_view: int = Field(description="faces this photo alone shows well enough to teach")
+
+
+class References(BaseModel):
+    """``GET /models/{id}/references``."""
+
+    model_id: str
+    references: int = Field(description="reference photos stored (0: the part is untaught)")
+    max_references: int
+    known_fraction: float | None = Field(
+        description="0..1, share of the mesh's faces whose colour the photos teach; null while the model "
+                    "is not ready")
+    views: list[ReferencePhoto]
 
 
 Options.model_rebuild()

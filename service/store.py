@@ -1,4 +1,5 @@
-"""The store: model records, uploaded meshes, template banks, build status and leases, grasps, cameras.
+"""The store: model records, uploaded meshes, template banks, build status and leases, grasps, cameras,
+reference photos.
 
 ``Store`` is the interface every layer above uses; two backends implement it, chosen by one setting
 (``POSE_STORE``) and unknown to everything above this module:
@@ -18,6 +19,10 @@ else a cache directory), as ``pathlib.Path`` picks its flavour. Logical records,
     builds:<id>   how many times a build of <id> has started (a crash-resumed build counts twice)
     grasps:<id>   the model's grasps (list of dicts, as PUT /models/{id}/grasps sent them)
     camera:<name> a registered camera (dict: intrinsics, image size, extrinsics, plane)
+    refs:<id>     the model's reference photos (``service.references``): per photo the image bytes as
+                  uploaded, its camera (resolved intrinsics), ``T_cam_obj`` and image size; the record
+                  counts them (``references``) and names their set (``references_version``, new at
+                  every change: what each process's taught-appearance memo is keyed by)
 
 Ids are content hashes (``model_id``): the same mesh bytes with the same options give the same id.
 Each process keeps the banks it loaded in a ``BankCache`` bounded in MB (``POSE_BANK_CACHE_MB``).
@@ -38,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from service.errors import BuildFailedError, NotReadyError, clause
+from service.errors import BuildFailedError, ConflictError, NotReadyError, clause
 from service.vision.bank import TemplateBank
 
 ID_HEX_CHARS = 20
@@ -258,6 +263,35 @@ class Store:
 
     def delete_camera(self, name: str) -> bool:
         raise NotImplementedError
+
+    # reference photos (service.references)
+    def add_reference(self, mid: str, reference: dict[str, Any], limit: int) -> dict[str, Any] | None:
+        """Append a reference photo (a dict: ``image`` bytes, ``camera``, ``T_cam_obj``, ``width``,
+        ``height``, ...) to the model's, in one transaction with the record's ``references`` count and a
+        new ``references_version``: the updated record; None if the model is gone; 409
+        (``references_full``) if it has ``limit`` photos already."""
+        raise NotImplementedError
+
+    def references(self, mid: str, *, images: bool = False) -> list[dict[str, Any]]:
+        """The model's reference photos in the order they were added (each without ``image`` unless
+        ``images``); one consistent set even while another process adds or clears them."""
+        raise NotImplementedError
+
+    def clear_references(self, mid: str) -> dict[str, Any] | None:
+        """Remove every reference photo of the model: the updated record (``references`` 0, a new
+        ``references_version``); None if the model is gone."""
+        raise NotImplementedError
+
+
+def references_full(mid: str, n: int, limit: int) -> ConflictError:
+    """The 409 of a model that has ``limit`` reference photos already."""
+    return ConflictError(f"Model '{mid}' already has {n} reference photos, the most it keeps ({limit}); "
+                         f"DELETE /models/{mid}/references first, then post again the few views that cover "
+                         "the part's sides")
+
+
+def new_version() -> str:
+    return uuid.uuid4().hex
 
 
 def new_token() -> str:

@@ -120,3 +120,29 @@ def test_build_then_estimate_prints_the_api_json(tmp_path, data_dir, paper_gt, c
     assert out["model_id"] == info["id"] and out["found"]
     t_mm = np.array(out["coarse"]["t_mm"])
     assert np.all(np.abs(t_mm[:2] - np.array(paper_gt["t_mm"])[:2]) <= COARSE_XY_MM)
+
+
+def test_the_clis_estimate_is_judged_on_the_model_s_reference_photos(tmp_path, data_dir, paper_gt, capsys):
+    """A reference photo stored in the cache (as POST /models/{id}/references stores it) reaches the
+    CLI's estimate: its verdict reads the taught colours (evidence.appearance)."""
+    from service import references
+    from service.schemas import Transform
+
+    mesh = str(data_dir / "models" / "sprayer.stl")
+    assert main(["--cache-dir", str(tmp_path), "build", mesh, "--symmetry", "y", "--templates", GRID]) == 0
+    mid = json.loads(capsys.readouterr().out)["id"]
+    K = paper_gt["K"]
+    camera = {"fx": K[0][0], "fy": K[1][1], "cx": K[0][2], "cy": K[1][2]}
+    image = data_dir / "paper" / paper_gt["image"]
+    args = ["--cache-dir", str(tmp_path), "estimate", mesh, str(image), "--symmetry", "y", "--templates",
+            GRID, "--camera", json.dumps(camera), "--options", '{"distance_mm": 500}']
+    assert main(args) == 0
+    assert "appearance" not in json.loads(capsys.readouterr().out)["verdict"]["evidence"]
+    with Store(tmp_path) as store:
+        record = store.get(mid)
+        pose = Transform(R=paper_gt["R"], t_mm=paper_gt["t_mm"])
+        references.add_reference(store, record, store.bank(mid), image.read_bytes(), CellCamera(**camera),
+                                 None, pose, max_pixels=10**8)
+    assert main(args) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["found"] and out["verdict"]["evidence"]["appearance"] > 0

@@ -81,7 +81,7 @@ def _kill_group(proc) -> None:
 
 @pytest.mark.slow
 @needs_redis
-def test_two_replicas_two_workers_one_redis(tmp_path, sprayer_bytes, frame):
+def test_two_replicas_two_workers_one_redis(tmp_path, sprayer_bytes, frame, paper_gt):
     """Upload on one replica, estimate on the other; kill -9 the worker building a model: the other
     worker finishes it (after the lease runs out), and it was never built by two at once; restart
     Redis: nothing is lost (append-only file)."""
@@ -106,6 +106,14 @@ def test_two_replicas_two_workers_one_redis(tmp_path, sprayer_bytes, frame):
         assert wait_status(b, mid)["status"] == "ready"  # built by a worker, seen by the other replica
         r = estimate(b, mid, frame)
         assert r.status_code == 200 and r.json()["found"] is True
+        assert "appearance" not in r.json()["verdict"]["evidence"]
+        # a reference photo posted to one replica judges the other's estimates (its memo is keyed by the
+        # record's references_version in Redis)
+        posted = a.post(f"/models/{mid}/references", files={"image": ("0001.png", frame[0])},
+                        data={"camera": json.dumps(frame[1]),
+                              "pose": json.dumps({"R": paper_gt["R"], "t_mm": paper_gt["t_mm"]})})
+        assert posted.status_code == 201, posted.text
+        assert "appearance" in estimate(b, mid, frame).json()["verdict"]["evidence"]
 
         slow = upload(a, sprayer_bytes, symmetry="none", templates=json.dumps(SLOW_GRID))["id"]
         deadline = time.monotonic() + BUILD_WAIT_S
@@ -130,7 +138,9 @@ def test_two_replicas_two_workers_one_redis(tmp_path, sprayer_bytes, frame):
                 assert time.monotonic() < deadline
                 time.sleep(0.1)
         assert {m["id"]: m["status"] for m in b.get("/models").json()} == {mid: "ready", slow: "ready"}
-        assert estimate(a, mid, frame).status_code == 200
+        r = estimate(a, mid, frame)
+        assert r.status_code == 200 and "appearance" in r.json()["verdict"]["evidence"]
+        assert b.get(f"/models/{mid}/references").json()["references"] == 1
     finally:
         for w in workers:
             _kill_group(w)

@@ -223,3 +223,42 @@ def test_two_workers_share_one_cache_and_build_once(servers, tmp_path, sprayer_b
     server.stop()
     with Store(tmp_path / "cache") as store:
         assert store.build_count(mid) == 1
+
+
+def test_reference_photos_reach_every_worker_and_survive_a_restart(servers, sprayer_bytes, frame, paper_gt):
+    """Two uvicorn workers (two processes, each with its own taught-appearance memo): a reference photo
+    posted to one judges every estimate, whichever worker answers; DELETE is seen by both; a restart
+    keeps the photo."""
+    image, camera = frame
+    pose = json.dumps({"R": paper_gt["R"], "t_mm": paper_gt["t_mm"]})
+
+    def post_reference(client: httpx.Client, mid: str) -> httpx.Response:
+        return client.post(f"/models/{mid}/references", files={"image": ("0001.png", image)},
+                           data={"camera": json.dumps(camera), "pose": pose})
+
+    def taught(client: httpx.Client, mid: str, n: int = 6) -> set[bool]:
+        """For n estimates in a row: whether their verdict read taught colours."""
+        seen = set()
+        for _ in range(n):
+            r = estimate(client, mid, frame)
+            assert r.status_code == 200, r.text
+            seen.add("appearance" in r.json()["verdict"]["evidence"])
+        return seen
+
+    server = servers(workers=2)
+    mid = upload(server.client, sprayer_bytes, symmetry="y")["id"]
+    assert wait_status(server.client, mid)["status"] == "ready"
+    assert taught(server.client, mid) == {False}
+    assert post_reference(server.client, mid).status_code == 201
+    assert taught(server.client, mid) == {True}
+    assert server.client.delete(f"/models/{mid}/references").status_code == 204
+    assert taught(server.client, mid) == {False}
+    assert post_reference(server.client, mid).status_code == 201
+    assert taught(server.client, mid) == {True}
+    server.stop()
+
+    server = servers()
+    assert server.client.get(f"/models/{mid}").json()["references"] == 1
+    assert server.client.get(f"/models/{mid}/references").json()["references"] == 1
+    assert taught(server.client, mid, n=2) == {True}
+    server.stop()

@@ -9,6 +9,7 @@ import time
 import numpy as np
 import pytest
 
+from service.errors import ConflictError
 from service.store import Store, bank_from_bytes, bank_to_bytes, model_id
 from service.vision.bank import TemplateBank
 
@@ -148,6 +149,52 @@ def test_grasps_and_cameras(store):
     assert not store.put_camera("a", {"fx": 3.0})  # replaced
     assert store.cameras() == [("a", {"fx": 3.0}), ("b", {"fx": 1.0})]
     assert store.delete_camera("a") and not store.delete_camera("a") and store.camera("a") is None
+
+
+def _reference(k: int) -> dict:
+    return {"image": bytes([k, 0, 255]) * 1000, "camera": {"fx": 500.0 + k, "fy": 500.0, "cx": 319.5,
+                                                          "cy": 239.5},
+            "camera_name": None, "T_cam_obj": {"R": np.eye(3).tolist(), "t_mm": [0.0, 0.0, 400.0 + k]},
+            "width": 640, "height": 480}
+
+
+def _described(ref: dict) -> dict:
+    return {k: v for k, v in ref.items() if k != "image"}
+
+
+def test_reference_photos_round_trip_bounded_and_survive_a_restart(location):
+    with Store(location) as store:
+        store.create(_record("m", "ready"), MESH)
+        assert store.references("m") == [] and store.get("m").get("references") is None
+        first = store.add_reference("m", _reference(0), limit=2)
+        assert first["references"] == 1 and store.get("m") == first
+        second = store.add_reference("m", _reference(1), limit=2)
+        assert second["references"] == 2 and second["references_version"] != first["references_version"]
+        with pytest.raises(ConflictError) as full:
+            store.add_reference("m", _reference(2), limit=2)
+        assert "already has 2 reference photos" in full.value.detail and "DELETE" in full.value.detail
+        assert store.get("m") == second  # nothing of the refused photo was kept
+        assert store.references("m") == [_described(_reference(0)), _described(_reference(1))]
+        assert store.add_reference("gone", _reference(0), limit=2) is None
+    with Store(location) as store:  # reopened (a restart, or another process): the photos are there
+        assert store.references("m", images=True) == [_reference(0), _reference(1)]
+        assert store.get("m")["references"] == 2
+        cleared = store.clear_references("m")
+        assert cleared["references"] == 0 and cleared["references_version"] != second["references_version"]
+        assert store.references("m", images=True) == [] and store.get("m") == cleared
+        assert store.add_reference("m", _reference(3), limit=2)["references"] == 1
+        assert store.clear_references("gone") is None
+
+
+def test_deleting_a_model_deletes_its_reference_photos(store, location):
+    store.create(_record("m", "ready"), MESH)
+    store.add_reference("m", _reference(0), limit=12)
+    assert store.delete("m")
+    assert store.references("m", images=True) == []
+    store.create(_record("m", "ready"), MESH)  # uploaded again: it starts untaught
+    assert store.references("m") == [] and store.get("m").get("references") is None
+    if not location.startswith("redis"):
+        assert not any(str(k).startswith("ref") for k in store._cache.iterkeys())
 
 
 def test_update_if_keeps_a_finished_status(store):

@@ -1,4 +1,4 @@
-"""HTTP routers (health, models, estimate) and their dependencies (``deps``)."""
+"""HTTP routers (health, models, grasps, references, estimate, cameras) and their dependencies (``deps``)."""
 
 from typing import Any
 
@@ -8,7 +8,8 @@ _DESCRIPTIONS = {
     400: "The body is not readable multipart/form-data (the multipart parser's reason is in the detail).",
     401: "POSE_API_KEY is set and the X-API-Key header is missing or wrong.",
     404: "Unknown model id (or template index).",
-    409: "Model not ready yet (with Retry-After), or its build failed (the detail says why).",
+    409: "Model not ready yet (with Retry-After), or its build failed (the detail says why); for a reference "
+         "photo also: the model has the most it keeps.",
     413: "Upload over the size limit.",
     415: "The file is not a mesh / image format the service reads.",
     422: "Bad form part: bad JSON, out-of-range or implausible value, NaN, empty or unusable file.",

@@ -12,17 +12,21 @@ from service.api import error_responses
 from service.api.deps import Loaded, ReadyModel, SettingsDep, StoreDep, read_upload
 from service.cell import Grasp
 from service.cell_io import check_robot_pose, estimate_options, estimate_result, grasps_of, resolve_camera
+from service.references import appearance_of
 from service.schemas import Camera, EstimateResult, Options
 from service.settings import Settings
+from service.store import Store
 
 router = APIRouter(tags=["estimate"])
 
 
-def run_estimate(model: Loaded, data: bytes, cam: Camera, opts: Options, settings: Settings, *,
+def run_estimate(model: Loaded, data: bytes, cam: Camera, opts: Options, settings: Settings, store: Store, *,
                  camera_name: str | None = None, grasps: list[Grasp] | None = None) -> EstimateResult:
-    """Image bytes -> EstimateResult (blocking: call it from a worker thread)."""
+    """Image bytes -> EstimateResult (blocking: call it from a worker thread). A model with reference
+    photos is judged on its taught colours too (taught once per set of photos: ``appearance_of``)."""
     return estimate_result(model.record, model.bank, data, cam, opts, max_pixels=settings.max_image_pixels,
-                           camera_name=camera_name, grasps=grasps, default_deadline_ms=settings.deadline_ms)
+                           camera_name=camera_name, grasps=grasps, default_deadline_ms=settings.deadline_ms,
+                           appearance=appearance_of(store, model.record, model.bank))
 
 
 @router.post("/models/{model_id}/estimate", response_model=EstimateResult,
@@ -47,7 +51,7 @@ async def estimate(
     opts = estimate_options(options, cam, camera_name, store)
     check_robot_pose(cam, opts, camera_name)
     grasps = grasps_of(store.grasps(model.id))
-    result = await run_in_threadpool(run_estimate, model, data, cam, opts, settings, camera_name=camera_name,
-                                     grasps=grasps)
+    result = await run_in_threadpool(run_estimate, model, data, cam, opts, settings, store,
+                                     camera_name=camera_name, grasps=grasps)
     monitoring.observe_estimate(result.timing_ms.model_dump(), result.found)
     return result

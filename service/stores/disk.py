@@ -2,7 +2,9 @@
 
 The ONLY module that imports diskcache. Several processes on one machine (uvicorn workers, build
 processes) share the directory safely (SQLite underneath). Keys are the logical names of
-``service.store`` as they are.
+``service.store`` as they are; a model's reference photos are ``refs:<id>`` (the list of their
+descriptions, each naming its image) and ``refimg:<id>:<key>`` (each image's bytes), so listing them
+reads no image.
 """
 
 from __future__ import annotations
@@ -15,7 +17,16 @@ from typing import Any
 
 import diskcache
 
-from service.store import DEFAULT_BANK_CACHE_MB, BankCache, Store, bank_from_bytes, bank_to_bytes, new_token
+from service.store import (
+    DEFAULT_BANK_CACHE_MB,
+    BankCache,
+    Store,
+    bank_from_bytes,
+    bank_to_bytes,
+    new_token,
+    new_version,
+    references_full,
+)
 from service.vision.bank import TemplateBank
 
 
@@ -80,7 +91,10 @@ class DiskStore(Store):
     def delete(self, mid: str) -> bool:
         """Remove every record of the model. False if it did not exist."""
         existed = self._cache.delete(f"model:{mid}")
-        for kind in ("mesh", "bank", "bankver", "builds", "grasps", "lock"):
+        with self._cache.transact():
+            for ref in self._cache.get(f"refs:{mid}", []):
+                self._cache.delete(f"refimg:{mid}:{ref['image_key']}")
+        for kind in ("mesh", "bank", "bankver", "builds", "grasps", "lock", "refs"):
             self._cache.delete(f"{kind}:{mid}")
         self._banks.drop(mid)
         return bool(existed)
@@ -169,3 +183,48 @@ class DiskStore(Store):
 
     def delete_camera(self, name: str) -> bool:
         return bool(self._cache.delete(f"camera:{name}"))
+
+    # --- reference photos (service.references) -----------------------------------------------------
+
+    def add_reference(self, mid: str, reference: dict[str, Any], limit: int) -> dict[str, Any] | None:
+        key = uuid.uuid4().hex
+        described = {k: v for k, v in reference.items() if k != "image"}
+        full = 0
+        with self._cache.transact():
+            rec = self._cache.get(f"model:{mid}")
+            if rec is None:
+                return None
+            refs = list(self._cache.get(f"refs:{mid}", []))
+            if len(refs) >= limit:
+                full = len(refs)
+            else:
+                self._cache.set(f"refimg:{mid}:{key}", bytes(reference["image"]))
+                refs.append({**described, "image_key": key})
+                self._cache.set(f"refs:{mid}", refs)
+                rec.update(references=len(refs), references_version=new_version())
+                self._cache.set(f"model:{mid}", rec)
+        if full:
+            raise references_full(mid, full, limit)
+        return rec
+
+    def references(self, mid: str, *, images: bool = False) -> list[dict[str, Any]]:
+        out = []
+        with self._cache.transact():
+            for ref in self._cache.get(f"refs:{mid}", []):
+                item = {k: v for k, v in ref.items() if k != "image_key"}
+                if images:
+                    item["image"] = self._cache.get(f"refimg:{mid}:{ref['image_key']}")
+                out.append(item)
+        return out
+
+    def clear_references(self, mid: str) -> dict[str, Any] | None:
+        with self._cache.transact():
+            for ref in self._cache.get(f"refs:{mid}", []):
+                self._cache.delete(f"refimg:{mid}:{ref['image_key']}")
+            self._cache.delete(f"refs:{mid}")
+            rec = self._cache.get(f"model:{mid}")
+            if rec is None:
+                return None
+            rec.update(references=0, references_version=new_version())
+            self._cache.set(f"model:{mid}", rec)
+        return rec

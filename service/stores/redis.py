@@ -11,6 +11,10 @@ layout gets a new version rather than reading the old one wrongly). For a model 
     posecell:v1:lock:<id>              build lease token, with a PX expiry (SET NX PX; renewed by the holder)
     posecell:v1:builds:<id>            INCR counter of build starts
     posecell:v1:grasps:<id>            JSON list of grasps
+    posecell:v1:refs:<id>              list of the reference photos' JSON descriptions (camera, T_cam_obj,
+                                       size), in the order they were added
+    posecell:v1:refimg:<id>            list of their image bytes, as uploaded (same order; both lists
+                                       and the record's count and version change in one MULTI)
     posecell:v1:cameras                set of camera names
     posecell:v1:camera:<name>          JSON camera
 
@@ -30,7 +34,16 @@ from typing import Any, TypeVar
 import redis
 
 from service.errors import StoreUnavailableError
-from service.store import DEFAULT_BANK_CACHE_MB, BankCache, Store, bank_from_bytes, bank_to_bytes, new_token
+from service.store import (
+    DEFAULT_BANK_CACHE_MB,
+    BankCache,
+    Store,
+    bank_from_bytes,
+    bank_to_bytes,
+    new_token,
+    new_version,
+    references_full,
+)
 from service.vision.bank import TemplateBank
 
 PREFIX = "posecell:v1:"
@@ -159,7 +172,8 @@ class RedisStore(Store):
     @_reachable
     def delete(self, mid: str) -> bool:
         version = self.r.get(_k("bank", mid))
-        keys = [_k(kind, mid) for kind in ("model", "mesh", "bank", "builds", "grasps", "lock")]
+        kinds = ("model", "mesh", "bank", "builds", "grasps", "lock", "refs", "refimg")
+        keys = [_k(kind, mid) for kind in kinds]
         if version is not None:
             keys.append(_k("bank", mid, version.decode()))
         pipe = self.r.pipeline()
@@ -271,3 +285,64 @@ class RedisStore(Store):
         pipe.delete(_k("camera", name))
         pipe.srem(_k("cameras"), name)
         return bool(pipe.execute()[0])
+
+    # --- reference photos (service.references) -------------------------------------------------------
+
+    @_reachable
+    def add_reference(self, mid: str, reference: dict[str, Any], limit: int) -> dict[str, Any] | None:
+        described = json.dumps({k: v for k, v in reference.items() if k != "image"})
+        model, refs = _k("model", mid), _k("refs", mid)
+        out: list[Any] = [None, 0]  # the updated record, the count when full
+
+        def tx(pipe: redis.client.Pipeline) -> None:
+            raw, n = pipe.get(model), int(pipe.llen(refs))
+            out[0], out[1] = None, 0
+            pipe.multi()
+            if raw is None:
+                return
+            if n >= limit:
+                out[1] = n
+                return
+            rec = json.loads(raw)
+            rec.update(references=n + 1, references_version=new_version())
+            out[0] = rec
+            pipe.rpush(refs, described)
+            pipe.rpush(_k("refimg", mid), bytes(reference["image"]))
+            pipe.set(model, json.dumps(rec), xx=True)
+
+        self.r.transaction(tx, model, refs)
+        if out[1]:
+            raise references_full(mid, out[1], limit)
+        return out[0]
+
+    @_reachable
+    def references(self, mid: str, *, images: bool = False) -> list[dict[str, Any]]:
+        if not images:
+            return [json.loads(d) for d in self.r.lrange(_k("refs", mid), 0, -1)]
+        pipe = self.r.pipeline(transaction=True)  # both lists as one MULTI saw them
+        pipe.lrange(_k("refs", mid), 0, -1)
+        pipe.lrange(_k("refimg", mid), 0, -1)
+        described, imgs = pipe.execute()
+        out = [json.loads(d) for d in described]
+        for item, data in zip(out, imgs, strict=True):
+            item["image"] = data
+        return out
+
+    @_reachable
+    def clear_references(self, mid: str) -> dict[str, Any] | None:
+        model = _k("model", mid)
+        out: list[dict[str, Any] | None] = [None]
+
+        def tx(pipe: redis.client.Pipeline) -> None:
+            raw = pipe.get(model)
+            pipe.multi()
+            pipe.delete(_k("refs", mid), _k("refimg", mid))
+            out[0] = None
+            if raw is not None:
+                rec = json.loads(raw)
+                rec.update(references=0, references_version=new_version())
+                out[0] = rec
+                pipe.set(model, json.dumps(rec), xx=True)
+
+        self.r.transaction(tx, model)
+        return out[0]

@@ -1,0 +1,183 @@
+"""Reference photos: a part's face colours taught from photos at known poses, for the API and the CLI.
+
+An integrator shows the part to the camera at poses it knows (a fixture, a robot holding it, or an
+estimate an operator confirmed) and posts each photo with its camera and ``T_cam_obj``
+(``POST /models/{id}/references``). The store keeps them (``refs:<id>``, at most ``MAX_REFERENCES``);
+``pipeline.teach_appearance`` turns them into the part's ``Appearance`` (``vision/build/appearance.py``),
+which every estimate of the model is then judged on too (``verdict.APPEARANCE_WEIGHTS``).
+
+The estimate never teaches on its hot path: ``appearance_of`` keeps each model's taught appearance in a
+small per-process memo keyed by the model id and the record's ``references_version``, which the store
+renews in the same transaction as every change of the photos, so a photo added or cleared by any
+process (one Redis, several replicas) is seen at the next estimate and taught once per process.
+A revolved part is taught per ring about its axis (``spins``, ``SPIN_VIEWS``): the estimate reports one
+of its equivalent spins, not the photo's.
+
+Plain numpy and the service's wire models; no HTTP here (``service.api.references`` is the glue).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from service import pipeline
+from service.bounds import DISTANCE_MM, check_plausible
+from service.cell_io import check_image_size
+from service.decode import decode_image
+from service.errors import NotFoundError, UnprocessableError
+from service.schemas import CellCamera, Options, Refined, Transform, parse_json_object, validate_part
+from service.store import Store, references_full
+from service.vision.bank import TemplateBank
+from service.vision.build.appearance import Appearance
+from service.vision.geometry.camera import Intrinsics, project
+from service.vision.geometry.frames import Pose
+from service.vision.memo import Memo
+
+MAX_REFERENCES = 12  # a few views covering the part's sides teach it; more only fill the store
+MIN_IN_IMAGE = 0.5  # share of the part's projected bounding box that must lie inside the photo
+MIN_DEPTH_MM = 1.0  # every corner of the part's bounding box must lie this far in front of the camera
+TAUGHT_MEMO_SIZE = 16  # models whose taught appearance a process keeps
+# A revolved part (a model with a continuous symmetry) looks the same at every spin about its axis, so
+# the estimate reports one of the equivalent spins, not the photo's: its colours are taught per ring
+# about the axis (each photo taught at this many spins, the median over them), a pattern around the
+# axis is not. The paper sprayer's own photo, taught as it was shot, read -0.67 at the estimate's
+# spin (found: refused as appearance_mismatch); taught per ring +0.55 (found, as untaught). On the paper
+# set (distance not given, image 0001 the reference, the 19 others queried): untaught 19 found, taught
+# as shot 4, per ring 15 (0 wrong in all three; a plain part is better left untaught: API.md).
+SPIN_VIEWS = 12
+
+# The keys an estimate's pose (PoseJSON, Candidate, Refined) has beside R and t_mm: a confirmed estimate's
+# ``refined`` pose can be posted back unchanged. Any other unknown key is still refused (a typo).
+ESTIMATE_POSE_KEYS = frozenset(Refined.model_fields) - {"R", "t_mm"}
+
+_TAUGHT = Memo(TAUGHT_MEMO_SIZE)
+_OWNER = object()  # the memo's one owner: its keys are (model id, references version, faces)
+
+
+def parse_pose(text: str | None) -> Transform:
+    """A ``pose`` form part -> T_cam_obj: ``{"R": 3x3, "t_mm": [x, y, z]}`` (a pose as the estimate
+    returns it is accepted too: its other keys are ignored); 422 with one sentence otherwise. R must be
+    a rotation within ``cell.ROTATION_ATOL`` and is snapped to the nearest one (a reflection: 422)."""
+    value = parse_json_object(text, "pose")
+    return validate_part({k: v for k, v in value.items() if k not in ESTIMATE_POSE_KEYS}, Transform, "pose")
+
+
+def pose_problem(bank: TemplateBank, intr: Intrinsics, pose: Pose, image_size: tuple[int, int]) -> str | None:
+    """None when ``pose`` puts the part in front of the camera and mostly inside the (w, h) image;
+    else one sentence saying what is wrong and how to fix it."""
+    v = np.asarray(bank.vertices_mm, float)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    R, t = np.asarray(pose.R, float), np.asarray(pose.t_mm, float)
+    centre = R @ (0.5 * (lo + hi)) + t
+    p_cam = corners @ R.T + t
+    z = float(centre[2])
+    fix = "give T_cam_obj, the part in the camera frame (x right, y down, z along the optical axis, mm)"
+    if z <= 0:
+        return f"The pose puts the part's centre {-z:.0f} mm behind the camera; {fix}"
+    if z > DISTANCE_MM[1]:
+        return (f"The pose puts the part's centre {z / 1000:.0f} m from the camera; t_mm is in millimetres: "
+                f"{fix}")
+    if p_cam[:, 2].min() < MIN_DEPTH_MM:
+        size = float(np.linalg.norm(hi - lo))
+        return (f"The pose puts the part's centre only {z:.0f} mm in front of the camera, so part of this "
+                f"{size:.0f} mm part is behind the lens; t_mm is in millimetres (not metres): {fix}")
+    w, h = image_size
+    uv = project(p_cam, intr.K)
+    (u0, v0), (u1, v1) = uv.min(axis=0), uv.max(axis=0)
+    inside_w = max(0.0, min(u1, w - 0.5) - max(u0, -0.5))
+    inside_h = max(0.0, min(v1, h - 0.5) - max(v0, -0.5))
+    share = inside_w * inside_h / max((u1 - u0) * (v1 - v0), 1e-9)
+    if share < MIN_IN_IMAGE:
+        uc, vc = project(centre, intr.K)
+        return (f"The pose puts the part mostly outside this {w} x {h} image ({100 * share:.0f}% of its "
+                f"projected extent inside, its centre at pixel ({uc:.0f}, {vc:.0f})); give the pose the "
+                "photo shows the part at, with the intrinsics of this image size")
+    return None
+
+
+def _view(image: np.ndarray, camera: dict[str, Any], T_cam_obj: dict[str, Any]
+          ) -> tuple[np.ndarray, Intrinsics, Pose]:
+    return (image, CellCamera.model_validate(camera).to_intrinsics(),
+            Pose(np.asarray(T_cam_obj["R"], float), np.asarray(T_cam_obj["t_mm"], float)))
+
+
+def spins(bank: TemplateBank, pose: Pose) -> list[Pose]:
+    """``pose`` alone; for a revolved part, ``pose`` turned about the part's axis to ``SPIN_VIEWS``
+    equally spaced spins (``T_cam_obj @ T_spin``: the part's point p goes where S (p - p0) + p0 was)."""
+    if bank.symmetry_axis_obj is None:
+        return [pose]
+    from service.cell import axis_rotation
+
+    p0 = np.zeros(3) if bank.symmetry_point_obj is None else np.asarray(bank.symmetry_point_obj, float)
+    R, t = np.asarray(pose.R, float), np.asarray(pose.t_mm, float)
+    out = []
+    for k in range(SPIN_VIEWS):
+        S = axis_rotation(bank.symmetry_axis_obj, 2.0 * np.pi * k / SPIN_VIEWS)
+        out.append(Pose(R @ S, R @ (p0 - S @ p0) + t))
+    return out
+
+
+def teach_views(bank: TemplateBank, views: list[tuple[np.ndarray, Intrinsics, Pose]]) -> Appearance | None:
+    """The appearance reference photos (decoded image, intrinsics, T_cam_obj) teach, a revolved part's
+    per ring (``spins``); None for none."""
+    if not views:
+        return None
+    return pipeline.teach_appearance(bank, [(img, intr, p) for img, intr, pose in views
+                                            for p in spins(bank, pose)])
+
+
+def teach_stored(bank: TemplateBank, references: list[dict[str, Any]]) -> Appearance | None:
+    """The appearance the stored reference photos (with their image bytes) teach; None for none."""
+    return teach_views(bank, [_view(decode_image(r["image"]), r["camera"], r["T_cam_obj"])
+                              for r in references])
+
+
+def appearance_of(store: Store, record: dict[str, Any], bank: TemplateBank) -> Appearance | None:
+    """The model's taught appearance, None when it has no reference photos: taught once per reference
+    set and process (the memo's key, the record's ``references_version``, is new at every change). A set
+    changed between reading ``record`` and reading the photos is taught under the older version, which
+    only requests still holding the older record ask for."""
+    if not record.get("references"):
+        return None
+    key = (record["id"], record.get("references_version"), len(bank.faces))
+    return _TAUGHT.get(_OWNER, key, lambda: teach_stored(bank, store.references(record["id"], images=True)))
+
+
+def add_reference(store: Store, record: dict[str, Any], bank: TemplateBank, data: bytes, cam: CellCamera,
+                  camera_name: str | None, pose: Transform, *, max_pixels: int) -> dict[str, Any]:
+    """Check, teach and store one reference photo (blocking: the API calls it from a worker thread):
+    ``{"record": the updated record, "appearance": what every photo teaches now, "faces": the number of
+    faces this photo alone teaches, "index": its index}``.
+
+    The image is decoded as the estimate decodes it (the same limits: 413 / 415 / 422), the camera held
+    to the estimate's checks for its size, and the pose to ``pose_problem`` (422); a photo that teaches
+    no face (422) is not stored."""
+    mid = record["id"]
+    n = int(record.get("references") or 0)
+    if n >= MAX_REFERENCES:  # before decoding: the store says so again, atomically
+        raise references_full(mid, n, MAX_REFERENCES)
+    image = decode_image(data, max_pixels=max_pixels)
+    size = (int(image.shape[1]), int(image.shape[0]))
+    check_image_size(cam, size, camera_name)
+    check_plausible(cam, Options(), size)
+    intr, T = cam.to_intrinsics(), Pose(np.asarray(pose.R, float), np.asarray(pose.t_mm, float))
+    problem = pose_problem(bank, intr, T, size)
+    if problem is not None:
+        raise UnprocessableError(problem)
+    alone = pipeline.teach_appearance(bank, [(image, intr, T)])  # as shot: the faces the photo shows
+    faces = int(np.isfinite(alone.face_bgr[:, 0]).sum())
+    if faces == 0:
+        raise UnprocessableError("The photo shows none of the part's faces well at this pose (none is in "
+                                 "front of the camera on enough pixels, facing it); check that T_cam_obj is "
+                                 "the pose the photo shows the part at and that nothing hides the part")
+    stored = {"image": data, "camera": cam.model_dump(exclude_none=True), "camera_name": camera_name,
+              "T_cam_obj": {"R": pose.R, "t_mm": pose.t_mm}, "width": size[0], "height": size[1]}
+    updated = store.add_reference(mid, stored, MAX_REFERENCES)
+    if updated is None:
+        raise NotFoundError(f"Model '{mid}' was deleted while its reference photo was taught; upload it "
+                            "again with POST /models")
+    return {"record": updated, "appearance": appearance_of(store, updated, bank), "faces": faces,
+            "index": int(updated["references"]) - 1}

@@ -1,0 +1,130 @@
+"""service.references without HTTP: the taught-appearance memo (taught once per set of reference
+photos and process, renewed when any process changes the set), the pose checks, the spins of a
+revolved part. Both store backends (a real Redis, as tests/test_store.py)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from service import pipeline, references
+from service.store import Store
+from service.vision.build.appearance import Appearance
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose, Rx, Ry
+
+INTR = Intrinsics(500.0, 500.0, 159.5, 119.5)
+SIZE = (320, 240)
+
+
+@pytest.fixture(params=["disk", "redis"])
+def location(request, tmp_path) -> str:
+    if request.param == "redis":
+        return request.getfixturevalue("redis_url")
+    return str(tmp_path / "cache")
+
+
+@pytest.fixture
+def teach_calls(monkeypatch) -> list:
+    """Every call of ``pipeline.teach_appearance``: the views it was given (it teaches a fixed colour)."""
+    calls: list = []
+
+    def teach(bank, views):
+        calls.append(views)
+        return Appearance(np.full((len(bank.faces), 3), 100.0, np.float32), len(views))
+
+    monkeypatch.setattr(pipeline, "teach_appearance", teach)
+    references._TAUGHT.clear()
+    yield calls
+    references._TAUGHT.clear()
+
+
+def _photo() -> bytes:
+    ok, png = cv2.imencode(".png", np.full((SIZE[1], SIZE[0], 3), 90, np.uint8))
+    assert ok
+    return png.tobytes()
+
+
+def _reference(z_mm: float) -> dict:
+    return {"image": _photo(), "camera": {"fx": INTR.fx, "fy": INTR.fy, "cx": INTR.cx, "cy": INTR.cy},
+            "camera_name": None, "T_cam_obj": {"R": np.eye(3).tolist(), "t_mm": [0.0, 0.0, z_mm]},
+            "width": SIZE[0], "height": SIZE[1]}
+
+
+def test_the_appearance_is_taught_once_per_reference_set_and_renewed_by_any_process(
+        location, teach_calls, l_block_bank):
+    bank = l_block_bank
+    with Store(location) as api, Store(location) as other:
+        api.create({"id": "m", "name": "part", "status": "ready", "created_at": "2024-01-01"}, b"mesh")
+        assert references.appearance_of(api, api.get("m"), bank) is None and teach_calls == []
+
+        first = api.add_reference("m", _reference(400.0), references.MAX_REFERENCES)
+        for _ in range(3):  # every estimate of the same set: taught once
+            assert references.appearance_of(api, api.get("m"), bank).n_views == 1
+        assert len(teach_calls) == 1
+
+        other.add_reference("m", _reference(420.0), references.MAX_REFERENCES)  # another process
+        second = api.get("m")
+        assert second["references_version"] != first["references_version"]
+        for _ in range(3):
+            assert references.appearance_of(api, second, bank).n_views == 2
+        assert len(teach_calls) == 2
+        assert [float(pose.t_mm[2]) for _, _, pose in teach_calls[-1]] == [400.0, 420.0]
+
+        other.clear_references("m")
+        assert references.appearance_of(api, api.get("m"), bank) is None
+        assert len(teach_calls) == 2  # nothing to teach
+
+
+def test_a_revolved_part_is_taught_at_every_spin_about_its_axis(teach_calls):
+    class Revolved:  # the spins only read these
+        symmetry_axis_obj = np.array([0.0, 1.0, 0.0])
+        symmetry_point_obj = np.array([5.0, 0.0, -3.0])
+        faces = np.zeros((4, 3), np.int32)
+
+    pose = Pose(Rx(30.0), np.array([1.0, 2.0, 400.0]))
+    spun = references.spins(Revolved, pose)
+    assert len(spun) == references.SPIN_VIEWS
+    p0, axis_point = Revolved.symmetry_point_obj, Revolved.symmetry_point_obj + [0.0, 50.0, 0.0]
+    for k, p in enumerate(spun):
+        # the spin is about the axis: its points stay where the pose puts them, and the spin angle is k steps
+        np.testing.assert_allclose(p.apply(axis_point[None])[0], pose.apply(axis_point[None])[0], atol=1e-9)
+        np.testing.assert_allclose(p.apply(p0[None])[0], pose.apply(p0[None])[0], atol=1e-9)
+        spin_deg = 360.0 * k / references.SPIN_VIEWS
+        np.testing.assert_allclose(np.asarray(p.R), np.asarray(pose.R) @ Ry(spin_deg), atol=1e-9)
+    references.teach_views(Revolved, [(np.zeros((4, 4), np.uint8), INTR, pose)])
+    assert len(teach_calls[0]) == references.SPIN_VIEWS
+
+
+class _Box:
+    """A 60 x 40 x 30 mm box centred on the model origin (what pose_problem reads of a bank)."""
+    vertices_mm = np.array([[x, y, z] for x in (-30, 30) for y in (-20, 20) for z in (-15, 15)], float)
+
+
+@pytest.mark.parametrize("t_mm, words", [
+    ([0.0, 0.0, -40.0], "centre 40 mm behind the camera"),
+    ([0.0, 0.0, 0.4], "millimetres (not metres)"),
+    ([0.0, 0.0, 30_000.0], "30 m from the camera"),
+    ([400.0, 0.0, 400.0], "mostly outside this 320 x 240 image"),
+])
+def test_pose_problems_say_what_is_wrong(t_mm, words):
+    problem = references.pose_problem(_Box, INTR, Pose(np.eye(3), np.array(t_mm)), SIZE)
+    assert problem is not None and words in problem
+
+
+def test_the_in_image_share_is_the_projected_box_s():
+    """The box on the optical axis at 400 mm: its projection spans cx +- 500 * 30 / 385 px (the near
+    face, z 385 mm), well inside vertically. With the principal point on the image's right edge
+    (u 319.5) half of it is inside: 2 px left of that it is accepted (MIN_IN_IMAGE 0.5), 2 px right
+    refused."""
+    half_px = 500.0 * 30.0 / 385.0
+    for du, ok in ((-2.0, True), (+2.0, False)):
+        cx = SIZE[0] - 0.5 + du
+        share = (SIZE[0] - 0.5 - (cx - half_px)) / (2 * half_px)
+        assert (share >= references.MIN_IN_IMAGE) == ok
+        intr = Intrinsics(500.0, 500.0, cx, 119.5)
+        problem = references.pose_problem(_Box, intr, Pose(np.eye(3), np.array([0.0, 0.0, 400.0])), SIZE)
+        assert (problem is None) == ok, (du, problem)
+        if not ok:
+            assert f"{100 * share:.0f}% of its projected extent inside" in problem
