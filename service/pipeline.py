@@ -17,7 +17,7 @@ import trimesh
 
 from service.vision import memory, threads
 from service.vision.bank import TemplateBank
-from service.vision.build.appearance import Appearance, ReferenceView, teach
+from service.vision.build.appearance import Appearance, ReferenceView, spun, teach
 from service.vision.build.mirror import MirrorPlanes, mirror_planes, twin_poses
 from service.vision.deadline import NO_DEADLINE, Deadline, RunningMean
 from service.vision.estimate.chamfer import distance_tensor
@@ -92,12 +92,20 @@ def build_templates(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict
 
 def teach_appearance(bank: TemplateBank, views: list[tuple[np.ndarray, Intrinsics, Pose]]) -> Appearance:
     """The part's colours (``build/appearance.py``) from reference photos: each a decoded image (BGR, or
-    grey), its camera and the part's pose in it (T_cam_obj)."""
-    refs = []
+    grey), its camera and the part's pose in it (T_cam_obj). A revolved part is taught per ring about its
+    axis (``appearance.SPIN_VIEWS``); the untextured shading model's fit at each photo's pose says whether
+    the part is plain (``Appearance.plain``: an estimate does not use a plain part's colours)."""
+    refs, shading_r2 = [], []
     for image, intr, pose in views:
         bgr = image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
-        refs.append(ReferenceView(undistort_image(bgr[..., :3], intr), intr, pose))
-    return teach(bank.vertices_mm, bank.faces, refs)
+        ideal = undistort_image(bgr[..., :3], intr)
+        shading_r2.append(evidence(bank, pose, intr, colour_frame(ideal)).shading_r2)
+        poses = [pose] if bank.symmetry_axis_obj is None else spun(pose, bank.symmetry_axis_obj,
+                                                                    bank.symmetry_point_obj)
+        refs += [ReferenceView(ideal, intr, p) for p in poses]
+    taught = teach(bank.vertices_mm, bank.faces, refs)
+    return replace(taught, n_views=len(views),
+                   reference_shading_r2=float(np.median(shading_r2)) if views else float("nan"))
 
 
 def template_picture(bank: TemplateBank, k: int) -> np.ndarray:
@@ -360,12 +368,15 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     ``plane_tolerance_mm`` above or below it is not found (verdict reason "off_plane").
 
     ``appearance``: the part's colours taught from reference photos (``build/appearance.py``): every
-    candidate is then judged on them too (``verdict.APPEARANCE_WEIGHTS``).
+    candidate is then judged on them too (``verdict.APPEARANCE_WEIGHTS``), unless the photos show a plain
+    part (``Appearance.plain``).
     """
     if sort == "height" and plane is None:
         raise ValueError("sort 'height' needs a plane")
     if plane is not None:
         distance_mm = None  # the plane fixes the depth of every placement
+    if appearance is not None and appearance.plain:
+        appearance = None  # its photos teach only their light's shading (``Appearance.plain``)
     p = params or search_params(max_instances)
     t_start = time.perf_counter() if started_at is None else started_at
     deadline = Deadline(deadline_ms, start=t_start)

@@ -10,8 +10,8 @@ The estimate never teaches on its hot path: ``appearance_of`` keeps each model's
 small per-process memo keyed by the model id and the record's ``references_version``, which the store
 renews in the same transaction as every change of the photos, so a photo added or cleared by any
 process (one Redis, several replicas) is seen at the next estimate and taught once per process.
-A revolved part is taught per ring about its axis (``spins``, ``SPIN_VIEWS``): the estimate reports one
-of its equivalent spins, not the photo's.
+A revolved part is taught per ring about its axis, and a plain part's photos are kept but not used
+(``pipeline.teach_appearance``, ``Appearance.plain``).
 
 Plain numpy and the service's wire models; no HTTP here (``service.api.references`` is the glue).
 """
@@ -39,14 +39,6 @@ MAX_REFERENCES = 12  # a few views covering the part's sides teach it; more only
 MIN_IN_IMAGE = 0.5  # share of the part's projected bounding box that must lie inside the photo
 MIN_DEPTH_MM = 1.0  # every corner of the part's bounding box must lie this far in front of the camera
 TAUGHT_MEMO_SIZE = 16  # models whose taught appearance a process keeps
-# A revolved part (a model with a continuous symmetry) looks the same at every spin about its axis, so
-# the estimate reports one of the equivalent spins, not the photo's: its colours are taught per ring
-# about the axis (each photo taught at this many spins, the median over them), a pattern around the
-# axis is not. The paper sprayer's own photo, taught as it was shot, read -0.67 at the estimate's
-# spin (found: refused as appearance_mismatch); taught per ring +0.55 (found, as untaught). On the paper
-# set (distance not given, image 0001 the reference, the 19 others queried): untaught 19 found, taught
-# as shot 4, per ring 15 (0 wrong in all three; a plain part is better left untaught: API.md).
-SPIN_VIEWS = 12
 
 # The keys an estimate's pose (PoseJSON, Candidate, Refined) has beside R and t_mm: a confirmed estimate's
 # ``refined`` pose can be posted back unchanged. Any other unknown key is still refused (a typo).
@@ -104,29 +96,12 @@ def _view(image: np.ndarray, camera: dict[str, Any], T_cam_obj: dict[str, Any]
             Pose(np.asarray(T_cam_obj["R"], float), np.asarray(T_cam_obj["t_mm"], float)))
 
 
-def spins(bank: TemplateBank, pose: Pose) -> list[Pose]:
-    """``pose`` alone; for a revolved part, ``pose`` turned about the part's axis to ``SPIN_VIEWS``
-    equally spaced spins (``T_cam_obj @ T_spin``: the part's point p goes where S (p - p0) + p0 was)."""
-    if bank.symmetry_axis_obj is None:
-        return [pose]
-    from service.cell import axis_rotation
-
-    p0 = np.zeros(3) if bank.symmetry_point_obj is None else np.asarray(bank.symmetry_point_obj, float)
-    R, t = np.asarray(pose.R, float), np.asarray(pose.t_mm, float)
-    out = []
-    for k in range(SPIN_VIEWS):
-        S = axis_rotation(bank.symmetry_axis_obj, 2.0 * np.pi * k / SPIN_VIEWS)
-        out.append(Pose(R @ S, R @ (p0 - S @ p0) + t))
-    return out
-
-
 def teach_views(bank: TemplateBank, views: list[tuple[np.ndarray, Intrinsics, Pose]]) -> Appearance | None:
-    """The appearance reference photos (decoded image, intrinsics, T_cam_obj) teach, a revolved part's
-    per ring (``spins``); None for none."""
+    """The appearance reference photos (decoded image, intrinsics, T_cam_obj) teach
+    (``pipeline.teach_appearance``: a revolved part's per ring); None for none."""
     if not views:
         return None
-    return pipeline.teach_appearance(bank, [(img, intr, p) for img, intr, pose in views
-                                            for p in spins(bank, pose)])
+    return pipeline.teach_appearance(bank, views)
 
 
 def teach_stored(bank: TemplateBank, references: list[dict[str, Any]]) -> Appearance | None:

@@ -580,6 +580,13 @@ class ReferenceAdded(BaseModel):
     known_fraction: float = Field(description="0..1, share of the mesh's faces whose colour all the photos "
                                   "teach")
     faces_taught_by_this_view: int = Field(description="faces this photo alone shows well enough to teach")
+    plain: bool = Field(description="the photos show a plain part (the untextured shading model explains "
+                        "them, in shades of one colour): its taught colours are kept but not used, and "
+                        "estimates are judged as for an untaught part")
+    reference_shading_r2: float = Field(description="0..1, median over the photos of the untextured shading "
+                                        "model's fit at their poses (plain at >= 0.8 with hue_share < 0.01)")
+    hue_share: float = Field(description="0..1, share of the taught colours' variance off their main colour "
+                             "axis")
 
 
 class References(BaseModel):
@@ -591,6 +598,10 @@ class References(BaseModel):
     known_fraction: float | None = Field(
         description="0..1, share of the mesh's faces whose colour the photos teach; null while the model "
                     "is not ready")
+    plain: bool | None = Field(None, description="as in the POST's answer; null without photos or while the "
+                               "model is not ready")
+    reference_shading_r2: float | None = None
+    hue_share: float | None = None
     views: list[ReferencePhoto]
 
 

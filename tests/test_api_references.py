@@ -3,10 +3,11 @@ delete, the estimate judged on the taught colours, and one test per integrator m
 
 The known answers: paper/images/0001.png with its ground-truth pose and K (paper/gt.jsonl, first row)
 is a photo of the sprayer at a known pose. Posted as a reference, it must teach exactly what
-``pipeline.teach_appearance`` teaches from that view directly (the sprayer is revolved: from the view
-turned to 12 spins about its axis, built here), and an estimate of the same photo must find the part
-at the truth. The L-bracket (no symmetry) rendered at a known pose (tests/test_api_cell.py's scene) is
-taught as shot, and its estimate reads the taught colours back off the same photo.
+``build.appearance.teach`` teaches from that view directly (the sprayer is revolved: from the view
+turned to 12 spins about its axis, built here); the sprayer is plain grey, so the answer says so and an
+estimate of the same photo finds the part at the truth judged as untaught. The L-bracket (no symmetry)
+painted a colour per side and rendered at a known pose is taught as shot, and its estimate reads the
+taught colours back off the same photo.
 """
 
 from __future__ import annotations
@@ -23,12 +24,17 @@ from service.main import create_app
 from service.references import ESTIMATE_POSE_KEYS, MAX_REFERENCES
 from service.settings import Settings
 from service.store import Store, model_id
+from service.vision.build.appearance import ReferenceView, teach
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Ry, rotation_angle_deg
+from service.vision.geometry.render import render
 from tests.api_helpers import wait_built
 from tests.test_api_cell import INTRINSICS as LBRACKET_CAMERA
 from tests.test_api_cell import T_CAM_OBJ as LBRACKET_T_CAM_OBJ
-from tests.test_api_cell import render_scene, transform
+from tests.test_api_cell import H as LBRACKET_H
+from tests.test_api_cell import K as LBRACKET_K
+from tests.test_api_cell import W as LBRACKET_W
+from tests.test_api_cell import png, transform
 from tests.test_api_errors import assert_error
 
 with warnings.catch_warnings():  # starlette would like httpx2; the test extra installs httpx
@@ -90,15 +96,34 @@ def estimate(client, image: bytes, camera: dict, mid: str | None = None, distanc
 
 
 def taught_directly(client, mid: str, image: bytes, camera: dict, truth: dict, spins: int = 1):
-    """What ``pipeline.teach_appearance`` teaches from the view itself, outside the service: with
+    """What ``build.appearance.teach`` teaches from the view itself, outside the service: with
     ``spins``, from the view turned to that many spins about the model's y axis (the sprayer's, through
-    its origin): T_cam_obj @ Ry(s)."""
+    its origin): T_cam_obj @ Ry(s). (No lens distortion here: the photo is the ideal camera's.)"""
     with Store(client.cache) as store:
         bank = store.bank(mid)
     intr = Intrinsics(camera["fx"], camera["fy"], camera["cx"], camera["cy"])
     R, t = np.asarray(truth["R"], float), np.asarray(truth["t_mm"], float)
-    views = [(decode_image(image), intr, Pose(R @ Ry(360.0 * k / spins), t)) for k in range(spins)]
-    return pipeline.teach_appearance(bank, views)
+    photo = decode_image(image)
+    views = [ReferenceView(photo, intr, Pose(R @ Ry(360.0 * k / spins), t)) for k in range(spins)]
+    return teach(bank.vertices_mm, bank.faces, views)
+
+
+SIDE_BGR = np.array([[200, 40, 40], [40, 200, 40], [40, 40, 200], [200, 200, 40], [200, 40, 200],
+                     [40, 200, 200]], float)  # a colour per side: +x, -x, +y, -y, +z, -z
+
+
+def painted_scene(mesh) -> bytes:
+    """PNG bytes of the L-bracket at its truth, each face painted by the side its normal points to (a
+    part painted, not plain: the colours spread off one colour axis), on a grey background."""
+    v, f = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
+    r = render(v, f, Pose.from_matrix(LBRACKET_T_CAM_OBJ), LBRACKET_K, (LBRACKET_W, LBRACKET_H))
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    axis = np.argmax(np.abs(n), axis=1)
+    side = 2 * axis + (n[np.arange(len(n)), axis] < 0)
+    img = np.full((LBRACKET_H, LBRACKET_W, 3), 90.0)
+    on = r.face_id >= 0
+    img[on] = SIDE_BGR[side[r.face_id[on]]]
+    return png(img.astype(np.uint8))
 
 
 def taught_faces(appearance) -> int:
@@ -116,15 +141,18 @@ def test_a_reference_photo_teaches_the_estimate_and_delete_forgets_it(untaught, 
     assert added["model_id"] == client.model_id and added["index"] == 0 and added["references"] == 1
     assert added["max_references"] == MAX_REFERENCES
     as_shot = taught_directly(client, client.model_id, image, camera, truth)
-    assert added["faces_taught_by_this_view"] == taught_faces(as_shot) > 0
     per_ring = taught_directly(client, client.model_id, image, camera, truth, spins=12)
+    assert added["faces_taught_by_this_view"] == taught_faces(per_ring) > taught_faces(as_shot) > 0
     assert added["known_fraction"] == pytest.approx(per_ring.known_fraction, abs=1e-12)
     assert added["known_fraction"] > as_shot.known_fraction > 0  # a ring is taught all round
+    # The paper renders are Lambert-shaded grey: the shading model explains the photo, in one colour.
+    assert added["plain"] is True and added["reference_shading_r2"] >= 0.8 and added["hue_share"] < 0.01
     assert r.headers["Location"] == f"/models/{client.model_id}/references"
     assert client.get(f"/models/{client.model_id}").json()["references"] == 1
 
     listed = client.get(f"/models/{client.model_id}/references").json()
     assert listed["references"] == 1 and listed["known_fraction"] == added["known_fraction"]
+    assert listed["plain"] is True
     (view,) = listed["views"]
     assert view["index"] == 0 and (view["width"], view["height"]) == (1280, 960)
     assert view["camera_name"] is None and view["camera"]["fx"] == camera["fx"]
@@ -133,9 +161,8 @@ def test_a_reference_photo_teaches_the_estimate_and_delete_forgets_it(untaught, 
 
     taught = estimate(client, image, camera)
     assert taught["found"] is True
-    evidence = taught["verdict"]["evidence"]
-    # per ring, the photo's light and shade around the axis is not taught: positively correlated
-    assert evidence["appearance"] > 0 and evidence["appearance_known"] > 0
+    # a plain part's photos teach only their light's shading: the estimate is judged as untaught
+    assert "appearance" not in taught["verdict"]["evidence"]
     R = np.asarray(taught["refined"]["R"])
     assert np.linalg.norm(np.asarray(taught["refined"]["t_mm"]) - truth["t_mm"]) < FOUND_AT_TRUTH_MM
     # the sprayer turns about its y axis: compare the axis (model y in the camera frame), not the spin
@@ -151,9 +178,10 @@ def test_a_reference_photo_teaches_the_estimate_and_delete_forgets_it(untaught, 
 
 def test_a_part_without_symmetry_reads_its_own_photo_s_colours_back_at_the_truth(client, lbracket_model,
                                                                                  lbracket):
-    mid, image, truth = lbracket_model, render_scene(lbracket[1]), transform(LBRACKET_T_CAM_OBJ)
+    mid, image, truth = lbracket_model, painted_scene(lbracket[1]), transform(LBRACKET_T_CAM_OBJ)
     r = post(client, image, LBRACKET_CAMERA, truth, mid=mid)
     assert r.status_code == 201, r.text
+    assert r.json()["plain"] is False and r.json()["hue_share"] > 0.01
     as_shot = taught_directly(client, mid, image, LBRACKET_CAMERA, truth)
     assert r.json()["known_fraction"] == pytest.approx(as_shot.known_fraction, abs=1e-12)
     assert r.json()["faces_taught_by_this_view"] == taught_faces(as_shot) > 0

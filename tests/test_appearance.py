@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.vision.build.appearance import ReferenceView, teach, vertex_normals
+from service.vision.build.appearance import SPIN_VIEWS, ReferenceView, spun, teach, vertex_normals
 from service.vision.estimate.evidence import ColourFrame, evidence
 from service.vision.estimate.verdict import (
     APPEARANCE_WEIGHTS,
@@ -227,3 +227,18 @@ def test_estimate_with_taught_colours_finds_the_painted_pose(box_bank):
     assert out.verdict.evidence["appearance"] > 0.9
     assert _rot_deg(out.refined.pose.R, POSE_T.R) < TAUGHT_FOUND_ROT_DEG
     assert np.linalg.norm(out.refined.pose.t_mm - POSE_T.t_mm) < 5.0
+
+
+def test_a_revolved_part_is_taught_at_every_spin_about_its_axis():
+    """The spins turn the part about its own axis: the axis's points stay where the pose puts them, and
+    spin k is k steps of a full turn (about y here: R @ Ry)."""
+    axis, p0 = np.array([0.0, 1.0, 0.0]), np.array([5.0, 0.0, -3.0])
+    pose = Pose(Rx(30.0), np.array([1.0, 2.0, 400.0]))
+    spins = spun(pose, axis, p0)
+    assert len(spins) == SPIN_VIEWS
+    axis_point = p0 + [0.0, 50.0, 0.0]
+    for k, p in enumerate(spins):
+        np.testing.assert_allclose(p.apply(axis_point[None])[0], pose.apply(axis_point[None])[0], atol=1e-9)
+        np.testing.assert_allclose(p.apply(p0[None])[0], pose.apply(p0[None])[0], atol=1e-9)
+        turn = Ry(360.0 * k / SPIN_VIEWS)
+        np.testing.assert_allclose(np.asarray(p.R), np.asarray(pose.R) @ turn, atol=1e-9)

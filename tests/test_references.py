@@ -1,6 +1,6 @@
 """service.references without HTTP: the taught-appearance memo (taught once per set of reference
-photos and process, renewed when any process changes the set), the pose checks, the spins of a
-revolved part. Both store backends (a real Redis, as tests/test_store.py)."""
+photos and process, renewed when any process changes the set), the pose checks. Both store backends
+(a real Redis, as tests/test_store.py)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from service import pipeline, references
 from service.store import Store
 from service.vision.build.appearance import Appearance
 from service.vision.geometry.camera import Intrinsics
-from service.vision.geometry.frames import Pose, Rx, Ry
+from service.vision.geometry.frames import Pose
 
 INTR = Intrinsics(500.0, 500.0, 159.5, 119.5)
 SIZE = (320, 240)
@@ -75,26 +75,6 @@ def test_the_appearance_is_taught_once_per_reference_set_and_renewed_by_any_proc
         other.clear_references("m")
         assert references.appearance_of(api, api.get("m"), bank) is None
         assert len(teach_calls) == 2  # nothing to teach
-
-
-def test_a_revolved_part_is_taught_at_every_spin_about_its_axis(teach_calls):
-    class Revolved:  # the spins only read these
-        symmetry_axis_obj = np.array([0.0, 1.0, 0.0])
-        symmetry_point_obj = np.array([5.0, 0.0, -3.0])
-        faces = np.zeros((4, 3), np.int32)
-
-    pose = Pose(Rx(30.0), np.array([1.0, 2.0, 400.0]))
-    spun = references.spins(Revolved, pose)
-    assert len(spun) == references.SPIN_VIEWS
-    p0, axis_point = Revolved.symmetry_point_obj, Revolved.symmetry_point_obj + [0.0, 50.0, 0.0]
-    for k, p in enumerate(spun):
-        # the spin is about the axis: its points stay where the pose puts them, and the spin angle is k steps
-        np.testing.assert_allclose(p.apply(axis_point[None])[0], pose.apply(axis_point[None])[0], atol=1e-9)
-        np.testing.assert_allclose(p.apply(p0[None])[0], pose.apply(p0[None])[0], atol=1e-9)
-        spin_deg = 360.0 * k / references.SPIN_VIEWS
-        np.testing.assert_allclose(np.asarray(p.R), np.asarray(pose.R) @ Ry(spin_deg), atol=1e-9)
-    references.teach_views(Revolved, [(np.zeros((4, 4), np.uint8), INTR, pose)])
-    assert len(teach_calls[0]) == references.SPIN_VIEWS
 
 
 class _Box:

@@ -43,19 +43,23 @@ async def post_reference(
     response.headers["Location"] = f"/models/{model.id}/references"
     return ReferenceAdded(model_id=model.id, index=out["index"], references=out["record"]["references"],
                           max_references=MAX_REFERENCES, known_fraction=out["appearance"].known_fraction,
-                          faces_taught_by_this_view=out["faces"])
+                          faces_taught_by_this_view=out["faces"], plain=out["appearance"].plain,
+                          reference_shading_r2=out["appearance"].reference_shading_r2,
+                          hue_share=out["appearance"].hue_share)
 
 
 @router.get("/models/{model_id}/references", response_model=References, responses=error_responses(404, 422))
 def get_references(record: ModelRecord, store: StoreDep) -> References:
     """The model's reference photos (without their images) and how much of the part they teach."""
     views = store.references(record["id"])
-    known = None
+    known, appearance = None, None
     if record.get("status") == "ready" and (bank := store.bank(record["id"])) is not None:
         appearance = appearance_of(store, record, bank)
         known = 0.0 if appearance is None else appearance.known_fraction
+    taught = {} if appearance is None else {"plain": appearance.plain, "hue_share": appearance.hue_share,
+                                            "reference_shading_r2": appearance.reference_shading_r2}
     return References(model_id=record["id"], references=len(views), max_references=MAX_REFERENCES,
-                      known_fraction=known,
+                      known_fraction=known, **taught,
                       views=[ReferencePhoto(index=i, **v) for i, v in enumerate(views)])
 
 
