@@ -37,7 +37,8 @@ from bench.accuracy import DATA_DIR, gt_bank, read_gt  # noqa: E402
 from bench.fit_verdict import fit_monotone  # noqa: E402
 from bench.hypotheses import read_colour  # noqa: E402
 from bench.truth_evidence import auc  # noqa: E402
-from service.vision.build.appearance import Appearance, ReferenceView, teach  # noqa: E402
+from service.pipeline import teach_appearance  # noqa: E402
+from service.vision.build.appearance import Appearance  # noqa: E402
 from service.vision.estimate import evidence as _evidence  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
@@ -72,12 +73,13 @@ def _pose(g: dict) -> Pose:
 
 
 def taught(set_dir: Path, n_references: int) -> dict[str, Appearance]:
-    """Each model's appearance taught from the reference images it appears in."""
+    """Each model's appearance taught from the reference images it appears in (``pipeline.teach_appearance``,
+    the other annotated parts' pixels hidden)."""
     by_image: dict[str, list[dict]] = defaultdict(list)
     for g in read_gt(set_dir):
         if not g.get("absent"):
             by_image[g["image"]].append(g)
-    views: dict[str, list[ReferenceView]] = defaultdict(list)
+    views: dict[str, list[tuple]] = defaultdict(list)
     for im in reference_images(set_dir, n_references):
         image = read_colour(set_dir / im)
         h, w = image.shape[:2]
@@ -92,9 +94,8 @@ def taught(set_dir: Path, n_references: int) -> dict[str, Appearance]:
         for g in by_image[im]:
             others = [d for m, d in depths.items() if m != g["model"]]
             hidden = (np.min(others, axis=0) < depths[g["model"]]) if others else None
-            views[g["model"]].append(ReferenceView(image, Intrinsics.from_K(np.asarray(g["K"], float)),
-                                                   _pose(g), hidden))
-    return {m: teach(gt_bank(set_dir, m).vertices_mm, gt_bank(set_dir, m).faces, v) for m, v in views.items()}
+            views[g["model"]].append((image, Intrinsics.from_K(np.asarray(g["K"], float)), _pose(g), hidden))
+    return {m: teach_appearance(gt_bank(set_dir, m), v) for m, v in views.items()}
 
 
 def appearance_rows(name: str, n_references: int) -> list[dict]:

@@ -90,19 +90,20 @@ def build_templates(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict
     return build_bank(mesh, symmetry=symmetry, grid=grid or {}, progress=progress)
 
 
-def teach_appearance(bank: TemplateBank, views: list[tuple[np.ndarray, Intrinsics, Pose]]) -> Appearance:
+def teach_appearance(bank: TemplateBank, views: list[tuple]) -> Appearance:
     """The part's colours (``build/appearance.py``) from reference photos: each a decoded image (BGR, or
-    grey), its camera and the part's pose in it (T_cam_obj). A revolved part is taught per ring about its
-    axis (``appearance.SPIN_VIEWS``); the untextured shading model's fit at each photo's pose says whether
+    grey), its camera and the part's pose in it (T_cam_obj), and optionally an (H, W) bool mask of the
+    pixels where something else hides the part. A revolved part is taught per ring about its axis
+    (``appearance.SPIN_VIEWS``); the untextured shading model's fit at each photo's pose says whether
     the part is plain (``Appearance.plain``: an estimate does not use a plain part's colours)."""
     refs, shading_r2 = [], []
-    for image, intr, pose in views:
+    for image, intr, pose, *hidden in views:
         bgr = image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
         ideal = undistort_image(bgr[..., :3], intr)
         shading_r2.append(evidence(bank, pose, intr, colour_frame(ideal)).shading_r2)
         poses = [pose] if bank.symmetry_axis_obj is None else spun(pose, bank.symmetry_axis_obj,
                                                                     bank.symmetry_point_obj)
-        refs += [ReferenceView(ideal, intr, p) for p in poses]
+        refs += [ReferenceView(ideal, intr, p, hidden[0] if hidden else None) for p in poses]
     taught = teach(bank.vertices_mm, bank.faces, refs)
     return replace(taught, n_views=len(views),
                    reference_shading_r2=float(np.median(shading_r2)) if views else float("nan"))
