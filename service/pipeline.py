@@ -17,7 +17,16 @@ import trimesh
 
 from service.vision import memory, threads
 from service.vision.bank import TemplateBank
-from service.vision.build.appearance import Appearance, ReferenceView, spun, teach
+from service.vision.build.appearance import (
+    MIN_AGREEMENT_KNOWN,
+    Appearance,
+    ReferenceView,
+    colour_spread,
+    combine,
+    read_views,
+    spun,
+    teach,
+)
 from service.vision.build.mirror import MirrorPlanes, mirror_planes, twin_poses
 from service.vision.deadline import NO_DEADLINE, Deadline, RunningMean
 from service.vision.estimate.chamfer import distance_tensor
@@ -94,19 +103,34 @@ def teach_appearance(bank: TemplateBank, views: list[tuple]) -> Appearance:
     """The part's colours (``build/appearance.py``) from reference photos: each a decoded image (BGR, or
     grey), its camera and the part's pose in it (T_cam_obj), and optionally an (H, W) bool mask of the
     pixels where something else hides the part. A revolved part is taught per ring about its axis
-    (``appearance.SPIN_VIEWS``); the untextured shading model's fit at each photo's pose says whether
-    the part is plain (``Appearance.plain``: an estimate does not use a plain part's colours)."""
-    refs, shading_r2 = [], []
-    for image, intr, pose, *hidden in views:
+    (``appearance.SPIN_VIEWS``). Whether an estimate uses them (``Appearance.used``): the untextured
+    shading model's fit at each photo's pose says whether the part is plain, and each photo judged on
+    the colours the others teach whether the photos agree."""
+    refs, photo_of, shading_r2, frames = [], [], [], []
+    for i, (image, intr, pose, *hidden) in enumerate(views):
         bgr = image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
-        ideal = undistort_image(bgr[..., :3], intr)
-        shading_r2.append(evidence(bank, pose, intr, colour_frame(ideal)).shading_r2)
+        frame = colour_frame(undistort_image(bgr[..., :3], intr))
+        frames.append(frame)
+        shading_r2.append(evidence(bank, pose, intr, frame).shading_r2)
         poses = [pose] if bank.symmetry_axis_obj is None else spun(pose, bank.symmetry_axis_obj,
                                                                     bank.symmetry_point_obj)
-        refs += [ReferenceView(ideal, intr, p, hidden[0] if hidden else None) for p in poses]
-    taught = teach(bank.vertices_mm, bank.faces, refs)
-    return replace(taught, n_views=len(views),
-                   reference_shading_r2=float(np.median(shading_r2)) if views else float("nan"))
+        refs += [ReferenceView(frame.bgr, intr, p, hidden[0] if hidden else None) for p in poses]
+        photo_of += [i] * len(poses)
+    if not views:
+        return teach(bank.vertices_mm, bank.faces, [])
+    seen = read_views(bank.vertices_mm, bank.faces, refs)
+    face_bgr = combine(bank.faces, seen)
+    photo_of = np.asarray(photo_of)
+    agree = []
+    for i, (_, intr, pose, *_) in enumerate(views):
+        if len(views) < 2:
+            break
+        others = combine(bank.faces, seen, photo_of != i)
+        ev = evidence(bank, pose, intr, frames[i], face_bgr=others)
+        if ev.appearance_known is not None and ev.appearance_known >= MIN_AGREEMENT_KNOWN:
+            agree.append(ev.appearance)
+    return Appearance(face_bgr, len(views), float(np.median(shading_r2)), colour_spread(face_bgr),
+                      float(np.median(agree)) if agree else float("nan"))
 
 
 def template_picture(bank: TemplateBank, k: int) -> np.ndarray:
@@ -370,14 +394,14 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
 
     ``appearance``: the part's colours taught from reference photos (``build/appearance.py``): every
     candidate is then judged on them too (``verdict.APPEARANCE_WEIGHTS``), unless the photos show a plain
-    part (``Appearance.plain``).
+    part or disagree (``Appearance.used``).
     """
     if sort == "height" and plane is None:
         raise ValueError("sort 'height' needs a plane")
     if plane is not None:
         distance_mm = None  # the plane fixes the depth of every placement
-    if appearance is not None and appearance.plain:
-        appearance = None  # its photos teach only their light's shading (``Appearance.plain``)
+    if appearance is not None and not appearance.used:
+        appearance = None  # a plain part's, or photos that disagree (``Appearance.used``)
     p = params or search_params(max_instances)
     t_start = time.perf_counter() if started_at is None else started_at
     deadline = Deadline(deadline_ms, start=t_start)

@@ -587,6 +587,10 @@ class ReferenceAdded(BaseModel):
                                         "model's fit at their poses (plain at >= 0.8 with hue_share < 0.01)")
     hue_share: float = Field(description="0..1, share of the taught colours' variance off their main colour "
                              "axis")
+    agreement: float | None = Field(description="-1..1, median over the photos of each one's appearance as "
+                                    "the others teach it (null with one photo): do they agree on colours?")
+    used: bool = Field(description="whether estimates are judged on the taught colours: not plain, and the "
+                       "photos agree (agreement >= 0.6; so at least two photos)")
 
 
 class References(BaseModel):
@@ -602,6 +606,8 @@ class References(BaseModel):
                                "model is not ready")
     reference_shading_r2: float | None = None
     hue_share: float | None = None
+    agreement: float | None = None
+    used: bool | None = None
     views: list[ReferencePhoto]
 
 

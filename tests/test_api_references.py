@@ -26,7 +26,7 @@ from service.settings import Settings
 from service.store import Store, model_id
 from service.vision.build.appearance import ReferenceView, teach
 from service.vision.geometry.camera import Intrinsics
-from service.vision.geometry.frames import Pose, Ry, rotation_angle_deg
+from service.vision.geometry.frames import Pose, Rx, Ry, rotation_angle_deg
 from service.vision.geometry.render import render
 from tests.api_helpers import wait_built
 from tests.test_api_cell import INTRINSICS as LBRACKET_CAMERA
@@ -112,11 +112,12 @@ SIDE_BGR = np.array([[200, 40, 40], [40, 200, 40], [40, 40, 200], [200, 200, 40]
                      [40, 200, 200]], float)  # a colour per side: +x, -x, +y, -y, +z, -z
 
 
-def painted_scene(mesh) -> bytes:
-    """PNG bytes of the L-bracket at its truth, each face painted by the side its normal points to (a
-    part painted, not plain: the colours spread off one colour axis), on a grey background."""
+def painted_scene(mesh, T_cam_obj: np.ndarray = LBRACKET_T_CAM_OBJ) -> bytes:
+    """PNG bytes of the L-bracket at ``T_cam_obj`` (default its truth), each face painted by the side its
+    normal points to (a part painted, not plain: the colours spread off one colour axis), on a grey
+    background."""
     v, f = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
-    r = render(v, f, Pose.from_matrix(LBRACKET_T_CAM_OBJ), LBRACKET_K, (LBRACKET_W, LBRACKET_H))
+    r = render(v, f, Pose.from_matrix(T_cam_obj), LBRACKET_K, (LBRACKET_W, LBRACKET_H))
     n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     axis = np.argmax(np.abs(n), axis=1)
     side = 2 * axis + (n[np.arange(len(n)), axis] < 0)
@@ -185,6 +186,16 @@ def test_a_part_without_symmetry_reads_its_own_photo_s_colours_back_at_the_truth
     as_shot = taught_directly(client, mid, image, LBRACKET_CAMERA, truth)
     assert r.json()["known_fraction"] == pytest.approx(as_shot.known_fraction, abs=1e-12)
     assert r.json()["faces_taught_by_this_view"] == taught_faces(as_shot) > 0
+    # One photo cannot be checked against another: kept, not used.
+    assert r.json()["agreement"] is None and r.json()["used"] is False
+    assert "appearance" not in estimate(client, image, LBRACKET_CAMERA, mid=mid, distance_mm=450.0)[
+        "verdict"]["evidence"]
+    for turn in (Rx(20.0), Ry(-20.0)):  # two more views of the same paint: they agree
+        T = LBRACKET_T_CAM_OBJ.copy()
+        T[:3, :3] = turn @ T[:3, :3]
+        r = post(client, painted_scene(lbracket[1], T), LBRACKET_CAMERA, transform(T), mid=mid)
+        assert r.status_code == 201, r.text
+    assert r.json()["used"] is True and r.json()["agreement"] > 0.9
     res = estimate(client, image, LBRACKET_CAMERA, mid=mid, distance_mm=450.0)
     assert res["found"] is True
     assert res["verdict"]["evidence"]["appearance"] > SAME_PHOTO_APPEARANCE

@@ -215,12 +215,14 @@ def box_bank():
 
 
 def test_estimate_with_taught_colours_finds_the_painted_pose(box_bank):
-    """End to end: taught from two photos at other poses (``pipeline.teach_appearance``), the estimate
+    """End to end: taught from three photos at other poses (``pipeline.teach_appearance``), the estimate
     reports the taught evidence and finds the box at the painted truth."""
     from service import pipeline
 
-    photos = [(_photo(p, seed=7, intr=INTR_E2E, size=SIZE_E2E)[0], INTR_E2E, p) for p in (POSE_A, POSE_B)]
+    photos = [(_photo(p, seed=7, intr=INTR_E2E, size=SIZE_E2E)[0], INTR_E2E, p)
+              for p in (POSE_A, POSE_C, POSE_B)]
     app = pipeline.teach_appearance(box_bank, photos)
+    assert app.used and app.agreement > 0.95
     img, _ = _photo(POSE_T, seed=8, intr=INTR_E2E, size=SIZE_E2E)
     out = pipeline.estimate(box_bank, img, INTR_E2E, distance_range_mm=(350.0, 550.0), appearance=app)
     assert out.found and out.verdict.reason == "found", out.verdict
@@ -242,3 +244,22 @@ def test_a_revolved_part_is_taught_at_every_spin_about_its_axis():
         np.testing.assert_allclose(p.apply(p0[None])[0], pose.apply(p0[None])[0], atol=1e-9)
         turn = Ry(360.0 * k / SPIN_VIEWS)
         np.testing.assert_allclose(np.asarray(p.R), np.asarray(pose.R) @ turn, atol=1e-9)
+
+
+@pytest.mark.parametrize("repainted, used", [((0, 1, 2, 3, 4, 5), True), ((3, 5, 1, 0, 2, 4), False)])
+def test_photos_are_used_only_if_each_agrees_with_what_the_others_teach(repainted, used):
+    """Three photos of one paint agree (each one's colours, as the other two teach them, correlate
+    perfectly); the same three with each painted another way (a different part, or shading that moves
+    with the pose) disagree, and their colours are not used. One photo alone cannot be checked."""
+    from service import pipeline
+
+    part = SimpleNamespace(vertices_mm=BOX.vertices_mm, faces=BOX.faces, symmetry_axis_obj=None,
+                           symmetry_point_obj=None)
+    perms = [np.arange(6), np.asarray(repainted), np.asarray(repainted)[np.asarray(repainted)]]
+    photos = [(_photo(p, SIDE_BGR[perm], seed=7, intr=INTR_E2E, size=SIZE_E2E)[0], INTR_E2E, p)
+              for perm, p in zip(perms, (POSE_A, POSE_C, POSE_B), strict=True)]
+    app = pipeline.teach_appearance(part, photos)
+    assert app.used == used and not app.plain
+    assert (app.agreement > 0.95) if used else (app.agreement < 0.0)
+    one = pipeline.teach_appearance(part, photos[:1])
+    assert np.isnan(one.agreement) and not one.used

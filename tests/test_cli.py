@@ -126,12 +126,13 @@ def test_the_clis_estimate_is_judged_on_the_model_s_reference_photos(tmp_path, d
                                                                       monkeypatch):
     """A reference photo stored in the cache (as POST /models/{id}/references stores it) reaches the
     CLI's estimate: its verdict reads the taught colours (evidence.appearance). (The paper sprayer is a
-    plain part, whose colours an estimate does not use: here every part counts as painted.)"""
+    plain part, and one photo cannot be checked against another: here every taught part's colours are
+    used.)"""
     from service import references
     from service.schemas import Transform
     from service.vision.build import appearance
 
-    monkeypatch.setattr(appearance, "PLAIN_SHADING_R2", 1.01)
+    monkeypatch.setattr(appearance.Appearance, "used", property(lambda self: True))
     mesh = str(data_dir / "models" / "sprayer.stl")
     assert main(["--cache-dir", str(tmp_path), "build", mesh, "--symmetry", "y", "--templates", GRID]) == 0
     mid = json.loads(capsys.readouterr().out)["id"]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
+import numpy as np
 from fastapi import APIRouter, File, Form, Response, UploadFile
 from starlette.concurrency import run_in_threadpool
 
@@ -43,9 +44,7 @@ async def post_reference(
     response.headers["Location"] = f"/models/{model.id}/references"
     return ReferenceAdded(model_id=model.id, index=out["index"], references=out["record"]["references"],
                           max_references=MAX_REFERENCES, known_fraction=out["appearance"].known_fraction,
-                          faces_taught_by_this_view=out["faces"], plain=out["appearance"].plain,
-                          reference_shading_r2=out["appearance"].reference_shading_r2,
-                          hue_share=out["appearance"].hue_share)
+                          faces_taught_by_this_view=out["faces"], **_judged(out["appearance"]))
 
 
 @router.get("/models/{model_id}/references", response_model=References, responses=error_responses(404, 422))
@@ -56,8 +55,7 @@ def get_references(record: ModelRecord, store: StoreDep) -> References:
     if record.get("status") == "ready" and (bank := store.bank(record["id"])) is not None:
         appearance = appearance_of(store, record, bank)
         known = 0.0 if appearance is None else appearance.known_fraction
-    taught = {} if appearance is None else {"plain": appearance.plain, "hue_share": appearance.hue_share,
-                                            "reference_shading_r2": appearance.reference_shading_r2}
+    taught = {} if appearance is None else _judged(appearance)
     return References(model_id=record["id"], references=len(views), max_references=MAX_REFERENCES,
                       known_fraction=known, **taught,
                       views=[ReferencePhoto(index=i, **v) for i, v in enumerate(views)])
@@ -69,3 +67,11 @@ def delete_references(record: ModelRecord, store: StoreDep) -> Response:
     """Remove every reference photo: the part is judged as untaught again."""
     store.clear_references(record["id"])
     return Response(status_code=204)
+
+
+def _judged(appearance) -> dict:
+    """What decides whether estimates use the taught colours (NaN, e.g. one photo's agreement: null)."""
+    agreement = appearance.agreement
+    return {"plain": appearance.plain, "reference_shading_r2": appearance.reference_shading_r2,
+            "hue_share": appearance.hue_share, "used": appearance.used,
+            "agreement": None if not np.isfinite(agreement) else agreement}

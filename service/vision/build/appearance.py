@@ -45,6 +45,14 @@ PLAIN_SHADING_R2 = 0.8
 # spread off one colour axis (the test box: 0.45 of their variance; paper's sprayer 0.00; Linemod's
 # parts 0.02-0.41; clutter2's grey Blender parts 0.02-0.07).
 PLAIN_HUE_SHARE = 0.01
+# The photos must agree on the colours: each photo's colours, as the others teach them, must correlate
+# with it at least this much (median; ``Appearance.agreement``). Taught light and shade of a plain part
+# does not carry from one pose to another; a part's paint does. Measured (bench/appearance.py agreement):
+# Linemod's 8 parts 0.70-0.97 from 4 photos (0.45-0.97 from 8: the eggbox's 0.45); clutter2's grey
+# Blender parts -0.45-0.39, clutter's 0.56 (the sprayer); the paper sprayer 0.69 (plain by the above).
+# Taught unchecked, clutter2's sprayer (shading r2 0.73) was found 347 px off at 0.99 on one image.
+MIN_AGREEMENT = 0.6
+MIN_AGREEMENT_KNOWN = 0.5  # a photo whose inside the others teach less of is not judged
 # A revolved part looks the same at every spin about its axis, and the estimate reports one of those
 # spins, not the photo's: each photo is taught at this many spins (``spun``), the median over them, so
 # the colours taught are the rings' about the axis. The paper sprayer's own photo taught as shot read
@@ -75,6 +83,16 @@ class Appearance:
     n_views: int
     reference_shading_r2: float = float("nan")
     hue_share: float = 0.0
+    # The median over the photos of ``evidence.appearance`` at each photo's pose, taught from the OTHER
+    # photos (those whose pose shows at least half its inside taught): do the photos agree on the part's
+    # colours? NaN with fewer than 2 photos or none judged (the pipeline measures it).
+    agreement: float = float("nan")
+
+    @property
+    def used(self) -> bool:
+        """Whether estimates are judged on these colours: a part not plain whose photos agree on them
+        (``MIN_AGREEMENT``; NaN, fewer than two photos, never does)."""
+        return (not self.plain) and bool(self.agreement >= MIN_AGREEMENT)
 
     @property
     def plain(self) -> bool:
@@ -170,19 +188,37 @@ def _median_over_views(per_view: np.ndarray) -> np.ndarray:
     return out
 
 
-def teach(vertices_mm: np.ndarray, faces: np.ndarray, views: Sequence[ReferenceView]) -> Appearance:
-    """The part's appearance from reference photos: per face the median over the photos of its pixels'
-    median colour; for a face no photo shows on enough pixels, the mean of its vertices' colours (each
-    the median over the photos that see it)."""
-    if not views:
-        return Appearance(np.full((len(faces), 3), np.nan, np.float32), 0)
+@dataclass(frozen=True)
+class ViewColours:
+    """What each reference view shows: (views, V, 3) vertex and (views, F, 3) face colours, NaN unseen."""
+    vertex_bgr: np.ndarray
+    face_bgr: np.ndarray
+
+
+def read_views(vertices_mm: np.ndarray, faces: np.ndarray, views: Sequence[ReferenceView]) -> ViewColours:
     per_view = [view_colours(vertices_mm, faces, v) for v in views]
-    vertex_bgr = _median_over_views(np.stack([vc for vc, _ in per_view]))
-    face_bgr = _median_over_views(np.stack([fc for _, fc in per_view]))
+    return ViewColours(np.stack([vc for vc, _ in per_view]), np.stack([fc for _, fc in per_view]))
+
+
+def combine(faces: np.ndarray, seen: ViewColours, keep: np.ndarray | None = None) -> np.ndarray:
+    """(F, 3) float32 face colours from the views ``keep`` (bool, default all): per face the median over
+    the views of its pixels' median colour; for a face no view shows on enough pixels, the mean of its
+    vertices' colours (each the median over the views that see it)."""
+    sel = slice(None) if keep is None else np.asarray(keep, bool)
+    vertex_bgr = _median_over_views(seen.vertex_bgr[sel])
+    face_bgr = _median_over_views(seen.face_bgr[sel])
     corners = vertex_bgr[np.asarray(faces, np.int64)]  # (F, 3 corners, 3 channels)
     n_seen = np.isfinite(corners[..., 0]).sum(axis=1)
     fill = ~np.isfinite(face_bgr[:, 0]) & (n_seen > 0)
     face_bgr[fill] = np.nansum(corners[fill], axis=1) / n_seen[fill, None]
+    return face_bgr
+
+
+def teach(vertices_mm: np.ndarray, faces: np.ndarray, views: Sequence[ReferenceView]) -> Appearance:
+    """The part's appearance from reference photos (``combine`` of all of them)."""
+    if not views:
+        return Appearance(np.full((len(faces), 3), np.nan, np.float32), 0)
+    face_bgr = combine(faces, read_views(vertices_mm, faces, views))
     return Appearance(face_bgr, len(views), hue_share=colour_spread(face_bgr))
 
 
