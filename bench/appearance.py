@@ -15,7 +15,12 @@ query among the cached candidates, distance 300-1200 mm).
 
     python bench/appearance.py evidence [--set lmo_dev] [--references 4] [--save w.json]
 
-The pipeline run with the taught colours is ``bench/detection.py --references 4 --half odd``.
+``parts``: per set and part, what its reference photos teach and whether estimates would use it
+(``Appearance``: faces known, reference shading r2, hue share, agreement, plain, used).
+
+    python bench/appearance.py parts --sets lmo_dev,paper,clutter2,clutter --references 4
+
+The pipeline run with the taught colours is ``bench/detection.py --references 4``.
 """
 
 from __future__ import annotations
@@ -147,14 +152,29 @@ def judge(rows: list[dict], w: np.ndarray, thr: float) -> tuple[int, int, int, i
     return found, right, found - right, len({r["q"] for r in rows})
 
 
+def parts(names: list[str], n_references: int) -> int:
+    print("| set | part | photos | faces known | reference shading r2 | hue share | agreement | plain "
+          "| used |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name in names:
+        for model, app in sorted(taught(set_dir_of(name), n_references).items()):
+            print(f"| {name} | {model} | {app.n_views} | {app.known_fraction:.2f} "
+                  f"| {app.reference_shading_r2:.2f} | {app.hue_share:.3f} | {app.agreement:.2f} "
+                  f"| {app.plain} | {app.used} |")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("command", choices=["evidence"])
+    ap.add_argument("command", choices=["evidence", "parts"])
     ap.add_argument("--set", default="lmo_dev")
+    ap.add_argument("--sets", default="lmo_dev,paper,clutter2,clutter", help="for parts")
     ap.add_argument("--references", type=int, default=4)
     ap.add_argument("--fit-half", default="even", choices=["even", "odd"])
     ap.add_argument("--save", type=Path, default=None)
     a = ap.parse_args(argv)
+    if a.command == "parts":
+        return parts(a.sets.split(","), a.references)
     rows = appearance_rows(a.set, a.references)
     truths = [r for r in rows if r["rank"] < 0 and r["mspd1"] < RIGHT_PX]
     wrong = [r for r in rows if r["rank"] >= 0 and r["mspd1"] >= RIGHT_PX]
