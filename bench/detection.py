@@ -52,15 +52,21 @@ def set_dir_of(name: str) -> Path:
 
 
 def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: float | None,
-            every_image: int = 1, references: int = 0, half: str = "all") -> list[dict]:
+            every_image: int = 1, references: int = 0, half: str = "all",
+            teach_from: str | None = None) -> list[dict]:
     """``references`` > 0: each part's colours are taught from that many of the set's images
     (``bench/appearance.py``), which are then not queried; ``half``: only the even or odd half of the
-    rest."""
+    rest. ``teach_from``: another set whose images teach them (its parts' meshes the same), every image
+    of this one queried."""
     set_dir = set_dir_of(name)
     meta = read_meta(set_dir)
     gts = read_gt(set_dir)
     appearance: dict = {}
-    if references > 0:
+    if references > 0 and teach_from is not None and set_dir_of(teach_from) != set_dir:
+        from bench.appearance import taught
+
+        appearance = taught(set_dir_of(teach_from), references)
+    elif references > 0:
         from bench.appearance import half_of, taught
 
         appearance = taught(set_dir, references)
@@ -125,6 +131,9 @@ def main(argv=None) -> int:
                     help="region proposals per frame (pipeline.REGION_PROPOSALS) instead of the service's")
     ap.add_argument("--references", type=int, default=0,
                     help="teach each part's colours from this many of the set's images (bench/appearance.py)")
+    ap.add_argument("--teach-from", default=None,
+                    help="with --references: teach from this set's images instead (e.g. absent2 taught from "
+                         "clutter2's)")
     ap.add_argument("--half", default="all", choices=["all", "even", "odd"],
                     help="with --references: only this half of the other images")
     a = ap.parse_args(argv)
@@ -145,11 +154,13 @@ def main(argv=None) -> int:
     dump = {}
     for name in a.sets.split(","):
         all_recs = [run_set(name, limit=a.limit, distance_given=a.distance_given, min_score=a.min_score,
-                            every_image=a.every_image, references=a.references, half=a.half)
+                            every_image=a.every_image, references=a.references, half=a.half,
+                            teach_from=a.teach_from)
                     for _ in range(a.repeat)]
         dump[name] = {"runs": [summarise(recs) for recs in all_recs], "records": all_recs}
         parts = [("", all_recs)]
-        if a.references and a.half == "all":  # each half too: the weights were fitted on the even one
+        # each half too: the weights were fitted on the even one
+        if a.references and a.half == "all" and a.teach_from in (None, name):
             from bench.appearance import half_of
 
             halves = half_of(set_dir_of(name), a.references)

@@ -54,7 +54,8 @@ WEIGHTS = {"bias": -3.935, "unexplained": -0.339, "region_global": 5.265, "shadi
 # The score of a part with taught colours (``build/appearance.py``; its evidence has ``appearance``): the
 # untextured shading model says nothing about a printed or painted part, the taught colours do. Fitted by
 # ``bench/appearance.py`` (logistic, signs fixed) on half of lmo_dev's images (the even ones among those
-# not used as reference photos), reported on the other half.
+# not used as reference photos), reported on the other half. (Its teaching now hides the other annotated
+# parts' pixels through ``pipeline.teach_appearance``: the refit moves each weight by under 0.02.)
 APPEARANCE_WEIGHTS = {"bias": -5.58, "appearance": 4.43, "appearance_known": 3.76, "region_global": 4.29}
 # Operating point (``options.min_score`` moves it).
 MIN_SCORE = 0.98
