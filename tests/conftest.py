@@ -107,3 +107,11 @@ def redis_url(redis_server) -> str:
     with redis.Redis.from_url(redis_server.url) as r:
         r.flushall()
     return redis_server.url
+
+
+@pytest.fixture(params=["disk", "redis"])
+def location(request, tmp_path) -> str:
+    """Where a Store opens: a cache directory, or the URL of a real (emptied) Redis (both, in turn)."""
+    if request.param == "redis":
+        return request.getfixturevalue("redis_url")
+    return str(tmp_path / "cache")

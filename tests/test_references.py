@@ -18,13 +18,6 @@ INTR = Intrinsics(500.0, 500.0, 159.5, 119.5)
 SIZE = (320, 240)
 
 
-@pytest.fixture(params=["disk", "redis"])
-def location(request, tmp_path) -> str:
-    if request.param == "redis":
-        return request.getfixturevalue("redis_url")
-    return str(tmp_path / "cache")
-
-
 @pytest.fixture
 def teach_calls(monkeypatch) -> list:
     """Every call of ``pipeline.teach_appearance``: the views it was given (it teaches a fixed colour)."""

@@ -36,14 +36,6 @@ def _record(mid: str, status: str = "queued", created_at: str = "2024-01-01T00:0
     return {"id": mid, "name": "part.stl", "status": status, "progress": 0.0, "created_at": created_at}
 
 
-@pytest.fixture(params=["disk", "redis"])
-def location(request, tmp_path) -> str:
-    """Where a Store opens: a cache directory, or the URL of a real (emptied) Redis."""
-    if request.param == "redis":
-        return request.getfixturevalue("redis_url")
-    return str(tmp_path / "cache")
-
-
 @pytest.fixture
 def store(location):
     with Store(location) as s:
