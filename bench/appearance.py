@@ -15,6 +15,12 @@ query among the cached candidates, distance 300-1200 mm).
 
     python bench/appearance.py evidence [--set lmo_dev] [--references 4] [--save w.json]
 
+``polish``: the cached candidates and truths scoring ``pipeline.APPEARANCE_POLISH_FROM``-0.98 under the
+taught score, moved by ``pipeline.polish_appearance`` and scored again: how many cross the operating
+point, per half (right candidates, wrong ones, truths).
+
+    python bench/appearance.py polish [--set lmo_dev] [--references 4]
+
 ``parts``: per set and part, what its reference photos teach and whether estimates would use it
 (``Appearance``: faces known, reference shading r2, hue share, agreement, plain, used).
 
@@ -60,10 +66,15 @@ def set_dir_of(name: str) -> Path:
     return p if p.is_dir() else DATA_DIR / name
 
 
+REFERENCE_OFFSET = 0  # positions the reference images are moved by (another choice of the same spread)
+
+
 def reference_images(set_dir: Path, n: int) -> list[str]:
-    """``n`` images spread evenly over the set's sorted image list (the first one included)."""
+    """``n`` images spread evenly over the set's sorted image list (from position ``REFERENCE_OFFSET``)."""
     images = sorted({g["image"] for g in read_gt(set_dir)})
-    return [images[i * len(images) // n] for i in range(n)] if n > 0 else []
+    if n <= 0:
+        return []
+    return [images[(i * len(images) // n + REFERENCE_OFFSET) % len(images)] for i in range(n)]
 
 
 def half_of(set_dir: Path, n_references: int) -> dict[str, str]:
@@ -152,6 +163,38 @@ def judge(rows: list[dict], w: np.ndarray, thr: float) -> tuple[int, int, int, i
     return found, right, found - right, len({r["q"] for r in rows})
 
 
+def polish(name: str, n_references: int, rows: list[dict]) -> int:
+    from service.pipeline import APPEARANCE_POLISH_FROM, polish_appearance, unrefined_score
+    from service.vision.estimate.verdict import MIN_SCORE, verification_score
+
+    set_dir = set_dir_of(name)
+    app = taught(set_dir, n_references)
+    K = {g["image"]: np.asarray(g["K"], float) for g in read_gt(set_dir)}
+    near = [r for r in rows if APPEARANCE_POLISH_FROM <= verification_score(r["ev"]) < MIN_SCORE
+            and RANGE_MM[0] <= float(r["t1"][2]) <= RANGE_MM[1]]
+    counts: dict = defaultdict(lambda: [0, 0])
+    current, frame = None, None
+    for r in sorted(near, key=lambda r: r["image"]):
+        if r["image"] != current:
+            current = r["image"]
+            frame = _evidence.colour_frame(read_colour(set_dir / current))
+        bank, intr = gt_bank(set_dir, r["model"]), Intrinsics.from_K(K[current])
+        pose = polish_appearance(bank, Pose(np.asarray(r["R1"]), np.asarray(r["t1"])), frame, intr,
+                                 app[r["model"]], None)
+        kind = "truth" if r["rank"] < 0 else ("right" if r["mspd1"] < RIGHT_PX else "wrong")
+        cell = counts[(r["half"], kind)]
+        cell[0] += 1
+        cell[1] += unrefined_score(bank, pose, frame, intr, None, app[r["model"]]) >= MIN_SCORE
+    print(f"{name}, {n_references} reference images: cached poses scoring {APPEARANCE_POLISH_FROM}-"
+          f"{MIN_SCORE}, polished: how many reach {MIN_SCORE}\n")
+    print("| half | right candidates | wrong candidates | truths (refined from the ground truth) |")
+    print("|---|---|---|---|")
+    for half in ("even", "odd"):
+        cells = [f"{counts[(half, k)][1]} of {counts[(half, k)][0]}" for k in ("right", "wrong", "truth")]
+        print(f"| {half} | " + " | ".join(cells) + " |")
+    return 0
+
+
 def parts(names: list[str], n_references: int) -> int:
     print("| set | part | photos | faces known | reference shading r2 | hue share | agreement | plain "
           "| used |")
@@ -166,7 +209,7 @@ def parts(names: list[str], n_references: int) -> int:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("command", choices=["evidence", "parts"])
+    ap.add_argument("command", choices=["evidence", "parts", "polish"])
     ap.add_argument("--set", default="lmo_dev")
     ap.add_argument("--sets", default="lmo_dev,paper,clutter2,clutter", help="for parts")
     ap.add_argument("--references", type=int, default=4)
@@ -176,6 +219,8 @@ def main(argv=None) -> int:
     if a.command == "parts":
         return parts(a.sets.split(","), a.references)
     rows = appearance_rows(a.set, a.references)
+    if a.command == "polish":
+        return polish(a.set, a.references, rows)
     truths = [r for r in rows if r["rank"] < 0 and r["mspd1"] < RIGHT_PX]
     wrong = [r for r in rows if r["rank"] >= 0 and r["mspd1"] >= RIGHT_PX]
     print(f"{a.set}: {a.references} reference images; {len(truths)} truths, {len(wrong)} wrong candidates\n")

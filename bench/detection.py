@@ -131,12 +131,18 @@ def main(argv=None) -> int:
                     help="region proposals per frame (pipeline.REGION_PROPOSALS) instead of the service's")
     ap.add_argument("--references", type=int, default=0,
                     help="teach each part's colours from this many of the set's images (bench/appearance.py)")
+    ap.add_argument("--reference-offset", type=int, default=0,
+                    help="with --references: move the reference images by this many positions")
     ap.add_argument("--teach-from", default=None,
                     help="with --references: teach from this set's images instead (e.g. absent2 taught from "
                          "clutter2's)")
     ap.add_argument("--half", default="all", choices=["all", "even", "odd"],
                     help="with --references: only this half of the other images")
     a = ap.parse_args(argv)
+    if a.reference_offset:
+        import bench.appearance
+
+        bench.appearance.REFERENCE_OFFSET = a.reference_offset
     if a.regions is not None:
         from service import pipeline
 

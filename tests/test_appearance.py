@@ -263,3 +263,32 @@ def test_photos_are_used_only_if_each_agrees_with_what_the_others_teach(repainte
     assert (app.agreement > 0.95) if used else (app.agreement < 0.0)
     one = pipeline.teach_appearance(part, photos[:1])
     assert np.isnan(one.agreement) and not one.used
+
+
+def test_the_taught_colours_polish_a_pose_a_few_millimetres_off_back_onto_the_truth():
+    """Started 3 mm off the painted truth along x, the polish's 1 mm steps walk back onto it: the
+    colours fit best at the truth, and the score rises."""
+    from service.pipeline import polish_appearance, unrefined_score
+
+    app = _taught()
+    img, _ = _photo(POSE_T, seed=9)
+    frame = ColourFrame(img)
+    off = Pose(POSE_T.R, POSE_T.t_mm + np.array([3.0, 0.0, 0.0]))
+    polished = polish_appearance(BOX, off, frame, INTR, app, None)
+    np.testing.assert_allclose(polished.t_mm, POSE_T.t_mm, atol=1e-9)
+    np.testing.assert_allclose(polished.R, POSE_T.R, atol=1e-12)
+    before = unrefined_score(BOX, off, frame, INTR, None, app)
+    assert unrefined_score(BOX, polished, frame, INTR, None, app) > before
+
+
+def test_no_polish_step_is_taken_past_the_deadline():
+    import time
+
+    from service.pipeline import polish_appearance
+    from service.vision.deadline import Deadline
+
+    app = _taught()
+    img, _ = _photo(POSE_T, seed=9)
+    off = Pose(POSE_T.R, POSE_T.t_mm + np.array([3.0, 0.0, 0.0]))
+    spent = Deadline(1.0, start=time.perf_counter() - 1.0)
+    assert polish_appearance(BOX, off, ColourFrame(img), INTR, app, None, spent) is off
