@@ -107,13 +107,17 @@ def test_two_replicas_two_workers_one_redis(tmp_path, sprayer_bytes, frame, pape
         r = estimate(b, mid, frame)
         assert r.status_code == 200 and r.json()["found"] is True
         assert "appearance" not in r.json()["verdict"]["evidence"]
-        # a reference photo posted to one replica judges the other's estimates (its memo is keyed by the
-        # record's references_version in Redis)
+        # a reference photo posted to one replica is taught by the other (its memo is keyed by the record's
+        # references_version in Redis): the same share of faces, and the same finding, a plain part
         posted = a.post(f"/models/{mid}/references", files={"image": ("0001.png", frame[0])},
                         data={"camera": json.dumps(frame[1]),
                               "pose": json.dumps({"R": paper_gt["R"], "t_mm": paper_gt["t_mm"]})})
         assert posted.status_code == 201, posted.text
-        assert "appearance" in estimate(b, mid, frame).json()["verdict"]["evidence"]
+        seen = b.get(f"/models/{mid}/references").json()
+        assert seen["references"] == 1 and seen["known_fraction"] == posted.json()["known_fraction"] > 0
+        assert seen["plain"] is True and seen["used"] is False
+        r = estimate(b, mid, frame)  # a plain part's photos are not used: judged as untaught
+        assert r.json()["found"] is True and "appearance" not in r.json()["verdict"]["evidence"]
 
         slow = upload(a, sprayer_bytes, symmetry="none", templates=json.dumps(SLOW_GRID))["id"]
         deadline = time.monotonic() + BUILD_WAIT_S
@@ -138,9 +142,9 @@ def test_two_replicas_two_workers_one_redis(tmp_path, sprayer_bytes, frame, pape
                 assert time.monotonic() < deadline
                 time.sleep(0.1)
         assert {m["id"]: m["status"] for m in b.get("/models").json()} == {mid: "ready", slow: "ready"}
-        r = estimate(a, mid, frame)
-        assert r.status_code == 200 and "appearance" in r.json()["verdict"]["evidence"]
-        assert b.get(f"/models/{mid}/references").json()["references"] == 1
+        assert estimate(a, mid, frame).status_code == 200
+        kept = b.get(f"/models/{mid}/references").json()  # the photo survived Redis's restart, and is taught
+        assert kept["references"] == 1 and kept["known_fraction"] == posted.json()["known_fraction"]
     finally:
         for w in workers:
             _kill_group(w)
