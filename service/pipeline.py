@@ -46,7 +46,7 @@ from service.vision.estimate.roi import crop_segments, roi_mask
 from service.vision.estimate.roi import inside as roi_inside
 from service.vision.estimate.verdict import Verdict, decide, verification_score
 from service.vision.geometry.camera import Intrinsics, project, undistort_image
-from service.vision.geometry.frames import Pose, Rx, canonical_spin
+from service.vision.geometry.frames import Pose, Rx, Ry, Rz, canonical_spin
 from service.vision.geometry.render import rasterise_roi
 from service.vision.memo import Memo
 
@@ -106,6 +106,8 @@ def teach_appearance(bank: TemplateBank, views: list[tuple]) -> Appearance:
     (``appearance.SPIN_VIEWS``). Whether an estimate uses them (``Appearance.used``): the untextured
     shading model's fit at each photo's pose says whether the part is plain, and each photo judged on
     the colours the others teach whether the photos agree."""
+    if not views:
+        return teach(bank.vertices_mm, bank.faces, [])
     refs, photo_of, shading_r2, frames = [], [], [], []
     for i, (image, intr, pose, *hidden) in enumerate(views):
         bgr = image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
@@ -116,15 +118,11 @@ def teach_appearance(bank: TemplateBank, views: list[tuple]) -> Appearance:
                                                                     bank.symmetry_point_obj)
         refs += [ReferenceView(frame.bgr, intr, p, hidden[0] if hidden else None) for p in poses]
         photo_of += [i] * len(poses)
-    if not views:
-        return teach(bank.vertices_mm, bank.faces, [])
     seen = read_views(bank.vertices_mm, bank.faces, refs)
     face_bgr = combine(bank.faces, seen)
     photo_of = np.asarray(photo_of)
     agree = []
-    for i, (_, intr, pose, *_) in enumerate(views):
-        if len(views) < 2:
-            break
+    for i, (_, intr, pose, *_) in enumerate(views if len(views) >= 2 else []):
         others = combine(bank.faces, seen, photo_of != i)
         ev = evidence(bank, pose, intr, frames[i], face_bgr=others)
         if ev.appearance_known is not None and ev.appearance_known >= MIN_AGREEMENT_KNOWN:
@@ -489,7 +487,7 @@ def check_candidate(bank: TemplateBank, cand: PoseCandidate, grey: np.ndarray, f
     check = _Checker(bank, grey, frame, intr, distance_mm, n_channels,
                      dict(distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
                           plane_tolerance_mm=plane_tolerance_mm, appearance=appearance), deadline)
-    return check.twin_checked(check(cand, others_depth_mm), others_depth_mm, deadline)
+    return check.twin_checked(check(cand, others_depth_mm), others_depth_mm)
 
 
 @dataclass(frozen=True)
@@ -535,13 +533,13 @@ class _Checker:
                      self.intr, edge_support=ev["edge_support"], unexplained=ev["unexplained"],
                      others_depth_mm=others_depth_mm, **self.judge_kw)
 
-    def twin_checked(self, c: Checked, others_depth_mm: np.ndarray | None, deadline: Deadline) -> Checked:
+    def twin_checked(self, c: Checked, others_depth_mm: np.ndarray | None) -> Checked:
         """``c``, or if it is found, it or its better-verified mirror twin (``TWIN_CHECK``,
-        ``build/mirror.py``), checked while the ``deadline`` leaves time for a check."""
+        ``build/mirror.py``), checked while the frame's ``deadline`` leaves time for a check."""
         if not (TWIN_CHECK and c.verdict.found):
             return c
         return _against_twins(self.bank, c, lambda t, unless_at: self(t, others_depth_mm, unless_at),
-                              self.frame, self.intr, others_depth_mm, deadline,
+                              self.frame, self.intr, others_depth_mm, self.deadline,
                               self.judge_kw.get("appearance"))
 
 
@@ -641,9 +639,7 @@ def _nudged(pose: Pose, kind: str, axis: int, step: float) -> Pose:
         t = np.array(pose.t_mm, float)
         t[axis] += step
         return Pose(np.asarray(pose.R, float), t)
-    v = np.zeros(3)
-    v[axis] = np.radians(step)
-    return Pose(cv2.Rodrigues(v)[0] @ np.asarray(pose.R, float), np.asarray(pose.t_mm, float))
+    return Pose((Rx, Ry, Rz)[axis](step) @ np.asarray(pose.R, float), np.asarray(pose.t_mm, float))
 
 
 def _face_bgr(appearance: Appearance | None) -> np.ndarray | None:
@@ -733,7 +729,7 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
         if not deadline.allows(_CHECK_MS.high):
             break
         others = scene.others if scene.found else None
-        c = check.twin_checked(check(cand, others), others, deadline)
+        c = check.twin_checked(check(cand, others), others)
         if not c.verdict.found:
             scene.rejected.append(c)
         elif scene.distinct(c):
@@ -789,7 +785,7 @@ class _Instances:
     def add_checked(self, c: Checked, others_depth_mm: np.ndarray) -> None:
         """Add a candidate found on being judged again, after its twin check (which can replace it by
         its mirror twin, in the same place)."""
-        self.add(self.check.twin_checked(c, others_depth_mm, self.deadline))
+        self.add(self.check.twin_checked(c, others_depth_mm))
 
     def rejudged(self, c: Checked, others: np.ndarray) -> Checked:
         """``c`` judged again with the parts in ``others`` explaining their pixels, if its rejection

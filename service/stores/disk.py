@@ -92,8 +92,7 @@ class DiskStore(Store):
         """Remove every record of the model. False if it did not exist."""
         existed = self._cache.delete(f"model:{mid}")
         with self._cache.transact():
-            for ref in self._cache.get(f"refs:{mid}", []):
-                self._cache.delete(f"refimg:{mid}:{ref['image_key']}")
+            self._delete_reference_images(mid)
         for kind in ("mesh", "bank", "bankver", "builds", "grasps", "lock", "refs"):
             self._cache.delete(f"{kind}:{mid}")
         self._banks.drop(mid)
@@ -217,10 +216,14 @@ class DiskStore(Store):
                 out.append(item)
         return out
 
+    def _delete_reference_images(self, mid: str) -> None:
+        """Delete the image bytes of the model's reference photos (inside the caller's transaction)."""
+        for ref in self._cache.get(f"refs:{mid}", []):
+            self._cache.delete(f"refimg:{mid}:{ref['image_key']}")
+
     def clear_references(self, mid: str) -> dict[str, Any] | None:
         with self._cache.transact():
-            for ref in self._cache.get(f"refs:{mid}", []):
-                self._cache.delete(f"refimg:{mid}:{ref['image_key']}")
+            self._delete_reference_images(mid)
             self._cache.delete(f"refs:{mid}")
             rec = self._cache.get(f"model:{mid}")
             if rec is None:

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from service.vision.geometry.camera import Intrinsics, project
-from service.vision.geometry.frames import Pose
+from service.vision.geometry.frames import Pose, R_from_rotvec
 from service.vision.geometry.render import rasterise_roi
 
 MIN_FACING = 0.3  # cosine between a vertex normal and the ray to the camera
@@ -47,7 +47,7 @@ PLAIN_SHADING_R2 = 0.8
 PLAIN_HUE_SHARE = 0.01
 # The photos must agree on the colours: each photo's colours, as the others teach them, must correlate
 # with it at least this much (median; ``Appearance.agreement``). Taught light and shade of a plain part
-# does not carry from one pose to another; a part's paint does. Measured (bench/appearance.py agreement):
+# does not carry from one pose to another; a part's paint does. Measured (bench/appearance.py parts):
 # Linemod's 8 parts 0.70-0.97 from 4 photos (0.45-0.97 from 8: the eggbox's 0.45); clutter2's grey
 # Blender parts -0.45-0.39, clutter's 0.56 (the sprayer); the paper sprayer 0.69 (plain by the above).
 # Taught unchecked, clutter2's sprayer (shading r2 0.73) was found 347 px off at 0.99 on one image.
@@ -114,7 +114,7 @@ def spun(pose: Pose, axis_obj: np.ndarray, point_obj: np.ndarray | None, n: int 
     R, t = np.asarray(pose.R, float), np.asarray(pose.t_mm, float)
     out = []
     for k in range(n):
-        S = cv2.Rodrigues(axis * (2.0 * np.pi * k / n))[0]
+        S = R_from_rotvec(axis * (2.0 * np.pi * k / n))
         out.append(Pose(R @ S, R @ (p0 - S @ p0) + t))
     return out
 
@@ -130,10 +130,11 @@ def vertex_normals(vertices_mm: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
 
 
-def view_colours(vertices_mm: np.ndarray, faces: np.ndarray, view: ReferenceView
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def view_colours(vertices_mm: np.ndarray, faces: np.ndarray, view: ReferenceView, normals_obj: np.ndarray,
+                 blur: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The colours one photo shows well (module docstring): (V, 3) per vertex and (F, 3) per face,
-    float32 BGR, NaN elsewhere."""
+    float32 BGR, NaN elsewhere. ``normals_obj``: ``vertex_normals`` of the mesh; ``blur``: the photo
+    lightly blurred, float32 (a vertex's colour is its neighbourhood's, not one noisy pixel's)."""
     img = view.image_bgr
     h, w = img.shape[:2]
     depth, fid, (u0, v0) = rasterise_roi(vertices_mm, faces, view.T_cam_obj, view.intr, (w, h))
@@ -151,7 +152,7 @@ def view_colours(vertices_mm: np.ndarray, faces: np.ndarray, view: ReferenceView
     p_cam = np.asarray(vertices_mm, float) @ R.T + t
     ahead = p_cam[:, 2] > 1e-6
     uv = project(np.where(ahead[:, None], p_cam, 1.0), view.intr.K)
-    facing = -(vertex_normals(vertices_mm, faces) @ R.T * p_cam).sum(1) / np.linalg.norm(p_cam, axis=1)
+    facing = -(normals_obj @ R.T * p_cam).sum(1) / np.linalg.norm(p_cam, axis=1)
     ui, vi = np.rint(uv[:, 0]).astype(np.int64) - u0, np.rint(uv[:, 1]).astype(np.int64) - v0
     ok = ahead & (facing > MIN_FACING) & (ui >= 0) & (ui < own.shape[1]) & (vi >= 0) & (vi < own.shape[0])
     idx = np.flatnonzero(ok)
@@ -159,8 +160,6 @@ def view_colours(vertices_mm: np.ndarray, faces: np.ndarray, view: ReferenceView
     idx = idx[seen]
     if len(idx) == 0:
         return out, face_bgr
-    # A light blur: a vertex's colour is its neighbourhood's, not one noisy pixel's.
-    blur = cv2.GaussianBlur(img, (3, 3), 0).astype(np.float32)
     map_u = uv[idx, 0].astype(np.float32)[:, None]
     map_v = uv[idx, 1].astype(np.float32)[:, None]
     out[idx] = cv2.remap(blur, map_u, map_v, cv2.INTER_LINEAR)[:, 0]
@@ -196,7 +195,14 @@ class ViewColours:
 
 
 def read_views(vertices_mm: np.ndarray, faces: np.ndarray, views: Sequence[ReferenceView]) -> ViewColours:
-    per_view = [view_colours(vertices_mm, faces, v) for v in views]
+    """``view_colours`` of each view; the mesh's normals made once, each photo blurred once (a revolved
+    part's spins share their photo)."""
+    normals_obj = vertex_normals(vertices_mm, faces)
+    blurred: dict[int, np.ndarray] = {}
+    for v in views:
+        if id(v.image_bgr) not in blurred:
+            blurred[id(v.image_bgr)] = cv2.GaussianBlur(v.image_bgr, (3, 3), 0).astype(np.float32)
+    per_view = [view_colours(vertices_mm, faces, v, normals_obj, blurred[id(v.image_bgr)]) for v in views]
     return ViewColours(np.stack([vc for vc, _ in per_view]), np.stack([fc for _, fc in per_view]))
 
 
