@@ -31,6 +31,7 @@ from service.vision.build.mirror import MirrorPlanes, mirror_planes, twin_poses
 from service.vision.deadline import NO_DEADLINE, Deadline, RunningMean
 from service.vision.estimate.chamfer import distance_tensor
 from service.vision.estimate.coarse import Hypothesis, SearchParams, coarse_search, poses_of
+from service.vision.estimate.colour_prior import part_density
 from service.vision.estimate.contrast import Contrast, ContrastParams
 from service.vision.estimate.edges import Segments, detect_segments_in_bands, to_grey_u8, undistort_segments
 from service.vision.estimate.evidence import ColourFrame, colour_frame, evidence
@@ -202,6 +203,9 @@ REGION_PROPOSALS = 0
 # proposals (cached checks, bench/appearance.py), and the taught colours refuse the distractors' regions
 # that made the untaught verdict take them.
 REGION_PROPOSALS_TAUGHT = 12
+# A taught part's region proposals are ranked by how part-coloured each region is too
+# (``colour_prior.py``, ``regions.propose``'s purity).
+COLOUR_PRIOR = True
 ROI_MIN_PEAKS = 4  # level-A peaks scale with the ROI's share of the image, down to this many
 INSTANCE_IOU = 0.4  # two found instances whose silhouettes overlap more than this are one instance
 
@@ -224,7 +228,8 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
             roi_uv: np.ndarray | None = None, deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0,
             plane: Plane | None = None, several: bool = False,
             deferred: list[Callable[[], list[PoseCandidate]]] | None = None,
-            colour: np.ndarray | None = None, n_regions: int | None = None):
+            colour: np.ndarray | None = None, n_regions: int | None = None,
+            part_colours: np.ndarray | None = None):
     """The proposal engine (the paper's method): LSD edges, their distance tensor and the coarse
     search -> (distinct candidates, lowest chamfer cost first; full-image segments; timing_ms with
     "edges" and "coarse").
@@ -311,6 +316,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
             def from_regions() -> list[PoseCandidate]:
                 hs = region_proposals(bank, colour, intr.K, (h, w), p, distance_mm=distance_mm,
                                       distance_range_mm=rng, n_out=n_regions, deadline=deadline,
+                                      part_colours=part_colours,
                                       reserve_ms=_CHECK_MS.high)
                 # by pose: a region's other silhouette fits (other rotations at the same place) stay
                 return _distinct_in_roi(to_candidates(hs), bank, intr, None, True)
@@ -416,7 +422,8 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
                                plane=plane, several=max_instances > 1,
                                deferred=second if max_instances <= 1 else None,
                                colour=ideal,
-                               n_regions=REGION_PROPOSALS_TAUGHT if appearance is not None else None)
+                               n_regions=REGION_PROPOSALS_TAUGHT if appearance is not None else None,
+                               part_colours=taught_colour_density(bank, appearance) if COLOUR_PRIOR else None)
     t0 = time.perf_counter()
     t_second = 0.0
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
@@ -581,6 +588,16 @@ def unrefined_score(bank: TemplateBank, pose: Pose, frame: ColourFrame, intr: In
     """The verification score of ``pose`` as it stands, the refinement's own evidence read as perfect."""
     ev = evidence(bank, pose, intr, frame, others_depth_mm, _face_bgr(appearance)).as_dict()
     return verification_score(ev | {"edge_support": 1.0, "unexplained": 0.0})
+
+
+def taught_colour_density(bank: TemplateBank, appearance: Appearance | None) -> np.ndarray | None:
+    """The taught part's colour density (``colour_prior.part_density``: its faces' colours by area), or
+    None untaught."""
+    if appearance is None:
+        return None
+    v = np.asarray(bank.vertices_mm, float)[np.asarray(bank.faces)]
+    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    return part_density(appearance.face_bgr, area)
 
 
 def by_unrefined_score(bank: TemplateBank, cands: list[PoseCandidate], frame: ColourFrame, intr: Intrinsics,

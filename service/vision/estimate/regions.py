@@ -31,6 +31,7 @@ from service.vision.bank import TemplateBank, view_neighbours
 from service.vision.deadline import NO_DEADLINE, Deadline, RunningMean
 from service.vision.estimate.chamfer import distance_tensor, quantised
 from service.vision.estimate.coarse import Hypothesis, SearchParams, local_scan, polish
+from service.vision.estimate.colour_prior import likelihood
 from service.vision.estimate.edges import Segments
 from service.vision.estimate.shapes import (
     CANON_PX,
@@ -616,8 +617,27 @@ class CandidateStages:
     ranked: np.ndarray  # ... the N_REGIONS that stand out most from their surroundings, in that order
 
 
+def node_means(reg: Regions, values: np.ndarray) -> np.ndarray:
+    """(C,) the mean of ``values`` (working px, (h, w)) over each node's pixels."""
+    n0 = int(np.count_nonzero(reg.children[:, 0] < 0))
+    sums = np.zeros(len(reg.area))
+    sums[:n0] = np.bincount(reg.labels.ravel(), np.asarray(values, float).ravel(), minlength=n0)[:n0]
+    return _tree_sums(reg.children, sums) / np.maximum(reg.area, 1e-9)
+
+
+@nb.njit(cache=True)
+def _tree_sums(children, sums):
+    # a node is made after its children (merge appends): one pass bottom-up
+    for k in range(children.shape[0]):
+        a, b = children[k, 0], children[k, 1]
+        if a >= 0:
+            sums[k] = sums[a] + sums[b]
+    return sums
+
+
 def candidate_stages(sil: Silhouettes, reg: Regions, K: np.ndarray, bank: TemplateBank,
-                     distance_range_mm: tuple[float, float]) -> CandidateStages:
+                     distance_range_mm: tuple[float, float],
+                     purity: np.ndarray | None = None) -> CandidateStages:
     a_lo, a_hi = projected_area_range(bank, sil, K, distance_range_mm)
     area_full = reg.area / reg.scale**2
     sized = np.flatnonzero((area_full >= AREA_SLACK[0] * a_lo) & (area_full <= AREA_SLACK[1] * a_hi))
@@ -631,20 +651,26 @@ def candidate_stages(sil: Silhouettes, reg: Regions, K: np.ndarray, bank: Templa
     el, co = moment_shape(reg.moments[framed])
     ok_t = sil.area_n > 0
     shaped = framed[_shape_gate(el, co, sil.elong[ok_t], sil.compact[ok_t], SHAPE_GATE)]
-    ranked = shaped[np.argsort(-reg.died[shaped], kind="stable")[:N_REGIONS]]
+    key = reg.died[shaped] if purity is None else purity[shaped]
+    ranked = shaped[np.argsort(-key, kind="stable")[:N_REGIONS]]
     return CandidateStages(sized, framed, shaped, ranked)
 
 
 def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
             distance_range_mm: tuple[float, float], *, n_out: int = 30,
-            reg: Regions | None = None) -> tuple[list[RegionProposal], Regions]:
-    """Region proposals, best IoU first, mutually distinct (reference points, depths or rotations apart)."""
+            reg: Regions | None = None, purity: np.ndarray | None = None
+            ) -> tuple[list[RegionProposal], Regions]:
+    """Region proposals, best IoU first, mutually distinct (reference points, depths or rotations apart).
+
+    ``purity``: (C,) per node of ``reg`` in [0, 1], how much it looks like the part (``colour_prior``,
+    for a taught part): the regions matched are then the purest, and proposals come best IoU x purity
+    first."""
     sil = silhouettes(bank)
     canon = canonical_templates(bank, sil)
     t_area = _CANON_AREA.get(bank, "area", lambda: canon.sum(2))  # (S, N)
     reg = reg if reg is not None else segment(image_bgr)
     sc = reg.scale
-    cand = candidate_stages(sil, reg, K, bank, distance_range_mm).ranked
+    cand = candidate_stages(sil, reg, K, bank, distance_range_mm, purity).ranked
     ok_t = sil.area_n > 0
     fx, fy = float(K[0, 0]), float(K[1, 1])
     F = np.diag([fx, fy])
@@ -763,7 +789,9 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
             return mine[-1]
         return None
 
-    front = [(-f[0][0], g, 0) for g, f in enumerate(fits) if f]  # a region's first fit always survives
+    # a taught part's regions are taken by fit x purity: a distractor's region fits a silhouette too
+    weight = [1.0 if purity is None else float(purity[x[0]]) for x in info]
+    front = [(-f[0][0] * weight[g], g, 0) for g, f in enumerate(fits) if f]  # a region's first fit survives
     heapq.heapify(front)
     kept: list[RegionProposal] = []
     n_keep = max(n_out, 1)  # (the reference's loop stops after the first kept one that reaches n_out)
@@ -775,7 +803,7 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
             continue
         following = advance(g)
         if following is not None:
-            heapq.heappush(front, (-following.iou, g, pos + 1))
+            heapq.heappush(front, (-following.iou * weight[g], g, pos + 1))
         # ``_same`` needs the reference points within 8 px first: only those few are compared in full
         d = r.hyp.uv - kept_uv[:len(kept)]
         near = np.flatnonzero(np.hypot(d[:, 0], d[:, 1]) < 8.0)
@@ -895,13 +923,14 @@ _PROPOSE_MS = RunningMean(200.0)
 def region_proposals(bank: TemplateBank, image: np.ndarray, K: np.ndarray, image_shape: tuple[int, int],
                      p: SearchParams, *, distance_mm: float | None, distance_range_mm: tuple[float, float],
                      n_out: int, deadline: Deadline = NO_DEADLINE,
-                     reserve_ms: float = 0.0) -> list[Hypothesis]:
+                     reserve_ms: float = 0.0, part_colours: np.ndarray | None = None) -> list[Hypothesis]:
     """The first ``n_out`` region proposals (``propose``), each refined on its region's outline
     (``refine_on_boundary``), in the proposals' order (silhouette IoU). With ``distance_mm`` the
     regions' areas are judged within ``DISTANCE_SLACK`` of it. Anytime: with a ``deadline`` nothing is
     proposed unless segmenting and matching (their running mean's ``high``) and ``reserve_ms`` fit, and
     each refinement starts only if the previous one's duration and ``reserve_ms`` do (fewer proposals,
-    best first, rather than a late answer)."""
+    best first, rather than a late answer). ``part_colours``: a taught part's colour density
+    (``colour_prior.part_density``): regions are then ranked by how part-coloured they are too."""
     if not deadline.allows(_PROPOSE_MS.high + reserve_ms):
         return []
     if image.ndim == 2:
@@ -912,7 +941,13 @@ def region_proposals(bank: TemplateBank, image: np.ndarray, K: np.ndarray, image
     rng = distance_range_mm if distance_mm is None else \
         (distance_mm / DISTANCE_SLACK, distance_mm * DISTANCE_SLACK)
     t0 = time.perf_counter()
-    props, reg = propose(bank, image, K, rng, n_out=n_out)
+    reg = segment(image)
+    purity = None
+    if part_colours is not None:
+        h, w = reg.labels.shape
+        small = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
+        purity = node_means(reg, likelihood(small, part_colours))
+    props, reg = propose(bank, image, K, rng, n_out=n_out, reg=reg, purity=purity)
     _PROPOSE_MS.add((time.perf_counter() - t0) * 1000.0)
     return refine_all(bank, props, reg, K, image_shape, p, distance_mm=distance_mm, deadline=deadline,
                       reserve_ms=reserve_ms)

@@ -1,0 +1,71 @@
+"""The taught part's colour prior (``vision/estimate/colour_prior.py``) and the region proposals ranked by it:
+of two regions with the same silhouette, the one in the part's colours is proposed first."""
+
+import numpy as np
+
+from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, taught_colour_density
+from service.vision.build.appearance import Appearance
+from service.vision.estimate import colour_prior, regions
+from service.vision.geometry.camera import project
+from service.vision.geometry.render import rasterise_roi
+from tests.test_regions import H, K, W, template_pose
+
+RED, BLUE, GREY = (40, 40, 200), (200, 60, 40), (128, 128, 128)
+
+
+def _density_of(bgr) -> np.ndarray:
+    faces = np.array([bgr] * 4, np.float32)
+    return colour_prior.part_density(faces, np.ones(4))
+
+
+def test_a_pixel_in_the_part_s_colour_reads_part_and_the_rest_reads_frame():
+    image = np.zeros((60, 90, 3), np.uint8)
+    image[:, :30], image[:, 30:60], image[:, 60:] = RED, BLUE, GREY
+    lik = colour_prior.likelihood(image, _density_of(RED))
+    # the part's colour: all of the part's density and a third of the frame's -> 3/4
+    assert np.allclose(lik[:, :30], 0.75, atol=0.01)
+    assert np.all(lik[:, 30:] < 0.01)
+
+
+def test_faces_no_photo_saw_teach_no_colour():
+    faces = np.array([RED, RED, (np.nan,) * 3], np.float32)
+    assert np.allclose(colour_prior.part_density(faces, np.array([1.0, 1.0, 5.0])), _density_of(RED))
+
+
+def test_a_node_s_mean_is_the_mean_over_its_pixels():
+    rng = np.random.default_rng(4)
+    image = np.kron(rng.integers(0, 6, (12, 16)), np.ones((20, 20), int))
+    palette = rng.integers(0, 255, (6, 3)).astype(np.uint8)
+    reg = regions.segment(palette[image])
+    values = rng.random(reg.labels.shape)
+    means = regions.node_means(reg, values)
+    for c in range(len(reg.area)):
+        x0, y0, x1, y1 = reg.bbox[c]
+        m = regions.region_mask(reg, c).astype(bool)
+        assert np.isclose(means[c], values[y0:y1, x0:x1][m].mean())
+
+
+def _two_parts_scene(bank, part_pose, twin_pose, part_bgr, twin_bgr) -> np.ndarray:
+    image = np.full((H, W, 3), GREY, np.uint8)
+    for pose, bgr in ((part_pose, part_bgr), (twin_pose, twin_bgr)):
+        _, face, (u0, v0) = rasterise_roi(bank.vertices_mm, bank.faces, pose, K, (W, H))
+        win = image[v0:v0 + face.shape[0], u0:u0 + face.shape[1]]
+        win[face >= 0] = bgr
+    return image
+
+
+def test_of_two_same_shaped_regions_the_part_coloured_one_is_proposed_first(l_block_bank):
+    bank = l_block_bank
+    left = template_pose(bank, 40, 25.0, (200.0, 240.0), 650.0)
+    right = template_pose(bank, 40, 25.0, (460.0, 240.0), 650.0)
+    taught = Appearance(np.tile(np.array(RED, np.float32), (len(bank.faces), 1)), 2, agreement=1.0)
+    density = taught_colour_density(bank, taught)
+    for part_pose, part_bgr, twin_bgr in ((left, RED, BLUE), (right, RED, BLUE), (left, RED, (40, 200, 40))):
+        twin_pose = right if part_pose is left else left
+        image = _two_parts_scene(bank, part_pose, twin_pose, part_bgr, twin_bgr)
+        reg = regions.segment(image)
+        small = regions.cv2.resize(image, reg.labels.shape[::-1], interpolation=regions.cv2.INTER_AREA)
+        purity = regions.node_means(reg, colour_prior.likelihood(small, density))
+        props, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=4, reg=reg, purity=purity)
+        centre = project(part_pose.apply(bank.centre_obj[None]), K)[0]
+        assert np.hypot(*(props[0].hyp.uv - centre)) < 8.0, (props[0].hyp.uv, centre)
