@@ -229,7 +229,8 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
             plane: Plane | None = None, several: bool = False,
             deferred: list[Callable[[], list[PoseCandidate]]] | None = None,
             colour: np.ndarray | None = None, n_regions: int | None = None,
-            part_colours: np.ndarray | None = None):
+            part_colours: np.ndarray | None = None,
+            order: Callable[[list[PoseCandidate]], list[PoseCandidate]] | None = None):
     """The proposal engine (the paper's method): LSD edges, their distance tensor and the coarse
     search -> (distinct candidates, lowest chamfer cost first; full-image segments; timing_ms with
     "edges" and "coarse").
@@ -253,7 +254,12 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     second pass: only the single-instance ``estimate`` runs it, when the first one's candidates fail.
 
     ``colour``: the (undistorted) BGR image: the second pass then also starts from the peaks of level A
-    on oriented colour contrast (``CONTRAST_PEAKS``)."""
+    on oriented colour contrast (``CONTRAST_PEAKS``).
+
+    ``part_colours``: a taught part's colour density (``taught_colour_density``): the region proposals
+    are ranked by how part-coloured each region is too. ``order``: the second pass's and the region
+    proposals' candidates are put in this order before near duplicates are dropped (the first of each
+    group of near duplicates is kept: a taught part's candidates by their unrefined score)."""
     rest = resting_rotations(bank) if plane is not None else None
     p = params or SEARCH_PARAMS
     threads.use_budget()
@@ -308,9 +314,13 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
             return [_candidate(bank, Pose(R, t), hy.cost, hy.score)
                     for R, t, hy in zip(Rs, ts, hs, strict=True)]
 
+        def ordered(cs: list[PoseCandidate]) -> list[PoseCandidate]:
+            return order(cs) if order is not None and cs else cs
+
         cands = to_candidates(hyps)
         if deferred is not None and later:
-            deferred.append(lambda: _distinct_in_roi(to_candidates(later[0]()), bank, intr, roi_uv, several))
+            deferred.append(lambda: _distinct_in_roi(ordered(to_candidates(later[0]())), bank, intr, roi_uv,
+                                                     several))
         n_regions = REGION_PROPOSALS if n_regions is None else n_regions
         if deferred is not None and n_regions and colour is not None and roi_uv is None:
             def from_regions() -> list[PoseCandidate]:
@@ -319,7 +329,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
                                       part_colours=part_colours,
                                       reserve_ms=_CHECK_MS.high)
                 # by pose: a region's other silhouette fits (other rotations at the same place) stay
-                return _distinct_in_roi(to_candidates(hs), bank, intr, None, True)
+                return _distinct_in_roi(ordered(to_candidates(hs)), bank, intr, None, True)
 
             deferred.append(from_regions)
     return (_distinct_in_roi(cands, bank, intr, roi_uv, several), seg, {"edges": t_edges, "coarse": _ms(t1)})
@@ -416,6 +426,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     # The evidence (and the second pass's contrast) reads pixels where the ideal camera projects the
     # model: undistort the frame once.
     ideal = undistort_image(image, intr)
+    frame = colour_frame(ideal)
     cands, _, timing = propose(bank, grey, intr, distance_mm=distance_mm, distance_range_mm=distance_range_mm,
                                params=p, roi_uv=roi_uv, deadline=deadline,
                                reserve_ms=_CHECK_MS.high + SEARCH_RESERVE_CHECKS * _CHECK_MS.value,
@@ -423,11 +434,12 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
                                deferred=second if max_instances <= 1 else None,
                                colour=ideal,
                                n_regions=REGION_PROPOSALS_TAUGHT if appearance is not None else None,
-                               part_colours=taught_colour_density(bank, appearance) if COLOUR_PRIOR else None)
+                               part_colours=taught_colour_density(bank, appearance) if COLOUR_PRIOR else None,
+                               order=None if appearance is None else
+                               lambda cs: by_unrefined_score(bank, cs, frame, intr, appearance, deadline))
     t0 = time.perf_counter()
     t_second = 0.0
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
-    frame = colour_frame(ideal)
     kw = dict(distance_mm=distance_mm, distance_range_mm=rng, min_score=min_score, n_channels=p.n_channels,
               deadline=deadline, plane=plane, plane_tolerance_mm=plane_tolerance_mm, appearance=appearance)
     if max_instances <= 1:
@@ -439,8 +451,6 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
             # the region proposals (REGION_PROPOSALS), each checked up to N_VERIFY.
             t2 = time.perf_counter()
             more = later_pass()
-            if appearance is not None:
-                more = by_unrefined_score(bank, more, frame, intr, appearance, deadline)
             dt = _ms(t2)
             timing["coarse"] += dt
             t_second += dt
