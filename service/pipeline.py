@@ -203,6 +203,8 @@ REGION_PROPOSALS = 0
 # proposals (cached checks, bench/appearance.py), and the taught colours refuse the distractors' regions
 # that made the untaught verdict take them.
 REGION_PROPOSALS_TAUGHT = 12
+# ... chosen by their unrefined score (the taught colours) from this many, before their refinement:
+REGION_SCORED_TAUGHT = 48
 # A taught part's region proposals are ranked by how part-coloured each region is too
 # (``colour_prior.py``, ``regions.propose``'s purity).
 COLOUR_PRIOR = True
@@ -230,7 +232,8 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
             deferred: list[Callable[[], list[PoseCandidate]]] | None = None,
             colour: np.ndarray | None = None, n_regions: int | None = None,
             part_colours: np.ndarray | None = None,
-            order: Callable[[list[PoseCandidate]], list[PoseCandidate]] | None = None):
+            order: Callable[[list[PoseCandidate]], list[PoseCandidate]] | None = None,
+            score: Callable[[PoseCandidate], float] | None = None):
     """The proposal engine (the paper's method): LSD edges, their distance tensor and the coarse
     search -> (distinct candidates, lowest chamfer cost first; full-image segments; timing_ms with
     "edges" and "coarse").
@@ -317,6 +320,8 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
         def ordered(cs: list[PoseCandidate]) -> list[PoseCandidate]:
             return order(cs) if order is not None and cs else cs
 
+        hyp_score = None if score is None else lambda hs: [score(c) for c in to_candidates(hs)]
+
         cands = to_candidates(hyps)
         if deferred is not None and later:
             deferred.append(lambda: _distinct_in_roi(ordered(to_candidates(later[0]())), bank, intr, roi_uv,
@@ -326,7 +331,8 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
             def from_regions() -> list[PoseCandidate]:
                 hs = region_proposals(bank, colour, intr.K, (h, w), p, distance_mm=distance_mm,
                                       distance_range_mm=rng, n_out=n_regions, deadline=deadline,
-                                      part_colours=part_colours,
+                                      part_colours=part_colours, score=hyp_score,
+                                      n_scored=REGION_SCORED_TAUGHT if hyp_score is not None else 0,
                                       reserve_ms=_CHECK_MS.high)
                 # by pose: a region's other silhouette fits (other rotations at the same place) stay
                 return _distinct_in_roi(ordered(to_candidates(hs)), bank, intr, None, True)
@@ -436,7 +442,9 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
                                n_regions=REGION_PROPOSALS_TAUGHT if appearance is not None else None,
                                part_colours=taught_colour_density(bank, appearance) if COLOUR_PRIOR else None,
                                order=None if appearance is None else
-                               lambda cs: by_unrefined_score(bank, cs, frame, intr, appearance, deadline))
+                               lambda cs: by_unrefined_score(bank, cs, frame, intr, appearance, deadline),
+                               score=None if appearance is None else
+                               lambda c: unrefined_score(bank, c.pose, frame, intr, None, appearance))
     t0 = time.perf_counter()
     t_second = 0.0
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import heapq
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -55,6 +56,7 @@ SPECK_PX = 16.0  # working px: a region this small merges at a contrast discount
 MASK_PX = 64  # template silhouettes are rasterised on MASK_PX x MASK_PX
 AREA_SLACK = (0.35, 1.3)  # a region may hold this fraction of the smallest .. largest projected area
 PER_REGION = 3  # proposals kept per region (distinct poses): silhouettes are ambiguous
+PER_REGION_SCORED = 8  # ... when the proposals are scored before refinement (``region_proposals``' score)
 SHAPE_GATE = 0.15  # a region farther than this from every template's (elongation, compactness) is dropped
 N_REGIONS = 300  # candidate regions matched per frame, by contrast to their surroundings
 DISTANCE_SLACK = 1.25  # a given distance: the part's reference point lies within this factor of it
@@ -658,13 +660,13 @@ def candidate_stages(sil: Silhouettes, reg: Regions, K: np.ndarray, bank: Templa
 
 def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
             distance_range_mm: tuple[float, float], *, n_out: int = 30,
-            reg: Regions | None = None, purity: np.ndarray | None = None
+            reg: Regions | None = None, purity: np.ndarray | None = None, per_region: int = PER_REGION
             ) -> tuple[list[RegionProposal], Regions]:
     """Region proposals, best IoU first, mutually distinct (reference points, depths or rotations apart).
 
     ``purity``: (C,) per node of ``reg`` in [0, 1], how much it looks like the part (``colour_prior``,
     for a taught part): the regions matched are then the purest, and proposals come best IoU x purity
-    first."""
+    first. ``per_region``: distinct fits a region may propose."""
     sil = silhouettes(bank)
     canon = canonical_templates(bank, sil)
     t_area = _CANON_AREA.get(bank, "area", lambda: canon.sum(2))  # (S, N)
@@ -711,7 +713,7 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
     kz_all = [np.sqrt(s_a * A_r[:, None] / den[None]) for s_a in SCALES]  # (regions, N) per scale
     z_all = [z_ref / kz for kz in kz_all]
     far = [(z < distance_range_mm[0]) | (z > distance_range_mm[1]) for z in z_all]
-    n_top = PER_REGION * 4
+    n_top = per_region * 4
     top: list[list] = [[None] * len(SCALES) for _ in info]
     n_turns = np.array([len(x[2]) for x in info])
     for T in np.unique(n_turns):
@@ -775,7 +777,7 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
             if LOOKALIKE_REFILL and gap[g] < LOOKALIKE_MARGIN:
                 nxt[g] = len(fits[g])
                 return None
-        while nxt[g] < len(fits[g]) and len(mine) < PER_REGION:
+        while nxt[g] < len(fits[g]) and len(mine) < per_region:
             iou_v, t, tn, z, kz = fits[g][nxt[g]]
             nxt[g] += 1
             # the template's axis (canonical x) is the region's axis turned by tn: in-plane angle
@@ -923,7 +925,9 @@ _PROPOSE_MS = RunningMean(200.0)
 def region_proposals(bank: TemplateBank, image: np.ndarray, K: np.ndarray, image_shape: tuple[int, int],
                      p: SearchParams, *, distance_mm: float | None, distance_range_mm: tuple[float, float],
                      n_out: int, deadline: Deadline = NO_DEADLINE,
-                     reserve_ms: float = 0.0, part_colours: np.ndarray | None = None) -> list[Hypothesis]:
+                     reserve_ms: float = 0.0, part_colours: np.ndarray | None = None,
+                     score: Callable[[list[Hypothesis]], list[float]] | None = None,
+                     n_scored: int = 0) -> list[Hypothesis]:
     """The first ``n_out`` region proposals (``propose``), each refined on its region's outline
     (``refine_on_boundary``), in the proposals' order (silhouette IoU). With ``distance_mm`` the
     regions' areas are judged within ``DISTANCE_SLACK`` of it. Anytime: with a ``deadline`` nothing is
@@ -947,7 +951,15 @@ def region_proposals(bank: TemplateBank, image: np.ndarray, K: np.ndarray, image
         h, w = reg.labels.shape
         small = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
         purity = node_means(reg, likelihood(small, part_colours))
-    props, reg = propose(bank, image, K, rng, n_out=n_out, reg=reg, purity=purity)
+    if score is None or n_scored <= n_out:
+        props, reg = propose(bank, image, K, rng, n_out=n_out, reg=reg, purity=purity)
+    else:
+        # more fits per region, the best ``n_out`` by ``score`` refined: a region's silhouette fits
+        # several rotations about as well, and a taught part's colours tell them apart
+        props, reg = propose(bank, image, K, rng, n_out=n_scored, reg=reg, purity=purity,
+                             per_region=PER_REGION_SCORED)
+        s = np.asarray(score([r.hyp for r in props]), float)
+        props = [props[i] for i in np.argsort(-s, kind="stable")[:n_out]]
     _PROPOSE_MS.add((time.perf_counter() - t0) * 1000.0)
     return refine_all(bank, props, reg, K, image_shape, p, distance_mm=distance_mm, deadline=deadline,
                       reserve_ms=reserve_ms)
