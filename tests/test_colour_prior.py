@@ -69,3 +69,53 @@ def test_of_two_same_shaped_regions_the_part_coloured_one_is_proposed_first(l_bl
         props, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=4, reg=reg, purity=purity)
         centre = project(part_pose.apply(bank.centre_obj[None]), K)[0]
         assert np.hypot(*(props[0].hyp.uv - centre)) < 8.0, (props[0].hyp.uv, centre)
+
+
+SOFT_SIDES_BGR = np.array([[170, 150, 140], [140, 170, 150], [150, 140, 170], [170, 170, 140],
+                           [170, 140, 170], [140, 170, 170]], float)  # close enough for the sides to make one region
+VIEW_STEP_DEG = 15.0  # the box bank's view step: a region's fit is the truth's rotation within one step
+
+
+def test_scored_region_proposals_take_the_painted_rotation_not_its_turned_twin(monkeypatch):
+    """A box turned 180 degrees about an axis has the same silhouette: the region's fits cannot tell the two
+    apart, the taught colours can. Scored by them (``region_proposals``' score), the first proposal is the
+    painted truth; by fit alone it is one of the twins here (the look-alike gate is off: a box is a generic
+    shape)."""
+    import trimesh
+
+    import tests.test_appearance as ta
+    from service import pipeline
+    from service.vision.estimate.coarse import poses_of
+    from service.vision.estimate.evidence import colour_frame
+    from service.vision.geometry.frames import Pose, Rx, Ry, Rz
+
+    monkeypatch.setattr(ta, "FLOOR_BGR", (30.0, 30.0, 30.0))
+    monkeypatch.setattr(regions, "LOOKALIKE_GATE", False)
+    mesh = trimesh.Trimesh(ta.BOX.vertices_mm, ta.BOX.faces, process=False)
+    bank = pipeline.build_templates(mesh, symmetry="none",
+                                    grid={"view_step_deg": VIEW_STEP_DEG, "render_px": 160})
+    intr, size = ta.INTR_E2E, ta.SIZE_E2E
+    photos = [(ta._photo(p, side_bgr=SOFT_SIDES_BGR, seed=7, intr=intr, size=size)[0], intr, p)
+              for p in (ta.POSE_A, ta.POSE_C, ta.POSE_B)]
+    app = pipeline.teach_appearance(bank, photos)
+    assert app.used
+    img, _ = ta._photo(ta.POSE_T, side_bgr=SOFT_SIDES_BGR, seed=8, intr=intr, size=size)
+    frame = colour_frame(img)
+
+    def taught_score(hs):
+        Rs, ts = poses_of(bank, hs, intr.K, None)
+        return [pipeline.unrefined_score(bank, Pose(R, t), frame, intr, None, app)
+                for R, t in zip(Rs, ts, strict=True)]
+
+    # a box's silhouette is the same turned 180 degrees about any of its axes
+    twins = [ta.POSE_T.R @ turn(180.0) for turn in (Rx, Ry, Rz)]
+
+    def first_rotation(score) -> np.ndarray:
+        hs = regions.region_proposals(bank, img, intr.K, size[::-1], pipeline.SEARCH_PARAMS, distance_mm=None,
+                                      distance_range_mm=(350.0, 550.0), n_out=4, score=score, n_scored=24)
+        return poses_of(bank, hs[:1], intr.K, None)[0][0]
+
+    R0 = first_rotation(taught_score)
+    assert ta._rot_deg(R0, ta.POSE_T.R) < VIEW_STEP_DEG
+    R0 = first_rotation(None)
+    assert min(ta._rot_deg(R0, R) for R in twins) < VIEW_STEP_DEG
