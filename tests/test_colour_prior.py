@@ -71,8 +71,9 @@ def test_of_two_same_shaped_regions_the_part_coloured_one_is_proposed_first(l_bl
         assert np.hypot(*(props[0].hyp.uv - centre)) < 8.0, (props[0].hyp.uv, centre)
 
 
+# side colours close enough for the sides to make one region
 SOFT_SIDES_BGR = np.array([[170, 150, 140], [140, 170, 150], [150, 140, 170], [170, 170, 140],
-                           [170, 140, 170], [140, 170, 170]], float)  # close enough for the sides to make one region
+                           [170, 140, 170], [140, 170, 170]], float)
 VIEW_STEP_DEG = 15.0  # the box bank's view step: a region's fit is the truth's rotation within one step
 
 
