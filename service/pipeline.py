@@ -262,7 +262,9 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     ``part_colours``: a taught part's colour density (``taught_colour_density``): the region proposals
     are ranked by how part-coloured each region is too. ``order``: the second pass's and the region
     proposals' candidates are put in this order before near duplicates are dropped (the first of each
-    group of near duplicates is kept: a taught part's candidates by their unrefined score)."""
+    group of near duplicates is kept: a taught part's candidates by their unrefined score). ``score``: a
+    candidate's score as it stands (a taught part's unrefined score): ``REGION_SCORED_TAUGHT`` region fits
+    are scored, and the best ``n_regions`` of them refined."""
     rest = resting_rotations(bank) if plane is not None else None
     p = params or SEARCH_PARAMS
     threads.use_budget()
@@ -320,7 +322,10 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
         def ordered(cs: list[PoseCandidate]) -> list[PoseCandidate]:
             return order(cs) if order is not None and cs else cs
 
-        hyp_score = None if score is None else lambda hs: [score(c) for c in to_candidates(hs)]
+        def hyp_score(hs: list[Hypothesis]) -> list[float]:
+            # those the deadline leaves no time to score come last, in the region fits' order
+            return [score(c) if deadline.allows(EVIDENCE_MS + _CHECK_MS.high) else -math.inf
+                    for c in to_candidates(hs)]
 
         cands = to_candidates(hyps)
         if deferred is not None and later:
@@ -331,8 +336,8 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
             def from_regions() -> list[PoseCandidate]:
                 hs = region_proposals(bank, colour, intr.K, (h, w), p, distance_mm=distance_mm,
                                       distance_range_mm=rng, n_out=n_regions, deadline=deadline,
-                                      part_colours=part_colours, score=hyp_score,
-                                      n_scored=REGION_SCORED_TAUGHT if hyp_score is not None else 0,
+                                      part_colours=part_colours, score=None if score is None else hyp_score,
+                                      n_scored=REGION_SCORED_TAUGHT if score is not None else 0,
                                       reserve_ms=_CHECK_MS.high)
                 # by pose: a region's other silhouette fits (other rotations at the same place) stay
                 return _distinct_in_roi(ordered(to_candidates(hs)), bank, intr, None, True)
