@@ -120,3 +120,28 @@ def test_scored_region_proposals_take_the_painted_rotation_not_its_turned_twin(m
     assert ta._rot_deg(R0, ta.POSE_T.R) < VIEW_STEP_DEG
     R0 = first_rotation(None)
     assert min(ta._rot_deg(R0, R) for R in twins) < VIEW_STEP_DEG
+
+
+def _best_iou(reg, target: np.ndarray) -> float:
+    best = 0.0
+    for c in range(len(reg.children)):
+        x0, y0, x1, y1 = reg.bbox[c]
+        m = np.zeros_like(target)
+        m[y0:y1, x0:x1] = regions.region_mask(reg, c).astype(bool)
+        best = max(best, (m & target).sum() / (m | target).sum())
+    return best
+
+
+def test_a_part_painted_in_two_far_colours_is_one_region_only_when_guided_by_them(monkeypatch):
+    # a red and a blue half (far apart: the hierarchy does not merge them) on a grey floor; the part's
+    # colours taught, their shared boundary counts less and the part is one region
+    monkeypatch.setattr(regions, "GUIDED_MERGE", 0.8)
+    img = np.full((240, 320, 3), GREY, np.uint8)
+    img[80:160, 100:140] = RED
+    img[80:160, 140:180] = BLUE
+    target = np.zeros((240, 320), bool)
+    target[80:160, 100:180] = True
+    faces = np.array([RED, BLUE], np.float32)
+    guide = regions.working_likelihood(img, colour_prior.part_density(faces, np.ones(2)), work_width=320)
+    assert _best_iou(regions.segment(img, work_width=320), target) < 0.6
+    assert _best_iou(regions.segment(img, work_width=320, guide=guide), target) > 0.97
