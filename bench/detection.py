@@ -138,7 +138,28 @@ def main(argv=None) -> int:
                          "clutter2's)")
     ap.add_argument("--half", default="all", choices=["all", "even", "odd"],
                     help="with --references: only this half of the other images")
+    ap.add_argument("--colour-prior", action="store_true",
+                    help="taught parts: region proposals ranked by the colour prior (pipeline.COLOUR_PRIOR)")
+    ap.add_argument("--scored-fits", type=int, default=None,
+                    help="taught parts: region fits scored before the best are refined "
+                         "(pipeline.REGION_SCORED_TAUGHT; 48 measured)")
+    ap.add_argument("--order-first", action="store_true",
+                    help="taught parts: candidates ordered before near duplicates are dropped "
+                         "(pipeline.ORDER_BEFORE_DUPLICATES)")
+    ap.add_argument("--polish-from", type=float, default=None,
+                    help="taught parts: near misses from this score are polished "
+                         "(pipeline.APPEARANCE_POLISH_FROM)")
     a = ap.parse_args(argv)
+    from service import pipeline as _pipeline
+
+    if a.colour_prior:
+        _pipeline.COLOUR_PRIOR = True
+    if a.order_first:
+        _pipeline.ORDER_BEFORE_DUPLICATES = True
+    if a.scored_fits is not None:
+        _pipeline.REGION_SCORED_TAUGHT = a.scored_fits
+    if a.polish_from is not None:
+        _pipeline.APPEARANCE_POLISH_FROM = a.polish_from
     if a.reference_offset:
         import bench.appearance
 

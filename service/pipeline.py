@@ -203,11 +203,22 @@ REGION_PROPOSALS = 0
 # proposals (cached checks, bench/appearance.py), and the taught colours refuse the distractors' regions
 # that made the untaught verdict take them.
 REGION_PROPOSALS_TAUGHT = 12
-# ... chosen by their unrefined score (the taught colours) from this many, before their refinement:
-REGION_SCORED_TAUGHT = 48
-# A taught part's region proposals are ranked by how part-coloured each region is too
-# (``colour_prior.py``, ``regions.propose``'s purity).
-COLOUR_PRIOR = True
+# ... chosen by their unrefined score (the taught colours) from this many fits (8 a region), before their
+# refinement (``regions.region_proposals``' score); 0: off. Off (session 17): with the colour prior on, 48
+# took lmo_dev (4 reference images) from 50 / 0 right / wrong to 54 / 0, but another choice of 4 images
+# gave 27 / 1 (22 / 0 without it; the glue 232 px off at 0.982) and 8 images 59 / 2 (52 / 1): more
+# candidates scored, more wrong ones over the operating point.
+REGION_SCORED_TAUGHT = 0
+# A taught part's region proposals ranked by how part-coloured each region is too (``colour_prior.py``,
+# ``regions.propose``'s purity). Off (session 17): on lmo_dev with the 4 reference images the weights were
+# fitted with it took right found 39 -> 44 (50 with the ordering before near duplicates are dropped), none
+# wrong, but with 8 reference images it found the duck 61 px off at 0.985, which it does not off.
+COLOUR_PRIOR = False
+# A taught part's later passes put in order of unrefined score before near duplicates are dropped (the kept
+# one of a group the best-coloured) instead of after. Off (session 17): lmo_dev right / wrong with 4
+# reference images 39 / 0 -> 44 / 0 (with the polish from 0.85), another 4 19 / 0 -> 19 / 0, but 8 images
+# 38 / 0 -> 41 / 1 (the glue 280 px off at 0.9815).
+ORDER_BEFORE_DUPLICATES = False
 ROI_MIN_PEAKS = 4  # level-A peaks scale with the ROI's share of the image, down to this many
 INSTANCE_IOU = 0.4  # two found instances whose silhouettes overlap more than this are one instance
 
@@ -446,7 +457,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
                                colour=ideal,
                                n_regions=REGION_PROPOSALS_TAUGHT if appearance is not None else None,
                                part_colours=taught_colour_density(bank, appearance) if COLOUR_PRIOR else None,
-                               order=None if appearance is None else
+                               order=None if appearance is None or not ORDER_BEFORE_DUPLICATES else
                                lambda cs: by_unrefined_score(bank, cs, frame, intr, appearance, deadline),
                                score=None if appearance is None else
                                lambda c: unrefined_score(bank, c.pose, frame, intr, None, appearance))
@@ -464,6 +475,8 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
             # the region proposals (REGION_PROPOSALS), each checked up to N_VERIFY.
             t2 = time.perf_counter()
             more = later_pass()
+            if appearance is not None and not ORDER_BEFORE_DUPLICATES:
+                more = by_unrefined_score(bank, more, frame, intr, appearance, deadline)
             dt = _ms(t2)
             timing["coarse"] += dt
             t_second += dt
@@ -644,10 +657,11 @@ def by_unrefined_score(bank: TemplateBank, cands: list[PoseCandidate], frame: Co
 # POLISH_ROUNDS rounds), and judged there. Cached lmo_dev candidates scoring 0.90-0.98 (bench/appearance.py
 # polish, 4 reference images): right ones reaching 0.98, 15 of 25; wrong ones, 0 of 25; truths refined from
 # the ground truth, 36 of 117. Through the service: right found 25 -> 39 of 283, wrong 0. Session 17: from
-# 0.85 instead of 0.90, 54 -> 56 (one a half), wrong 0; cached candidates scoring 0.80-0.90 polished: 0 of
-# 98 wrong ones reach 0.98 (none passes 0.95), 1 of 5 right ones.
+# 0.85 with the colour prior and scored fits on, 54 -> 56 (one a half), wrong 0; cached candidates scoring
+# 0.80-0.90 polished: 0 of 98 wrong ones reach 0.98 (none passes 0.95), 1 of 5 right ones. Left at 0.90:
+# not measured with the other reference choices on their own.
 APPEARANCE_POLISH = True
-APPEARANCE_POLISH_FROM = 0.85
+APPEARANCE_POLISH_FROM = 0.9
 POLISH_STEPS = (("t", 0, 1.0), ("t", 1, 1.0), ("t", 2, 4.0), ("r", 0, 1.0), ("r", 1, 1.0), ("r", 2, 1.0))
 POLISH_ROUNDS = 4
 POLISH_MIN_GAIN = 1e-4  # a step must raise the score by this much
