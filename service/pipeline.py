@@ -631,9 +631,12 @@ def taught_colour_density(bank: TemplateBank, appearance: Appearance | None) -> 
     None untaught."""
     if appearance is None:
         return None
-    v = np.asarray(bank.vertices_mm, float)[np.asarray(bank.faces)]
-    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
-    return part_density(appearance.face_bgr, area)
+
+    def face_areas() -> np.ndarray:
+        v = np.asarray(bank.vertices_mm, float)[np.asarray(bank.faces)]
+        return 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+
+    return part_density(appearance.face_bgr, _REST.get(bank, "face_area", face_areas))
 
 
 def by_unrefined_score(bank: TemplateBank, cands: list[PoseCandidate], frame: ColourFrame, intr: Intrinsics,

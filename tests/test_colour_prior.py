@@ -8,7 +8,7 @@ from service.vision.build.appearance import Appearance
 from service.vision.estimate import colour_prior, regions
 from service.vision.geometry.camera import project
 from service.vision.geometry.render import rasterise_roi
-from tests.test_regions import H, K, W, template_pose
+from tests.test_regions import H, K, W, best_node_iou, template_pose
 
 RED, BLUE, GREY = (40, 40, 200), (200, 60, 40), (128, 128, 128)
 
@@ -64,8 +64,7 @@ def test_of_two_same_shaped_regions_the_part_coloured_one_is_proposed_first(l_bl
         twin_pose = right if part_pose is left else left
         image = _two_parts_scene(bank, part_pose, twin_pose, part_bgr, twin_bgr)
         reg = regions.segment(image)
-        small = regions.cv2.resize(image, reg.labels.shape[::-1], interpolation=regions.cv2.INTER_AREA)
-        purity = regions.node_means(reg, colour_prior.likelihood(small, density))
+        purity = regions.node_means(reg, regions.working_likelihood(image, density))
         props, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=4, reg=reg, purity=purity)
         centre = project(part_pose.apply(bank.centre_obj[None]), K)[0]
         assert np.hypot(*(props[0].hyp.uv - centre)) < 8.0, (props[0].hyp.uv, centre)
@@ -122,16 +121,6 @@ def test_scored_region_proposals_take_the_painted_rotation_not_its_turned_twin(m
     assert min(ta._rot_deg(R0, R) for R in twins) < VIEW_STEP_DEG
 
 
-def _best_iou(reg, target: np.ndarray) -> float:
-    best = 0.0
-    for c in range(len(reg.children)):
-        x0, y0, x1, y1 = reg.bbox[c]
-        m = np.zeros_like(target)
-        m[y0:y1, x0:x1] = regions.region_mask(reg, c).astype(bool)
-        best = max(best, (m & target).sum() / (m | target).sum())
-    return best
-
-
 def test_a_part_painted_in_two_far_colours_is_one_region_only_when_guided_by_them(monkeypatch):
     # a red and a blue half (far apart: the hierarchy does not merge them) on a grey floor; the part's
     # colours taught, their shared boundary counts less and the part is one region
@@ -143,5 +132,5 @@ def test_a_part_painted_in_two_far_colours_is_one_region_only_when_guided_by_the
     target[80:160, 100:180] = True
     faces = np.array([RED, BLUE], np.float32)
     guide = regions.working_likelihood(img, colour_prior.part_density(faces, np.ones(2)), work_width=320)
-    assert _best_iou(regions.segment(img, work_width=320), target) < 0.6
-    assert _best_iou(regions.segment(img, work_width=320, guide=guide), target) > 0.97
+    assert best_node_iou(regions.segment(img, work_width=320), target) < 0.6
+    assert best_node_iou(regions.segment(img, work_width=320, guide=guide), target) > 0.97

@@ -195,13 +195,18 @@ class Regions:
         return out
 
 
-def smooth(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> tuple[float, np.ndarray]:
-    """(working px per full-resolution px, the image shrunk to ``work_width`` and mean-shift smoothed, as
-    float32 Lab: L 0..100, a and b centred on 0)."""
+def shrink(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> tuple[float, np.ndarray]:
+    """(working px per full-resolution px, the image shrunk to ``work_width``; never enlarged)."""
     H, W = image_bgr.shape[:2]
     sc = min(work_width / W, 1.0)
     w, h = max(int(round(W * sc)), 1), max(int(round(H * sc)), 1)
-    small = cv2.resize(image_bgr, (w, h), interpolation=cv2.INTER_AREA) if sc < 1 else image_bgr.copy()
+    return sc, cv2.resize(image_bgr, (w, h), interpolation=cv2.INTER_AREA) if sc < 1 else image_bgr.copy()
+
+
+def smooth(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> tuple[float, np.ndarray]:
+    """(working px per full-resolution px, the image shrunk to ``work_width`` and mean-shift smoothed, as
+    float32 Lab: L 0..100, a and b centred on 0)."""
+    sc, small = shrink(image_bgr, work_width)
     ms = cv2.pyrMeanShiftFiltering(small, MS_SP, MS_SR)
     lab = cv2.cvtColor(ms, cv2.COLOR_BGR2LAB).astype(np.float32)
     lab[..., 0] *= 100.0 / 255.0
@@ -286,11 +291,7 @@ def segment(image_bgr: np.ndarray, work_width: int = WORK_WIDTH,
 def working_likelihood(image_bgr: np.ndarray, part_colours: np.ndarray, work_width: int = WORK_WIDTH
                        ) -> np.ndarray:
     """``colour_prior.likelihood`` of the image shrunk as ``smooth`` shrinks it (before mean shift)."""
-    H, W = image_bgr.shape[:2]
-    sc = min(work_width / W, 1.0)
-    w, h = max(int(round(W * sc)), 1), max(int(round(H * sc)), 1)
-    small = cv2.resize(image_bgr, (w, h), interpolation=cv2.INTER_AREA) if sc < 1 else image_bgr
-    return likelihood(small, part_colours)
+    return likelihood(shrink(image_bgr, work_width)[1], part_colours)
 
 
 def merge(labels: np.ndarray, sc: float, st: RegionStats) -> Regions:
@@ -959,7 +960,9 @@ def region_proposals(bank: TemplateBank, image: np.ndarray, K: np.ndarray, image
     proposed unless segmenting and matching (their running mean's ``high``) and ``reserve_ms`` fit, and
     each refinement starts only if the previous one's duration and ``reserve_ms`` do (fewer proposals,
     best first, rather than a late answer). ``part_colours``: a taught part's colour density
-    (``colour_prior.part_density``): regions are then ranked by how part-coloured they are too."""
+    (``colour_prior.part_density``): regions are then ranked by how part-coloured they are too (and
+    merged by it, ``GUIDED_MERGE``). ``score`` (hypotheses -> their scores) with ``n_scored`` > ``n_out``:
+    that many proposals, up to ``PER_REGION_SCORED`` a region, are scored and the best ``n_out`` refined."""
     if not deadline.allows(_PROPOSE_MS.high + reserve_ms):
         return []
     if image.ndim == 2:
