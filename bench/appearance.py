@@ -15,7 +15,7 @@ query among the cached candidates, distance 300-1200 mm).
 
     python bench/appearance.py evidence [--set lmo_dev] [--references 4] [--save w.json]
 
-``polish``: the cached candidates and truths scoring ``pipeline.APPEARANCE_POLISH_FROM``-0.98 under the
+``polish``: the cached candidates and truths scoring ``pipeline.TAUGHT_SEARCH.polish_from``-0.98 under the
 taught score, moved by ``pipeline.polish_appearance`` and scored again: how many cross the operating
 point, per half (right candidates, wrong ones, truths).
 
@@ -67,6 +67,7 @@ def set_dir_of(name: str) -> Path:
 
 
 REFERENCE_OFFSET = 0  # positions the reference images are moved by (another choice of the same spread)
+CALIBRATE = False  # each part's operating point calibrated on its reference photos (pipeline.teach_appearance)
 
 
 def reference_images(set_dir: Path, n: int) -> list[str]:
@@ -111,7 +112,14 @@ def taught(set_dir: Path, n_references: int) -> dict[str, Appearance]:
             others = [d for m, d in depths.items() if m != g["model"]]
             hidden = (np.min(others, axis=0) < depths[g["model"]]) if others else None
             views[g["model"]].append((image, Intrinsics.from_K(np.asarray(g["K"], float)), _pose(g), hidden))
-    return {m: teach_appearance(gt_bank(set_dir, m), v) for m, v in views.items()}
+    out = {m: teach_appearance(gt_bank(set_dir, m), v, calibrate=CALIBRATE) for m, v in views.items()}
+    if CALIBRATE:
+        from service.pipeline import operating_point
+
+        for m, a in sorted(out.items()):
+            print(f"calibrated {m}: {a.calibrated_photos} photos, highest wrong score {a.wrong_score:.4f}, "
+                  f"operating point {operating_point(a) or float('nan'):.4f}", file=sys.stderr)
+    return out
 
 
 def appearance_rows(name: str, n_references: int) -> list[dict]:
@@ -164,7 +172,9 @@ def judge(rows: list[dict], w: np.ndarray, thr: float) -> tuple[int, int, int, i
 
 
 def polish(name: str, n_references: int, rows: list[dict]) -> int:
-    from service.pipeline import APPEARANCE_POLISH_FROM, polish_appearance, unrefined_score
+    from service.pipeline import TAUGHT_SEARCH, polish_appearance, unrefined_score
+
+    APPEARANCE_POLISH_FROM = TAUGHT_SEARCH.polish_from
     from service.vision.estimate.verdict import MIN_SCORE, verification_score
 
     set_dir = set_dir_of(name)

@@ -139,27 +139,42 @@ def main(argv=None) -> int:
     ap.add_argument("--half", default="all", choices=["all", "even", "odd"],
                     help="with --references: only this half of the other images")
     ap.add_argument("--colour-prior", action="store_true",
-                    help="taught parts: region proposals ranked by the colour prior (pipeline.COLOUR_PRIOR)")
+                    help="taught parts not calibrated: region proposals ranked by the colour prior "
+                         "(pipeline.TAUGHT_SEARCH)")
     ap.add_argument("--scored-fits", type=int, default=None,
-                    help="taught parts: region fits scored before the best are refined "
-                         "(pipeline.REGION_SCORED_TAUGHT; 48 measured)")
+                    help="taught parts not calibrated: region fits scored before the best are refined "
+                         "(pipeline.TAUGHT_SEARCH; 48 measured)")
     ap.add_argument("--order-first", action="store_true",
-                    help="taught parts: candidates ordered before near duplicates are dropped "
-                         "(pipeline.ORDER_BEFORE_DUPLICATES)")
+                    help="taught parts not calibrated: candidates ordered before near duplicates are dropped "
+                         "(pipeline.TAUGHT_SEARCH)")
     ap.add_argument("--polish-from", type=float, default=None,
-                    help="taught parts: near misses from this score are polished "
-                         "(pipeline.APPEARANCE_POLISH_FROM)")
+                    help="taught parts not calibrated: near misses from this score are polished "
+                         "(pipeline.TAUGHT_SEARCH)")
+    ap.add_argument("--calibrate", action="store_true",
+                    help="with --references: each part's operating point calibrated on its reference photos "
+                         "(pipeline.calibrate_appearance)")
+    ap.add_argument("--calibration-margin", type=float, default=None,
+                    help="logit margin over the highest wrong score (pipeline.CALIBRATION_MARGIN)")
     a = ap.parse_args(argv)
     from service import pipeline as _pipeline
 
+    if a.calibrate:
+        import bench.appearance
+
+        bench.appearance.CALIBRATE = True
+    if a.calibration_margin is not None:
+        _pipeline.CALIBRATION_MARGIN = a.calibration_margin
+
+    from dataclasses import replace as _replace
+
     if a.colour_prior:
-        _pipeline.COLOUR_PRIOR = True
+        _pipeline.TAUGHT_SEARCH = _replace(_pipeline.TAUGHT_SEARCH, colour_prior=True)
     if a.order_first:
-        _pipeline.ORDER_BEFORE_DUPLICATES = True
+        _pipeline.TAUGHT_SEARCH = _replace(_pipeline.TAUGHT_SEARCH, order_first=True)
     if a.scored_fits is not None:
-        _pipeline.REGION_SCORED_TAUGHT = a.scored_fits
+        _pipeline.TAUGHT_SEARCH = _replace(_pipeline.TAUGHT_SEARCH, scored_fits=a.scored_fits)
     if a.polish_from is not None:
-        _pipeline.APPEARANCE_POLISH_FROM = a.polish_from
+        _pipeline.TAUGHT_SEARCH = _replace(_pipeline.TAUGHT_SEARCH, polish_from=a.polish_from)
     if a.reference_offset:
         import bench.appearance
 

@@ -45,11 +45,12 @@ from service.vision.estimate.plane import (
 from service.vision.estimate.regions import region_proposals
 from service.vision.estimate.roi import crop_segments, roi_mask
 from service.vision.estimate.roi import inside as roi_inside
-from service.vision.estimate.verdict import Verdict, decide, verification_score
+from service.vision.estimate.verdict import MIN_SCORE, Verdict, decide, verification_score
 from service.vision.geometry.camera import Intrinsics, project, undistort_image
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz, canonical_spin
 from service.vision.geometry.render import rasterise_roi
 from service.vision.memo import Memo
+from service.vision.reference.metrics import mspd_px, symmetry_rotations
 
 DEFAULT_DISTANCE_RANGE_MM = (300.0, 1200.0)  # searched when the request gives no distance
 
@@ -82,6 +83,9 @@ class EstimateOutput:
     # fields above describe instances[0]; empty when nothing is found
     instances: list[Instance] = field(default_factory=list)
     deadline_reached: bool = False  # the search stopped early at ``deadline_ms`` (anytime)
+    # every candidate refined and judged, the verdict's order (found first, then by score): what the
+    # teach-time calibration reads (``calibrate_appearance``)
+    checked: list[Checked] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -100,15 +104,43 @@ def build_templates(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict
     return build_bank(mesh, symmetry=symmetry, grid=grid or {}, progress=progress)
 
 
-def teach_appearance(bank: TemplateBank, views: list[tuple]) -> Appearance:
+def teach_appearance(bank: TemplateBank, views: list[tuple], *, calibrate: bool = False) -> Appearance:
     """The part's colours (``build/appearance.py``) from reference photos: each a decoded image (BGR, or
     grey), its camera and the part's pose in it (T_cam_obj), and optionally an (H, W) bool mask of the
     pixels where something else hides the part. A revolved part is taught per ring about its axis
     (``appearance.SPIN_VIEWS``). Whether an estimate uses them (``Appearance.used``): the untextured
     shading model's fit at each photo's pose says whether the part is plain, and each photo judged on
-    the colours the others teach whether the photos agree."""
+    the colours the others teach whether the photos agree. ``calibrate``: the part's operating point is
+    calibrated on the photos too (``calibrate_appearance``: seconds a photo)."""
     if not views:
         return teach(bank.vertices_mm, bank.faces, [])
+    taught = _read_references(bank, views)
+    face_bgr = combine(bank.faces, taught.seen)
+    agree = []
+    for i, (_, intr, pose, *_) in enumerate(views if len(views) >= 2 else []):
+        ev = evidence(bank, pose, intr, taught.frames[i], face_bgr=taught.without(bank, i))
+        if ev.appearance_known is not None and ev.appearance_known >= MIN_AGREEMENT_KNOWN:
+            agree.append(ev.appearance)
+    appearance = Appearance(face_bgr, len(views), float(np.median(taught.shading_r2)), colour_spread(face_bgr),
+                            float(np.median(agree)) if agree else float("nan"))
+    return calibrate_appearance(bank, views, appearance, taught) if calibrate else appearance
+
+
+@dataclass(frozen=True)
+class _References:
+    """What the reference photos show: each photo's colour frame (ideal camera), the shading model's fit
+    at its pose, the colours every (spun) view reads, and which photo each view is."""
+    frames: list[ColourFrame]
+    shading_r2: list[float]
+    seen: object  # appearance.ViewColours
+    photo_of: np.ndarray
+
+    def without(self, bank: TemplateBank, i: int) -> np.ndarray:
+        """(F, 3) the face colours the photos other than ``i`` teach."""
+        return combine(bank.faces, self.seen, self.photo_of != i)
+
+
+def _read_references(bank: TemplateBank, views: list[tuple]) -> _References:
     refs, photo_of, shading_r2, frames = [], [], [], []
     for i, (image, intr, pose, *hidden) in enumerate(views):
         bgr = image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
@@ -119,17 +151,59 @@ def teach_appearance(bank: TemplateBank, views: list[tuple]) -> Appearance:
                                                                     bank.symmetry_point_obj)
         refs += [ReferenceView(frame.bgr, intr, p, hidden[0] if hidden else None) for p in poses]
         photo_of += [i] * len(poses)
-    seen = read_views(bank.vertices_mm, bank.faces, refs)
-    face_bgr = combine(bank.faces, seen)
-    photo_of = np.asarray(photo_of)
-    agree = []
-    for i, (_, intr, pose, *_) in enumerate(views if len(views) >= 2 else []):
-        others = combine(bank.faces, seen, photo_of != i)
-        ev = evidence(bank, pose, intr, frames[i], face_bgr=others)
-        if ev.appearance_known is not None and ev.appearance_known >= MIN_AGREEMENT_KNOWN:
-            agree.append(ev.appearance)
-    return Appearance(face_bgr, len(views), float(np.median(shading_r2)), colour_spread(face_bgr),
-                      float(np.median(agree)) if agree else float("nan"))
+    return _References(frames, shading_r2, read_views(bank.vertices_mm, bank.faces, refs), np.asarray(photo_of))
+
+
+# The teach-time calibration of a taught part's operating point. The taught verdict's global operating
+# point (``verdict.MIN_SCORE``) lets through a wrong pose of a part whose taught colours do not set it apart
+# from its surroundings (lmo_dev's white glue and yellow duck, session 17: 0.982-0.985). Each reference
+# photo shows the part at a known pose among the cell's own things: searched like a frame, taught by the
+# other photos, every pose judged there that lies ``CALIBRATION_WRONG_PX`` or more from the known one
+# (MSPD, 640 px wide) is a wrong answer the cell can produce, and the part's operating point
+# (``operating_point``) is set ``CALIBRATION_MARGIN`` (logit) above the highest such score.
+CALIBRATION_WRONG_PX = 20.0
+CALIBRATION_MARGIN = 0.0
+CALIBRATION_POINTS = 500  # model vertices the calibration's MSPD reads
+_NEVER = 2.0  # a min_score no pose reaches: every candidate is judged
+
+
+def calibrate_appearance(bank: TemplateBank, views: list[tuple], appearance: Appearance,
+                         taught: _References | None = None) -> Appearance:
+    """``appearance`` with its ``wrong_score``: the highest verification score of a wrong pose judged when
+    each reference photo is searched (``estimate``, every candidate judged), taught by the others. Needs
+    two photos and colours the estimate uses (``Appearance.used``); else ``appearance`` as it is."""
+    if len(views) < 2 or not appearance.used:
+        return appearance
+    taught = taught or _read_references(bank, views)
+    wrong = -math.inf
+    for i, (image, intr, pose, *_) in enumerate(views):
+        # searched as the calibrated part will be (``CALIBRATED_SEARCH``), every candidate judged
+        others = replace(appearance, face_bgr=taught.without(bank, i), calibrated_photos=len(views))
+        out = estimate(bank, image, intr, min_score=_NEVER, appearance=others)
+        for c in out.checked:
+            if c.verdict.reason not in NOT_POLISHED and _error_px(bank, c.refined.pose, pose, intr,
+                                                                  image.shape[1]) >= CALIBRATION_WRONG_PX:
+                wrong = max(wrong, c.verdict.score)
+    return replace(appearance, wrong_score=wrong, calibrated_photos=len(views))
+
+
+def _error_px(bank: TemplateBank, pose: Pose, truth: Pose, intr: Intrinsics, width: int) -> float:
+    """MSPD (a revolved part's spins about its axis alike) between two poses, pixels at 640 wide."""
+    v = np.asarray(bank.vertices_mm, float)
+    v = v[:: max(1, len(v) // CALIBRATION_POINTS)]
+    syms = None if bank.symmetry_axis_obj is None else symmetry_rotations(
+        bank.symmetry_axis_obj, bank.symmetry_point_obj, n=72)
+    return mspd_px(pose.R, pose.t_mm, truth.R, truth.t_mm, intr.K, v, syms) * 640.0 / width
+
+
+def operating_point(appearance: Appearance | None) -> float | None:
+    """The calibrated part's operating point: ``CALIBRATION_MARGIN`` (logit) above its highest wrong
+    score, and never under ``verdict.MIN_SCORE``; None (the global one) for a part not calibrated."""
+    if appearance is None or not np.isfinite(appearance.wrong_score):
+        return None
+    s = min(max(appearance.wrong_score, 1e-9), 1 - 1e-9)
+    z = math.log(s / (1 - s)) + CALIBRATION_MARGIN
+    return max(MIN_SCORE, 1.0 / (1.0 + math.exp(-z)))
 
 
 def template_picture(bank: TemplateBank, k: int) -> np.ndarray:
@@ -203,22 +277,41 @@ REGION_PROPOSALS = 0
 # proposals (cached checks, bench/appearance.py), and the taught colours refuse the distractors' regions
 # that made the untaught verdict take them.
 REGION_PROPOSALS_TAUGHT = 12
-# ... chosen by their unrefined score (the taught colours) from this many fits (8 a region), before their
-# refinement (``regions.region_proposals``' score); 0: off. Off (session 17): with the colour prior on, 48
-# took lmo_dev (4 reference images) from 50 / 0 right / wrong to 54 / 0, but another choice of 4 images
-# gave 27 / 1 (22 / 0 without it; the glue 232 px off at 0.982) and 8 images 59 / 2 (52 / 1): more
-# candidates scored, more wrong ones over the operating point.
-REGION_SCORED_TAUGHT = 0
-# A taught part's region proposals ranked by how part-coloured each region is too (``colour_prior.py``,
-# ``regions.propose``'s purity). Off (session 17): on lmo_dev with the 4 reference images the weights were
-# fitted with it took right found 39 -> 44 (50 with the ordering before near duplicates are dropped), none
-# wrong, but with 8 reference images it found the duck 61 px off at 0.985, which it does not off.
-COLOUR_PRIOR = False
-# A taught part's later passes put in order of unrefined score before near duplicates are dropped (the kept
-# one of a group the best-coloured) instead of after. Off (session 17): lmo_dev right / wrong with 4
-# reference images 39 / 0 -> 44 / 0 (with the polish from 0.85), another 4 19 / 0 -> 19 / 0, but 8 images
-# 38 / 0 -> 41 / 1 (the glue 280 px off at 0.9815).
-ORDER_BEFORE_DUPLICATES = False
+@dataclass(frozen=True)
+class TaughtSearch:
+    """How a taught part's frames are searched beyond the region proposals (``REGION_PROPOSALS_TAUGHT``).
+
+    ``scored_fits``: the region proposals are chosen by their unrefined score (the taught colours) from
+    this many fits (8 a region) before their refinement (``regions.region_proposals``' score; 0: off).
+    ``colour_prior``: they are ranked by how part-coloured each region is too (``colour_prior.py``,
+    ``regions.propose``'s purity). ``order_first``: the later passes are put in order of unrefined score
+    before near duplicates are dropped (the kept one of a group the best-coloured) instead of after.
+    ``polish_from``: near misses from this score are polished (``APPEARANCE_POLISH``)."""
+    scored_fits: int = 0
+    colour_prior: bool = False
+    order_first: bool = False
+    polish_from: float = 0.9
+
+
+# A taught part whose operating point is not calibrated (``calibrate_appearance``): session 16's search.
+# Session 17 measured each of the calibrated search's changes at the global operating point (lmo_dev, right
+# / wrong with 4 reference images; another 4; 8): the colour prior 39 / 0 -> 44 / 0; with the order first
+# 50 / 0, and the duck 61 px off at 0.985 with 8 images; with 48 scored fits and the polish from 0.85
+# 56 / 0, 27 / 1 (the glue 232 px off at 0.982) and 59 / 2 (the glue twice): more candidates judged, more
+# wrong ones over the global operating point. So they run only where the part's operating point was
+# calibrated on its own photos.
+TAUGHT_SEARCH = TaughtSearch()
+CALIBRATED_SEARCH = TaughtSearch(scored_fits=48, colour_prior=True, order_first=True, polish_from=0.85)
+
+
+def taught_search(appearance: Appearance | None) -> TaughtSearch | None:
+    """The search of a taught part (None untaught): ``CALIBRATED_SEARCH`` once its operating point is
+    calibrated, else ``TAUGHT_SEARCH``."""
+    if appearance is None:
+        return None
+    return CALIBRATED_SEARCH if appearance.calibrated_photos > 0 else TAUGHT_SEARCH
+
+
 ROI_MIN_PEAKS = 4  # level-A peaks scale with the ROI's share of the image, down to this many
 INSTANCE_IOU = 0.4  # two found instances whose silhouettes overlap more than this are one instance
 
@@ -244,7 +337,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
             colour: np.ndarray | None = None, n_regions: int | None = None,
             part_colours: np.ndarray | None = None,
             order: Callable[[list[PoseCandidate]], list[PoseCandidate]] | None = None,
-            score: Callable[[PoseCandidate], float] | None = None):
+            score: Callable[[PoseCandidate], float] | None = None, n_scored: int = 0):
     """The proposal engine (the paper's method): LSD edges, their distance tensor and the coarse
     search -> (distinct candidates, lowest chamfer cost first; full-image segments; timing_ms with
     "edges" and "coarse").
@@ -274,8 +367,8 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     are ranked by how part-coloured each region is too. ``order``: the second pass's and the region
     proposals' candidates are put in this order before near duplicates are dropped (the first of each
     group of near duplicates is kept: a taught part's candidates by their unrefined score). ``score``: a
-    candidate's score as it stands (a taught part's unrefined score): ``REGION_SCORED_TAUGHT`` region fits
-    are scored, and the best ``n_regions`` of them refined."""
+    candidate's score as it stands (a taught part's unrefined score): ``n_scored`` region fits are scored,
+    and the best ``n_regions`` of them refined."""
     rest = resting_rotations(bank) if plane is not None else None
     p = params or SEARCH_PARAMS
     threads.use_budget()
@@ -348,7 +441,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
                 hs = region_proposals(bank, colour, intr.K, (h, w), p, distance_mm=distance_mm,
                                       distance_range_mm=rng, n_out=n_regions, deadline=deadline,
                                       part_colours=part_colours, score=None if score is None else hyp_score,
-                                      n_scored=REGION_SCORED_TAUGHT if score is not None else 0,
+                                      n_scored=n_scored if score is not None else 0,
                                       reserve_ms=_CHECK_MS.high)
                 # by pose: a region's other silhouette fits (other rotations at the same place) stay
                 return _distinct_in_roi(ordered(to_candidates(hs)), bank, intr, None, True)
@@ -438,6 +531,9 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
         distance_mm = None  # the plane fixes the depth of every placement
     if appearance is not None and not appearance.used:
         appearance = None  # a plain part's, or photos that disagree (``Appearance.used``)
+    if min_score is None:
+        min_score = operating_point(appearance)
+    search = taught_search(appearance)
     p = params or search_params(max_instances)
     t_start = time.perf_counter() if started_at is None else started_at
     deadline = Deadline(deadline_ms, start=t_start)
@@ -456,11 +552,13 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
                                deferred=second if max_instances <= 1 else None,
                                colour=ideal,
                                n_regions=REGION_PROPOSALS_TAUGHT if appearance is not None else None,
-                               part_colours=taught_colour_density(bank, appearance) if COLOUR_PRIOR else None,
-                               order=None if appearance is None or not ORDER_BEFORE_DUPLICATES else
+                               part_colours=taught_colour_density(bank, appearance)
+                               if search is not None and search.colour_prior else None,
+                               order=None if search is None or not search.order_first else
                                lambda cs: by_unrefined_score(bank, cs, frame, intr, appearance, deadline),
                                score=None if appearance is None else
-                               lambda c: unrefined_score(bank, c.pose, frame, intr, None, appearance))
+                               lambda c: unrefined_score(bank, c.pose, frame, intr, None, appearance),
+                               n_scored=search.scored_fits if search is not None else 0)
     t0 = time.perf_counter()
     t_second = 0.0
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
@@ -475,7 +573,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
             # the region proposals (REGION_PROPOSALS), each checked up to N_VERIFY.
             t2 = time.perf_counter()
             more = later_pass()
-            if appearance is not None and not ORDER_BEFORE_DUPLICATES:
+            if search is not None and not search.order_first:
                 more = by_unrefined_score(bank, more, frame, intr, appearance, deadline)
             dt = _ms(t2)
             timing["coarse"] += dt
@@ -490,6 +588,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
                                                 **kw)
         found_list = sort_instances(found_list, bank, sort, plane)
         best = found_list[0] if found_list else (rejected[0] if rejected else None)
+        checked = found_list + rejected
     instances = [Instance(c.candidate, c.refined if refine else None, c.verdict) for c in found_list]
     verdict = best.verdict if best is not None else decide(None)
     if deadline.hit and not verdict.found:
@@ -507,7 +606,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
                                       rejected=None if found or best is None else best.refined.pose))
     timing["total"] = _ms(t_start)
     return EstimateOutput((w, h), found, coarse, refined, cands[:top_k], timing, png, verdict, instances,
-                          deadline.hit)
+                          deadline.hit, checked)
 
 
 @dataclass(frozen=True)
@@ -561,11 +660,11 @@ class _Checker:
         return c
 
     def polished(self, c: Checked, others_depth_mm: np.ndarray | None) -> Checked:
-        """A taught part's near miss (``APPEARANCE_POLISH_FROM``) judged again at the pose nearby whose
+        """A taught part's near miss (its search's ``polish_from``) judged again at the pose nearby whose
         taught colours fit best (``polish_appearance``)."""
         appearance = self.judge_kw.get("appearance")
         if (appearance is None or not APPEARANCE_POLISH or c.verdict.found
-                or c.verdict.score < APPEARANCE_POLISH_FROM or c.verdict.reason in NOT_POLISHED):
+                or c.verdict.score < taught_search(appearance).polish_from or c.verdict.reason in NOT_POLISHED):
             return c
         pose = polish_appearance(self.bank, c.refined.pose, self.frame, self.intr, appearance,
                                  others_depth_mm, self.deadline)
@@ -654,17 +753,16 @@ def by_unrefined_score(bank: TemplateBank, cands: list[PoseCandidate], frame: Co
 
 
 # A taught part's pose a pixel or a degree off loses the correlation of its colours, which the edges'
-# refinement does not look at: a near miss (score at least APPEARANCE_POLISH_FROM, not refused for where it
-# lies) is moved, a step at a time, to the pose nearby whose unrefined score is highest (coordinate
+# refinement does not look at: a near miss (score at least its search's ``polish_from``, not refused for
+# where it lies) is moved, a step at a time, to the pose nearby whose unrefined score is highest (coordinate
 # ascent over POLISH_STEPS: translations along the camera axes, mm, and rotations about them, deg, at most
 # POLISH_ROUNDS rounds), and judged there. Cached lmo_dev candidates scoring 0.90-0.98 (bench/appearance.py
 # polish, 4 reference images): right ones reaching 0.98, 15 of 25; wrong ones, 0 of 25; truths refined from
 # the ground truth, 36 of 117. Through the service: right found 25 -> 39 of 283, wrong 0. Session 17: from
 # 0.85 with the colour prior and scored fits on, 54 -> 56 (one a half), wrong 0; cached candidates scoring
-# 0.80-0.90 polished: 0 of 98 wrong ones reach 0.98 (none passes 0.95), 1 of 5 right ones. Left at 0.90:
-# not measured with the other reference choices on their own.
+# 0.80-0.90 polished: 0 of 98 wrong ones reach 0.98 (none passes 0.95), 1 of 5 right ones. From 0.85 only in
+# the calibrated search (``CALIBRATED_SEARCH``).
 APPEARANCE_POLISH = True
-APPEARANCE_POLISH_FROM = 0.9
 POLISH_STEPS = (("t", 0, 1.0), ("t", 1, 1.0), ("t", 2, 4.0), ("r", 0, 1.0), ("r", 1, 1.0), ("r", 2, 1.0))
 POLISH_ROUNDS = 4
 POLISH_MIN_GAIN = 1e-4  # a step must raise the score by this much

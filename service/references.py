@@ -18,6 +18,8 @@ Plain numpy and the service's wire models; no HTTP here (``service.api.reference
 
 from __future__ import annotations
 
+import math
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -114,16 +116,47 @@ def appearance_of(store: Store, record: dict[str, Any], bank: TemplateBank) -> A
     """The model's taught appearance, None when it has no reference photos: taught once per reference
     set and process (the memo's key, the record's ``references_version``, is new at every change). A set
     changed between reading ``record`` and reading the photos is taught under the older version, which
-    only requests still holding the older record ask for."""
+    only requests still holding the older record ask for. With the record's calibration of this set
+    (``calibrate_stored``), the part's operating point is calibrated (``pipeline.operating_point``)."""
     if not record.get("references"):
         return None
     key = (record["id"], record.get("references_version"), len(bank.faces))
-    return _TAUGHT.get(_OWNER, key, lambda: teach_stored(bank, store.references(record["id"], images=True)))
+    appearance = _TAUGHT.get(_OWNER, key, lambda: teach_stored(bank, store.references(record["id"], images=True)))
+    cal = record.get("calibration") or {}
+    if appearance is None or cal.get("references_version") != record.get("references_version"):
+        return appearance
+    wrong = cal.get("wrong_score")
+    return replace(appearance, wrong_score=-math.inf if wrong is None else float(wrong),
+                   calibrated_photos=int(cal["photos"]))
+
+
+def calibrate_stored(store: Store, record: dict[str, Any], bank: TemplateBank) -> dict[str, Any]:
+    """The part's operating point calibrated on its stored photos (``pipeline.calibrate_appearance``: each
+    searched, taught by the others; seconds a photo) and kept in the record as ``calibration``, keyed by
+    the photo set's ``references_version`` (a set changed meanwhile is not calibrated by this: its own
+    post calibrates it): the record as it is then. Photos that are not used (plain, disagreeing, or a
+    single one) are not calibrated."""
+    appearance = appearance_of(store, record, bank)
+    if appearance is None or not appearance.used:
+        return record
+    views = [_view(decode_image(r["image"]), r["camera"], r["T_cam_obj"])
+             for r in store.references(record["id"], images=True)]
+    calibrated = pipeline.calibrate_appearance(bank, views, appearance)
+    if calibrated.calibrated_photos == 0:
+        return record
+    wrong = calibrated.wrong_score
+    cal = {"references_version": record.get("references_version"), "photos": calibrated.calibrated_photos,
+           "wrong_score": float(wrong) if np.isfinite(wrong) else None}
+    current = store.get(record["id"])
+    if current is None or current.get("references_version") != cal["references_version"]:
+        return current or record
+    return store.update(record["id"], calibration=cal) or record
 
 
 def add_reference(store: Store, record: dict[str, Any], bank: TemplateBank, data: bytes, cam: CellCamera,
                   camera_name: str | None, pose: Transform, *, max_pixels: int) -> dict[str, Any]:
-    """Check, teach and store one reference photo (blocking: the API calls it from a worker thread):
+    """Check, teach and store one reference photo, and calibrate the part's operating point on all of them
+    (``calibrate_stored``; blocking: the API calls it from a worker thread):
     ``{"record": the updated record, "appearance": what every photo teaches now, "faces": the number of
     faces this photo alone teaches, "index": its index}``.
 
@@ -154,5 +187,6 @@ def add_reference(store: Store, record: dict[str, Any], bank: TemplateBank, data
     if updated is None:
         raise NotFoundError(f"Model '{mid}' was deleted while its reference photo was taught; upload it "
                             "again with POST /models")
+    updated = calibrate_stored(store, updated, bank)
     return {"record": updated, "appearance": appearance_of(store, updated, bank), "faces": faces,
             "index": int(updated["references"]) - 1}

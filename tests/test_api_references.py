@@ -25,6 +25,7 @@ from service.references import ESTIMATE_POSE_KEYS, MAX_REFERENCES
 from service.settings import Settings
 from service.store import Store, model_id
 from service.vision.build.appearance import ReferenceView, teach
+from service.vision.estimate.verdict import MIN_SCORE
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Ry, rotation_angle_deg
 from service.vision.geometry.render import render
@@ -188,6 +189,7 @@ def test_a_part_without_symmetry_reads_its_own_photo_s_colours_back_at_the_truth
     assert r.json()["faces_taught_by_this_view"] == taught_faces(as_shot) > 0
     # One photo cannot be checked against another: kept, not used.
     assert r.json()["agreement"] is None and r.json()["used"] is False
+    assert r.json()["calibrated"] is False and r.json()["min_score"] is None  # nothing used to calibrate
     assert "appearance" not in estimate(client, image, LBRACKET_CAMERA, mid=mid, distance_mm=450.0)[
         "verdict"]["evidence"]
     for turn in (Rx(20.0), Ry(-20.0)):  # two more views of the same paint: they agree
@@ -196,6 +198,14 @@ def test_a_part_without_symmetry_reads_its_own_photo_s_colours_back_at_the_truth
         r = post(client, painted_scene(lbracket[1], T), LBRACKET_CAMERA, transform(T), mid=mid)
         assert r.status_code == 201, r.text
     assert r.json()["used"] is True and r.json()["agreement"] > 0.9
+    # Used, the colours calibrate the part's operating point on the three photos: alone on a plain
+    # background, no wrong pose there verifies, and the operating point stays the global one.
+    added = r.json()
+    assert added["calibrated"] is True and added["min_score"] == MIN_SCORE
+    assert added["calibration_wrong_score"] is None or added["calibration_wrong_score"] < MIN_SCORE
+    listed = client.get(f"/models/{mid}/references").json()
+    assert {k: listed[k] for k in ("calibrated", "calibration_wrong_score", "min_score")} == {
+        k: added[k] for k in ("calibrated", "calibration_wrong_score", "min_score")}
     res = estimate(client, image, LBRACKET_CAMERA, mid=mid, distance_mm=450.0)
     assert res["found"] is True
     assert res["verdict"]["evidence"]["appearance"] > SAME_PHOTO_APPEARANCE
@@ -203,6 +213,7 @@ def test_a_part_without_symmetry_reads_its_own_photo_s_colours_back_at_the_truth
     assert rotation_angle_deg(R, LBRACKET_T_CAM_OBJ[:3, :3]) < FOUND_AT_TRUTH_DEG
     assert np.linalg.norm(t - LBRACKET_T_CAM_OBJ[:3, 3]) < FOUND_AT_TRUTH_MM
     assert client.delete(f"/models/{mid}/references").status_code == 204
+    assert client.get(f"/models/{mid}/references").json()["calibrated"] is None  # untaught again
 
 
 def test_an_estimate_s_refined_pose_is_accepted_as_it_comes_back(untaught, frame, truth):

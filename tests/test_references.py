@@ -101,3 +101,25 @@ def test_the_in_image_share_is_the_projected_box_s():
         assert (problem is None) == ok, (du, problem)
         if not ok:
             assert f"{100 * share:.0f}% of its projected extent inside" in problem
+
+
+def test_a_calibration_counts_only_for_the_photo_set_it_was_made_on(location, teach_calls, l_block_bank):
+    """The record's calibration carries its set's ``references_version``: another process adding a photo
+    makes it stale, and the part is judged at the global operating point until that set is calibrated."""
+    bank = l_block_bank
+    with Store(location) as api, Store(location) as other:
+        api.create({"id": "m", "name": "part", "status": "ready", "created_at": "2024-01-01"}, b"mesh")
+        record = api.add_reference("m", _reference(400.0), references.MAX_REFERENCES)
+        api.update("m", calibration={"references_version": record["references_version"], "photos": 1,
+                                     "wrong_score": 0.995})
+        taught = references.appearance_of(api, api.get("m"), bank)
+        assert taught.calibrated_photos == 1 and taught.wrong_score == 0.995
+        assert pipeline.operating_point(taught) >= 0.995
+        api.update("m", calibration={"references_version": record["references_version"], "photos": 1,
+                                     "wrong_score": None})  # calibrated: no wrong pose judged
+        assert references.appearance_of(api, api.get("m"), bank).wrong_score == -np.inf
+
+        other.add_reference("m", _reference(420.0), references.MAX_REFERENCES)
+        stale = references.appearance_of(api, api.get("m"), bank)
+        assert stale.calibrated_photos == 0 and np.isnan(stale.wrong_score)
+        assert pipeline.operating_point(stale) is None

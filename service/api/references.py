@@ -13,7 +13,9 @@ from service.api import error_responses
 from service.api.deps import ModelRecord, ReadyModel, SettingsDep, StoreDep, read_upload
 from service.cell_io import resolve_camera
 from service.references import MAX_REFERENCES, add_reference, appearance_of, parse_pose
+from service.pipeline import operating_point
 from service.schemas import ReferenceAdded, ReferencePhoto, References
+from service.vision.estimate.verdict import MIN_SCORE
 
 router = APIRouter(tags=["models"])
 
@@ -34,8 +36,9 @@ async def post_reference(
         description='JSON T_cam_obj, the part\'s pose in this photo: {"R": 3x3 row-major, "t_mm": [x, y, z]} '
                     "(a pose as the estimate returns it is accepted unchanged)")],
 ) -> ReferenceAdded:
-    """Add a reference photo of the part at a known pose and teach its colours from all of them
-    (at most ``max_references``; DELETE them to start again)."""
+    """Add a reference photo of the part at a known pose, teach its colours from all of them and, once
+    they are used, calibrate the part's operating point on them (seconds a stored photo: each is searched
+    as a frame); at most ``max_references``; DELETE them to start again."""
     data = await read_upload(image, settings.max_image_bytes, "image file", "POSE_MAX_IMAGE_BYTES")
     cam, camera_name = resolve_camera(camera, store)
     T_cam_obj = parse_pose(pose)
@@ -71,7 +74,10 @@ def delete_references(record: ModelRecord, store: StoreDep) -> Response:
 
 def _judged(appearance) -> dict:
     """What decides whether estimates use the taught colours (NaN, e.g. one photo's agreement: null)."""
-    agreement = appearance.agreement
+    agreement, wrong = appearance.agreement, appearance.wrong_score
     return {"plain": appearance.plain, "reference_shading_r2": appearance.reference_shading_r2,
             "hue_share": appearance.hue_share, "used": appearance.used,
-            "agreement": None if not np.isfinite(agreement) else agreement}
+            "agreement": None if not np.isfinite(agreement) else agreement,
+            "calibrated": appearance.calibrated_photos > 0,
+            "calibration_wrong_score": float(wrong) if np.isfinite(wrong) else None,
+            "min_score": (operating_point(appearance) or MIN_SCORE) if appearance.used else None}

@@ -87,6 +87,12 @@ class Appearance:
     # photos (those whose pose shows at least half its inside taught): do the photos agree on the part's
     # colours? NaN with fewer than 2 photos or none judged (the pipeline measures it).
     agreement: float = float("nan")
+    # The teach-time calibration (``pipeline.calibrate_appearance``): the highest verification score any
+    # wrong pose reached when each photo was searched, taught by the others (NaN: not calibrated; -inf:
+    # calibrated, no wrong pose judged), and how many photos were searched. The part's operating point
+    # (``pipeline.operating_point``) lies above it.
+    wrong_score: float = float("nan")
+    calibrated_photos: int = 0
 
     @property
     def used(self) -> bool:
