@@ -95,7 +95,8 @@ def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: fl
             mspd = stage_errors(pose, g, info, np.asarray(g["K"], float), int(g["width"]))["mspd640_px"]
         recs.append({"image": g["image"], "model": g["model"], "absent": absent, "found": out.found,
                      "mspd640": mspd, "visible": float(g.get("visible_fraction", 0.0 if absent else 1.0)),
-                     "reason": out.verdict.reason, "score": out.verdict.score, "ms": ms})
+                     "reason": out.verdict.reason, "score": out.verdict.score, "ms": ms,
+                     "evidence": out.verdict.evidence})
     return recs
 
 
@@ -150,15 +151,15 @@ def main(argv=None) -> int:
     ap.add_argument("--polish-from", type=float, default=None,
                     help="taught parts not calibrated: near misses from this score are polished "
                          "(pipeline.TAUGHT_SEARCH)")
-    ap.add_argument("--calibrate", action="store_true",
-                    help="with --references: each part's operating point calibrated on its reference photos "
-                         "(pipeline.calibrate_appearance)")
+    ap.add_argument("--uncalibrated", action="store_true",
+                    help="with --references: the parts' operating points not calibrated on their reference "
+                         "photos (as the service does at POST /references: pipeline.calibrate_appearance)")
     ap.add_argument("--calibration-margin", type=float, default=None,
                     help="logit margin over the highest wrong score (pipeline.CALIBRATION_MARGIN)")
     a = ap.parse_args(argv)
     from service import pipeline as _pipeline
 
-    if a.calibrate:
+    if a.references and not a.uncalibrated:
         import bench.appearance
 
         bench.appearance.CALIBRATE = True

@@ -198,11 +198,12 @@ def test_a_part_without_symmetry_reads_its_own_photo_s_colours_back_at_the_truth
         r = post(client, painted_scene(lbracket[1], T), LBRACKET_CAMERA, transform(T), mid=mid)
         assert r.status_code == 201, r.text
     assert r.json()["used"] is True and r.json()["agreement"] > 0.9
-    # Used, the colours calibrate the part's operating point on the three photos: alone on a plain
-    # background, no wrong pose there verifies, and the operating point stays the global one.
+    # Used, the colours calibrate the part's operating point on the three photos: it lies over every wrong
+    # pose judged there, and never under the global one.
     added = r.json()
-    assert added["calibrated"] is True and added["min_score"] == MIN_SCORE
-    assert added["calibration_wrong_score"] is None or added["calibration_wrong_score"] < MIN_SCORE
+    wrong = added["calibration_wrong_score"]
+    assert added["calibrated"] is True and added["min_score"] >= MIN_SCORE
+    assert wrong is None or added["min_score"] > wrong
     listed = client.get(f"/models/{mid}/references").json()
     assert {k: listed[k] for k in ("calibrated", "calibration_wrong_score", "min_score")} == {
         k: added[k] for k in ("calibrated", "calibration_wrong_score", "min_score")}
