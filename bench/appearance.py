@@ -67,7 +67,8 @@ def set_dir_of(name: str) -> Path:
 
 
 REFERENCE_OFFSET = 0  # positions the reference images are moved by (another choice of the same spread)
-CALIBRATE = False  # each part's operating point calibrated on its reference photos (pipeline.teach_appearance)
+# each part's operating point calibrated on its reference photos (pipeline.teach_appearance)
+CALIBRATE = False
 
 
 def reference_images(set_dir: Path, n: int) -> list[str]:
@@ -173,14 +174,14 @@ def judge(rows: list[dict], w: np.ndarray, thr: float) -> tuple[int, int, int, i
 
 def polish(name: str, n_references: int, rows: list[dict]) -> int:
     from service.pipeline import TAUGHT_SEARCH, polish_appearance, unrefined_score
-
-    APPEARANCE_POLISH_FROM = TAUGHT_SEARCH.polish_from
     from service.vision.estimate.verdict import MIN_SCORE, verification_score
+
+    polish_from = TAUGHT_SEARCH.polish_from  # an uncalibrated part's
 
     set_dir = set_dir_of(name)
     app = taught(set_dir, n_references)
     K = {g["image"]: np.asarray(g["K"], float) for g in read_gt(set_dir)}
-    near = [r for r in rows if APPEARANCE_POLISH_FROM <= verification_score(r["ev"]) < MIN_SCORE
+    near = [r for r in rows if polish_from <= verification_score(r["ev"]) < MIN_SCORE
             and RANGE_MM[0] <= float(r["t1"][2]) <= RANGE_MM[1]]
     counts: dict = defaultdict(lambda: [0, 0])
     current, frame = None, None
@@ -195,7 +196,7 @@ def polish(name: str, n_references: int, rows: list[dict]) -> int:
         cell = counts[(r["half"], kind)]
         cell[0] += 1
         cell[1] += unrefined_score(bank, pose, frame, intr, None, app[r["model"]]) >= MIN_SCORE
-    print(f"{name}, {n_references} reference images: cached poses scoring {APPEARANCE_POLISH_FROM}-"
+    print(f"{name}, {n_references} reference images: cached poses scoring {polish_from}-"
           f"{MIN_SCORE}, polished: how many reach {MIN_SCORE}\n")
     print("| half | right candidates | wrong candidates | truths (refined from the ground truth) |")
     print("|---|---|---|---|")

@@ -121,8 +121,8 @@ def teach_appearance(bank: TemplateBank, views: list[tuple], *, calibrate: bool 
         ev = evidence(bank, pose, intr, taught.frames[i], face_bgr=taught.without(bank, i))
         if ev.appearance_known is not None and ev.appearance_known >= MIN_AGREEMENT_KNOWN:
             agree.append(ev.appearance)
-    appearance = Appearance(face_bgr, len(views), float(np.median(taught.shading_r2)), colour_spread(face_bgr),
-                            float(np.median(agree)) if agree else float("nan"))
+    appearance = Appearance(face_bgr, len(views), float(np.median(taught.shading_r2)),
+                            colour_spread(face_bgr), float(np.median(agree)) if agree else float("nan"))
     return calibrate_appearance(bank, views, appearance, taught) if calibrate else appearance
 
 
@@ -151,7 +151,8 @@ def _read_references(bank: TemplateBank, views: list[tuple]) -> _References:
                                                                     bank.symmetry_point_obj)
         refs += [ReferenceView(frame.bgr, intr, p, hidden[0] if hidden else None) for p in poses]
         photo_of += [i] * len(poses)
-    return _References(frames, shading_r2, read_views(bank.vertices_mm, bank.faces, refs), np.asarray(photo_of))
+    seen = read_views(bank.vertices_mm, bank.faces, refs)
+    return _References(frames, shading_r2, seen, np.asarray(photo_of))
 
 
 # The teach-time calibration of a taught part's operating point. The taught verdict's global operating
@@ -164,9 +165,9 @@ def _read_references(bank: TemplateBank, views: list[tuple]) -> _References:
 # covers wrong poses the few photos did not show: on lmo_dev (session 18) the glue's highest wrong score
 # on its photos was 0.9675 / 0.9684 (4 other / 8 photos) where its queries' wrong answers reached 0.982 /
 # 0.9815, a logit gap of 0.55-0.61; the duck's 0.989 on 8 photos stood over its queries' 0.985. 0.7 is the
-# smallest round margin over the glue's gap, so it was chosen on these queries: bench/detection.py
-# --calibrate on lmo_dev with reference choices not used to choose it (README, Detection, session 18)
-# is its check.
+# smallest round margin over the glue's gap, so it was chosen on these queries; bench/detection.py on
+# lmo_dev with reference choices not used to choose it is its check (README, Detection, session 18:
+# right / wrong 12 / 1 and 42 / 0; the wrong one a near miss).
 CALIBRATION_WRONG_PX = 20.0
 CALIBRATION_MARGIN = 0.7
 CALIBRATION_POINTS = 500  # model vertices the calibration's MSPD reads
@@ -283,6 +284,8 @@ REGION_PROPOSALS = 0
 # proposals (cached checks, bench/appearance.py), and the taught colours refuse the distractors' regions
 # that made the untaught verdict take them.
 REGION_PROPOSALS_TAUGHT = 12
+
+
 @dataclass(frozen=True)
 class TaughtSearch:
     """How a taught part's frames are searched beyond the region proposals (``REGION_PROPOSALS_TAUGHT``).
@@ -670,7 +673,8 @@ class _Checker:
         taught colours fit best (``polish_appearance``)."""
         appearance = self.judge_kw.get("appearance")
         if (appearance is None or not APPEARANCE_POLISH or c.verdict.found
-                or c.verdict.score < taught_search(appearance).polish_from or c.verdict.reason in NOT_POLISHED):
+                or c.verdict.score < taught_search(appearance).polish_from
+                or c.verdict.reason in NOT_POLISHED):
             return c
         pose = polish_appearance(self.bank, c.refined.pose, self.frame, self.intr, appearance,
                                  others_depth_mm, self.deadline)

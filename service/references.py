@@ -121,7 +121,8 @@ def appearance_of(store: Store, record: dict[str, Any], bank: TemplateBank) -> A
     if not record.get("references"):
         return None
     key = (record["id"], record.get("references_version"), len(bank.faces))
-    appearance = _TAUGHT.get(_OWNER, key, lambda: teach_stored(bank, store.references(record["id"], images=True)))
+    appearance = _TAUGHT.get(_OWNER, key,
+                             lambda: teach_stored(bank, store.references(record["id"], images=True)))
     cal = record.get("calibration") or {}
     if appearance is None or cal.get("references_version") != record.get("references_version"):
         return appearance

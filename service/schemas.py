@@ -591,10 +591,10 @@ class ReferenceAdded(BaseModel):
                                     "the others teach it (null with one photo): do they agree on colours?")
     used: bool = Field(description="whether estimates are judged on the taught colours: not plain, and the "
                        "photos agree (agreement >= 0.6; so at least two photos)")
-    calibrated: bool = Field(False, description="the part's operating point is calibrated on these photos: each "
-                             "was searched as a frame, taught by the others, and every pose found there away "
-                             "from the photo's own (MSPD >= 20 px at 640 px wide) counted as a wrong answer "
-                             "this cell can produce; a calibrated part is also searched more widely")
+    calibrated: bool = Field(False, description="the part's operating point is calibrated on these photos: "
+                             "each was searched as a frame, taught by the others, and every pose found there "
+                             "away from the photo's own (MSPD >= 20 px at 640 px wide) counted as a wrong "
+                             "answer this cell can produce; a calibrated part is also searched more widely")
     calibration_wrong_score: float | None = Field(
         None, description="0..1, the highest verification score of such a wrong pose (null: none judged, or "
                           "not calibrated)")

@@ -51,7 +51,8 @@ def test_the_error_of_a_pose_moved_sideways_is_the_nearest_corner_s_image_shift(
 
 
 def test_a_revolved_part_spun_about_its_axis_is_not_an_error_and_tilted_it_is():
-    part = _part(trimesh.creation.cylinder(radius=30.0, height=80.0, sections=48), axis=np.array([0.0, 0.0, 1.0]))
+    mesh = trimesh.creation.cylinder(radius=30.0, height=80.0, sections=48)
+    part = _part(mesh, axis=np.array([0.0, 0.0, 1.0]))
     intr = Intrinsics(800.0, 800.0, 319.5, 239.5)
     truth = Pose(Rx(60.0) @ Ry(10.0), np.array([0.0, 0.0, 500.0]))
     spun = Pose(truth.R @ Rz(35.0), truth.t_mm)  # a multiple of the 5 degree spins the error tries
@@ -65,7 +66,8 @@ def test_the_operating_point_lies_the_margin_above_the_highest_wrong_score_and_n
     faces = np.zeros((1, 3), np.float32)
     assert pipeline.operating_point(None) is None
     assert pipeline.operating_point(Appearance(faces, 2)) is None  # not calibrated
-    assert pipeline.operating_point(Appearance(faces, 2, wrong_score=-math.inf)) is None  # nothing wrong judged
+    # calibrated, no wrong pose judged: the global operating point
+    assert pipeline.operating_point(Appearance(faces, 2, wrong_score=-math.inf)) is None
     assert pipeline.operating_point(Appearance(faces, 2, wrong_score=0.5)) == MIN_SCORE
     monkeypatch.setattr(pipeline, "CALIBRATION_MARGIN", math.log(2.0))
     # wrong odds 0.99 / 0.01 = 99 doubled: 198 / 199

@@ -12,8 +12,8 @@ from starlette.concurrency import run_in_threadpool
 from service.api import error_responses
 from service.api.deps import ModelRecord, ReadyModel, SettingsDep, StoreDep, read_upload
 from service.cell_io import resolve_camera
-from service.references import MAX_REFERENCES, add_reference, appearance_of, parse_pose
 from service.pipeline import operating_point
+from service.references import MAX_REFERENCES, add_reference, appearance_of, parse_pose
 from service.schemas import ReferenceAdded, ReferencePhoto, References
 from service.vision.estimate.verdict import MIN_SCORE
 
