@@ -155,9 +155,10 @@ def calibrate_stored(store: Store, record: dict[str, Any], bank: TemplateBank) -
 
 
 def add_reference(store: Store, record: dict[str, Any], bank: TemplateBank, data: bytes, cam: CellCamera,
-                  camera_name: str | None, pose: Transform, *, max_pixels: int) -> dict[str, Any]:
-    """Check, teach and store one reference photo, and calibrate the part's operating point on all of them
-    (``calibrate_stored``; blocking: the API calls it from a worker thread):
+                  camera_name: str | None, pose: Transform, *, max_pixels: int,
+                  calibrate: bool = True) -> dict[str, Any]:
+    """Check, teach and store one reference photo, and with ``calibrate`` calibrate the part's operating
+    point on all of them (``calibrate_stored``; blocking: the API calls it from a worker thread):
     ``{"record": the updated record, "appearance": what every photo teaches now, "faces": the number of
     faces this photo alone teaches, "index": its index}``.
 
@@ -188,6 +189,7 @@ def add_reference(store: Store, record: dict[str, Any], bank: TemplateBank, data
     if updated is None:
         raise NotFoundError(f"Model '{mid}' was deleted while its reference photo was taught; upload it "
                             "again with POST /models")
-    updated = calibrate_stored(store, updated, bank)
+    if calibrate:
+        updated = calibrate_stored(store, updated, bank)
     return {"record": updated, "appearance": appearance_of(store, updated, bank), "faces": faces,
             "index": int(updated["references"]) - 1}

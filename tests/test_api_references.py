@@ -82,9 +82,9 @@ def untaught(client):
     assert client.delete(f"/models/{client.model_id}/references").status_code == 204
 
 
-def post(client, image: bytes, camera, pose, mid: str | None = None):
+def post(client, image: bytes, camera, pose, mid: str | None = None, **form):
     data = {"camera": camera if isinstance(camera, str) else json.dumps(camera),
-            "pose": pose if isinstance(pose, str) else json.dumps(pose)}
+            "pose": pose if isinstance(pose, str) else json.dumps(pose), **form}
     return client.post(f"/models/{mid or client.model_id}/references", files={"image": ("ref.png", image)},
                        data=data)
 
@@ -192,11 +192,15 @@ def test_a_part_without_symmetry_reads_its_own_photo_s_colours_back_at_the_truth
     assert r.json()["calibrated"] is False and r.json()["min_score"] is None  # nothing used to calibrate
     assert "appearance" not in estimate(client, image, LBRACKET_CAMERA, mid=mid, distance_mm=450.0)[
         "verdict"]["evidence"]
-    for turn in (Rx(20.0), Ry(-20.0)):  # two more views of the same paint: they agree
+    for turn, calibrate in ((Rx(20.0), "false"), (Ry(-20.0), "true")):  # two more views: they agree
         T = LBRACKET_T_CAM_OBJ.copy()
         T[:3, :3] = turn @ T[:3, :3]
-        r = post(client, painted_scene(lbracket[1], T), LBRACKET_CAMERA, transform(T), mid=mid)
+        r = post(client, painted_scene(lbracket[1], T), LBRACKET_CAMERA, transform(T), mid=mid,
+                 calibrate=calibrate)
         assert r.status_code == 201, r.text
+        if calibrate == "false":  # used, not calibrated: the global operating point
+            assert r.json()["used"] is True and r.json()["calibrated"] is False
+            assert r.json()["min_score"] == MIN_SCORE
     assert r.json()["used"] is True and r.json()["agreement"] > 0.9
     # Used, the colours calibrate the part's operating point on the three photos: it lies over every wrong
     # pose judged there, and never under the global one.

@@ -35,6 +35,9 @@ async def post_reference(
     pose: Annotated[str, Form(
         description='JSON T_cam_obj, the part\'s pose in this photo: {"R": 3x3 row-major, "t_mm": [x, y, z]} '
                     "(a pose as the estimate returns it is accepted unchanged)")],
+    calibrate: Annotated[bool, Form(
+        description="calibrate the part's operating point on all the stored photos after this one (seconds a "
+                    "photo); false to post several photos quickly and calibrate with the last")] = True,
 ) -> ReferenceAdded:
     """Add a reference photo of the part at a known pose, teach its colours from all of them and, once
     they are used, calibrate the part's operating point on them (seconds a stored photo: each is searched
@@ -43,7 +46,7 @@ async def post_reference(
     cam, camera_name = resolve_camera(camera, store)
     T_cam_obj = parse_pose(pose)
     out = await run_in_threadpool(add_reference, store, model.record, model.bank, data, cam, camera_name,
-                                  T_cam_obj, max_pixels=settings.max_image_pixels)
+                                  T_cam_obj, max_pixels=settings.max_image_pixels, calibrate=calibrate)
     response.headers["Location"] = f"/models/{model.id}/references"
     return ReferenceAdded(model_id=model.id, index=out["index"], references=out["record"]["references"],
                           max_references=MAX_REFERENCES, known_fraction=out["appearance"].known_fraction,
