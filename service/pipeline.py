@@ -167,7 +167,7 @@ def _read_references(bank: TemplateBank, views: list[tuple]) -> _References:
 # 0.9815, a logit gap of 0.55-0.61; the duck's 0.989 on 8 photos stood over its queries' 0.985. 0.7 is the
 # smallest round margin over the glue's gap, so it was chosen on these queries; bench/detection.py on
 # lmo_dev with reference choices not used to choose it is its check (README, Detection, session 18:
-# right / wrong 12 / 1 and 42 / 0; the wrong one a near miss).
+# four more choices, right / wrong 12 / 1, 42 / 0, 11 / 0, 48 / 0; the wrong one a near miss).
 CALIBRATION_WRONG_PX = 20.0
 CALIBRATION_MARGIN = 0.7
 CALIBRATION_POINTS = 500  # model vertices the calibration's MSPD reads
