@@ -178,8 +178,9 @@ def calibrate_appearance(bank: TemplateBank, views: list[tuple], appearance: App
                          taught: _References | None = None) -> Appearance:
     """``appearance`` with its ``wrong_score``: the highest verification score of a wrong pose judged when
     each reference photo is searched (``estimate``, every candidate judged), taught by the others. Needs
-    two photos and colours the estimate uses (``Appearance.used``); else ``appearance`` as it is."""
-    if len(views) < 2 or not appearance.used:
+    two photos whose colours can be calibrated (``Appearance.calibratable``); else ``appearance`` as it
+    is."""
+    if len(views) < 2 or not appearance.calibratable:
         return appearance
     taught = taught or _read_references(bank, views)
     wrong = -math.inf

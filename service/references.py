@@ -135,10 +135,10 @@ def calibrate_stored(store: Store, record: dict[str, Any], bank: TemplateBank) -
     """The part's operating point calibrated on its stored photos (``pipeline.calibrate_appearance``: each
     searched, taught by the others; seconds a photo) and kept in the record as ``calibration``, keyed by
     the photo set's ``references_version`` (a set changed meanwhile is not calibrated by this: its own
-    post calibrates it): the record as it is then. Photos that are not used (plain, disagreeing, or a
-    single one) are not calibrated."""
+    post calibrates it): the record as it is then. Photos that cannot be (plain, disagreeing, or a
+    single one: ``Appearance.calibratable``) are not calibrated."""
     appearance = appearance_of(store, record, bank)
-    if appearance is None or not appearance.used:
+    if appearance is None or not appearance.calibratable:
         return record
     views = [_view(decode_image(r["image"]), r["camera"], r["T_cam_obj"])
              for r in store.references(record["id"], images=True)]

@@ -590,7 +590,8 @@ class ReferenceAdded(BaseModel):
     agreement: float | None = Field(description="-1..1, median over the photos of each one's appearance as "
                                     "the others teach it (null with one photo): do they agree on colours?")
     used: bool = Field(description="whether estimates are judged on the taught colours: not plain, and the "
-                       "photos agree (agreement >= 0.6; so at least two photos)")
+                       "photos agree (agreement >= 0.6, or >= 0.5 once calibrated; so at least two "
+                       "photos)")
     calibrated: bool = Field(False, description="the part's operating point is calibrated on these photos: "
                              "each was searched as a frame, taught by the others, and every pose found there "
                              "away from the photo's own (MSPD >= 20 px at 640 px wide) counted as a wrong "

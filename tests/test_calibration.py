@@ -126,3 +126,17 @@ def test_a_look_alike_in_the_reference_photos_raises_the_part_s_operating_point_
     out = pipeline.estimate(box_bank, frame, INTR_E2E, appearance=crowded)
     assert out.verdict.found == (out.verdict.score >= bar), (out.verdict, bar)
     assert bar > at_global.verdict.score or out.verdict.found
+
+
+def test_photos_that_agree_less_are_used_only_once_calibrated():
+    from service.vision.build.appearance import MIN_AGREEMENT, MIN_AGREEMENT_CALIBRATED
+
+    faces = np.full((1, 3), 100.0, np.float32)
+    between = 0.5 * (MIN_AGREEMENT + MIN_AGREEMENT_CALIBRATED)
+    taught = Appearance(faces, 3, agreement=between)
+    assert taught.calibratable and not taught.used
+    assert Appearance(faces, 3, agreement=between, wrong_score=0.5, calibrated_photos=3).used
+    below = Appearance(faces, 3, agreement=MIN_AGREEMENT_CALIBRATED - 0.01, calibrated_photos=3)
+    assert not below.calibratable and not below.used
+    plain = Appearance(faces, 3, reference_shading_r2=0.95, hue_share=0.0, agreement=0.9, calibrated_photos=3)
+    assert plain.plain and not plain.calibratable and not plain.used
