@@ -168,14 +168,10 @@ def main(argv=None) -> int:
 
     from dataclasses import replace as _replace
 
-    if a.colour_prior:
-        _pipeline.TAUGHT_SEARCH = _replace(_pipeline.TAUGHT_SEARCH, colour_prior=True)
-    if a.order_first:
-        _pipeline.TAUGHT_SEARCH = _replace(_pipeline.TAUGHT_SEARCH, order_first=True)
-    if a.scored_fits is not None:
-        _pipeline.TAUGHT_SEARCH = _replace(_pipeline.TAUGHT_SEARCH, scored_fits=a.scored_fits)
-    if a.polish_from is not None:
-        _pipeline.TAUGHT_SEARCH = _replace(_pipeline.TAUGHT_SEARCH, polish_from=a.polish_from)
+    given = {"colour_prior": a.colour_prior or None, "order_first": a.order_first or None,
+             "scored_fits": a.scored_fits, "polish_from": a.polish_from}
+    _pipeline.TAUGHT_SEARCH = _replace(_pipeline.TAUGHT_SEARCH,
+                                       **{k: v for k, v in given.items() if v is not None})
     if a.reference_offset:
         import bench.appearance
 

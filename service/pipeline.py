@@ -21,6 +21,7 @@ from service.vision.build.appearance import (
     MIN_AGREEMENT_KNOWN,
     Appearance,
     ReferenceView,
+    ViewColours,
     colour_spread,
     combine,
     read_views,
@@ -132,7 +133,7 @@ class _References:
     at its pose, the colours every (spun) view reads, and which photo each view is."""
     frames: list[ColourFrame]
     shading_r2: list[float]
-    seen: object  # appearance.ViewColours
+    seen: ViewColours
     photo_of: np.ndarray
 
     def without(self, bank: TemplateBank, i: int) -> np.ndarray:

@@ -106,10 +106,15 @@ def teach_views(bank: TemplateBank, views: list[tuple[np.ndarray, Intrinsics, Po
     return pipeline.teach_appearance(bank, views)
 
 
+def stored_views(references: list[dict[str, Any]]) -> list[tuple[np.ndarray, Intrinsics, Pose]]:
+    """The stored reference photos (with their image bytes) as views: (decoded image, intrinsics,
+    T_cam_obj)."""
+    return [_view(decode_image(r["image"]), r["camera"], r["T_cam_obj"]) for r in references]
+
+
 def teach_stored(bank: TemplateBank, references: list[dict[str, Any]]) -> Appearance | None:
     """The appearance the stored reference photos (with their image bytes) teach; None for none."""
-    return teach_views(bank, [_view(decode_image(r["image"]), r["camera"], r["T_cam_obj"])
-                              for r in references])
+    return teach_views(bank, stored_views(references))
 
 
 def appearance_of(store: Store, record: dict[str, Any], bank: TemplateBank) -> Appearance | None:
@@ -140,8 +145,7 @@ def calibrate_stored(store: Store, record: dict[str, Any], bank: TemplateBank) -
     appearance = appearance_of(store, record, bank)
     if appearance is None or not appearance.calibratable:
         return record
-    views = [_view(decode_image(r["image"]), r["camera"], r["T_cam_obj"])
-             for r in store.references(record["id"], images=True)]
+    views = stored_views(store.references(record["id"], images=True))
     calibrated = pipeline.calibrate_appearance(bank, views, appearance)
     if calibrated.calibrated_photos == 0:
         return record

@@ -107,8 +107,7 @@ class Appearance:
         """Whether estimates are judged on these colours: a part not plain whose photos agree on them
         (``MIN_AGREEMENT``, or ``MIN_AGREEMENT_CALIBRATED`` once calibrated; NaN, fewer than two photos,
         never does)."""
-        bar = MIN_AGREEMENT_CALIBRATED if self.calibrated_photos > 0 else MIN_AGREEMENT
-        return (not self.plain) and bool(self.agreement >= bar)
+        return self.calibratable and (self.calibrated_photos > 0 or bool(self.agreement >= MIN_AGREEMENT))
 
     @property
     def calibratable(self) -> bool:
