@@ -26,6 +26,7 @@ from service.api import cameras, error_responses, estimate, grasps, health, metr
 from service.api.deps import ApiKeyDocumented
 from service.api.health import VERSION
 from service.builder import make_builder
+from service.calibrations import Calibrator
 from service.errors import install_handlers, sentence
 from service.logs import capture_warnings
 from service.middleware import ApiKeyGuard, RequestContext
@@ -109,8 +110,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             settings.cache_dir.mkdir(parents=True, exist_ok=True)
         store = Store(settings.store_location, bank_cache_mb=settings.bank_cache_mb)
         builder = make_builder(settings)
-        app.state.store, app.state.builder = store, builder
+        calibrator = Calibrator(store)
+        app.state.store, app.state.builder, app.state.calibrator = store, builder, calibrator
         builder.resume(store)
+        calibrator.resume()  # calibrations a stop or crash ended
         warm = threading.Thread(target=_warm_up, name="warm-up") if settings.warm_up else None
         if warm is not None:
             warm.start()
@@ -120,6 +123,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if warm is not None:  # numba threads still running at interpreter exit abort the process
                 warm.join()
             builder.shutdown()  # running builds go back to "queued": the next start-up resumes them
+            calibrator.shutdown()  # a calibration stays due in the store: the next start-up resumes it
             store.close()
             monitoring.process_stopped()
 

@@ -176,16 +176,19 @@ _NEVER = 2.0  # a min_score no pose reaches: every candidate is judged
 
 
 def calibrate_appearance(bank: TemplateBank, views: list[tuple], appearance: Appearance,
-                         taught: _References | None = None) -> Appearance:
+                         taught: _References | None = None,
+                         progress: Callable[[int, int], None] | None = None) -> Appearance:
     """``appearance`` with its ``wrong_score``: the highest verification score of a wrong pose judged when
     each reference photo is searched (``estimate``, every candidate judged), taught by the others. Needs
     two photos whose colours can be calibrated (``Appearance.calibratable``); else ``appearance`` as it
-    is."""
+    is. ``progress(done, total)`` is told before each photo's search (seconds each) and may raise to stop."""
     if len(views) < 2 or not appearance.calibratable:
         return appearance
     taught = taught or _read_references(bank, views)
     wrong = -math.inf
     for i, (image, intr, pose, *_) in enumerate(views):
+        if progress is not None:
+            progress(i, len(views))
         # searched as the calibrated part will be (``CALIBRATED_SEARCH``), every candidate judged
         others = replace(appearance, face_bgr=taught.without(bank, i), calibrated_photos=len(views))
         out = estimate(bank, image, intr, min_score=_NEVER, appearance=others)

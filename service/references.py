@@ -19,6 +19,7 @@ Plain numpy and the service's wire models; no HTTP here (``service.api.reference
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
@@ -136,17 +137,18 @@ def appearance_of(store: Store, record: dict[str, Any], bank: TemplateBank) -> A
                    calibrated_photos=int(cal["photos"]))
 
 
-def calibrate_stored(store: Store, record: dict[str, Any], bank: TemplateBank) -> dict[str, Any]:
+def calibrate_stored(store: Store, record: dict[str, Any], bank: TemplateBank,
+                     progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """The part's operating point calibrated on its stored photos (``pipeline.calibrate_appearance``: each
-    searched, taught by the others; seconds a photo) and kept in the record as ``calibration``, keyed by
-    the photo set's ``references_version`` (a set changed meanwhile is not calibrated by this: its own
-    post calibrates it): the record as it is then. Photos that cannot be (plain, disagreeing, or a
-    single one: ``Appearance.calibratable``) are not calibrated."""
+    searched, taught by the others; seconds a photo, ``progress(done, total)`` told before each) and kept
+    in the record as ``calibration``, keyed by the photo set's ``references_version`` (a set changed
+    meanwhile is not calibrated by this: its own post calibrates it): the record as it is then. Photos
+    that cannot be (plain, disagreeing, or a single one: ``Appearance.calibratable``) are not calibrated."""
     appearance = appearance_of(store, record, bank)
     if appearance is None or not appearance.calibratable:
         return record
     views = stored_views(store.references(record["id"], images=True))
-    calibrated = pipeline.calibrate_appearance(bank, views, appearance)
+    calibrated = pipeline.calibrate_appearance(bank, views, appearance, progress=progress)
     if calibrated.calibrated_photos == 0:
         return record
     wrong = calibrated.wrong_score
@@ -158,11 +160,42 @@ def calibrate_stored(store: Store, record: dict[str, Any], bank: TemplateBank) -
     return store.update(record["id"], calibration=cal) or record
 
 
+def calibration_due(record: dict[str, Any]) -> bool:
+    """Whether the record asks for a calibration of its current photo set that it does not hold (the photos
+    must still be calibratable: ``calibrate_stored`` judges that)."""
+    current = record.get("references_version")
+    return (bool(record.get("references")) and bool(record.get("calibration_wanted"))
+            and (record.get("calibration") or {}).get("references_version") != current)
+
+
+def calibration_state(record: dict[str, Any], appearance: Appearance | None
+                      ) -> tuple[str | None, float | None]:
+    """(status, progress 0..1 or None) of the part's calibration on its current photos. Status:
+    ``calibrated``; ``running`` (``progress``: the share of the photos searched) or ``queued``;
+    ``not_requested`` (posted with ``calibrate=false``); ``not_calibratable`` (a single photo, or photos
+    plain or disagreeing); None without photos. A calibration interrupted by a stop is ``running`` with the
+    progress it had until the next start of the service resumes it."""
+    if appearance is None:
+        return None, None
+    current = record.get("references_version")
+    if (record.get("calibration") or {}).get("references_version") == current:
+        return "calibrated", 1.0
+    if not appearance.calibratable:
+        return "not_calibratable", None
+    if not record.get("calibration_wanted"):
+        return "not_requested", None
+    run = record.get("calibration_progress") or {}
+    if run.get("references_version") == current and run.get("total"):
+        return "running", float(run["done"]) / float(run["total"])
+    return "queued", 0.0
+
+
 def add_reference(store: Store, record: dict[str, Any], bank: TemplateBank, data: bytes, cam: CellCamera,
                   camera_name: str | None, pose: Transform, *, max_pixels: int,
                   calibrate: bool = True) -> dict[str, Any]:
-    """Check, teach and store one reference photo, and with ``calibrate`` calibrate the part's operating
-    point on all of them (``calibrate_stored``; blocking: the API calls it from a worker thread):
+    """Check, teach and store one reference photo, and mark whether the part's operating point is to be
+    calibrated on all of them (``calibrate``: the record's ``calibration_wanted``; the calibration itself
+    runs in the background, ``service.calibrations``):
     ``{"record": the updated record, "appearance": what every photo teaches now, "faces": the number of
     faces this photo alone teaches, "index": its index}``.
 
@@ -193,7 +226,6 @@ def add_reference(store: Store, record: dict[str, Any], bank: TemplateBank, data
     if updated is None:
         raise NotFoundError(f"Model '{mid}' was deleted while its reference photo was taught; upload it "
                             "again with POST /models")
-    if calibrate:
-        updated = calibrate_stored(store, updated, bank)
+    updated = store.update(mid, calibration_wanted=bool(calibrate)) or updated
     return {"record": updated, "appearance": appearance_of(store, updated, bank), "faces": faces,
             "index": int(updated["references"]) - 1}

@@ -603,6 +603,15 @@ class ReferenceAdded(BaseModel):
         None, description="0..1, the operating point this part's estimates use when options.min_score is not "
                           "given: above calibration_wrong_score, never under the global default (null: the "
                           "global default, the colours not used)")
+    calibration_status: str | None = Field(
+        None, description="the calibration of the current photos: 'queued', 'running' (see "
+                          "calibration_progress), 'calibrated', 'not_requested' (posted with "
+                          "calibrate=false), 'not_calibratable' (one photo, or photos plain or disagreeing); "
+                          "it runs in the "
+                          "background after the POST answers: poll GET /models/{id}/references")
+    calibration_progress: float | None = Field(
+        None, description="0..1, the share of the stored photos searched by the running calibration (1 when "
+                          "calibrated; null when none is due)")
 
 
 class References(BaseModel):
@@ -623,6 +632,8 @@ class References(BaseModel):
     calibrated: bool | None = None
     calibration_wrong_score: float | None = None
     min_score: float | None = None
+    calibration_status: str | None = Field(None, description="as in the POST's answer; null without photos")
+    calibration_progress: float | None = None
     views: list[ReferencePhoto]
 
 

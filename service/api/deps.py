@@ -15,6 +15,7 @@ from fastapi import Depends, Request, Security, UploadFile
 from fastapi.security import APIKeyHeader
 
 from service.builder import Builder
+from service.calibrations import Calibrator
 from service.errors import (
     NotFoundError,
     TooLargeError,
@@ -38,9 +39,14 @@ def get_builder(request: Request) -> Builder:
     return request.app.state.builder
 
 
+def get_calibrator(request: Request) -> Calibrator:
+    return request.app.state.calibrator
+
+
 StoreDep = Annotated[Store, Depends(get_store)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 BuilderDep = Annotated[Builder, Depends(get_builder)]
+CalibratorDep = Annotated[Calibrator, Depends(get_calibrator)]
 
 
 MAX_ID_ECHO_CHARS = 64  # model ids are 20 hex characters; a longer one is not echoed back whole

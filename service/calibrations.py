@@ -1,0 +1,126 @@
+"""Calibrations of taught parts' operating points, in the background of the API process.
+
+``POST /models/{id}/references`` stores a photo and marks the record ``calibration_wanted``; calibrating
+(``references.calibrate_stored``: a search per stored photo, seconds each) would hold the request for half
+a minute with a dozen photos. So the POST hands the model to the process's ``Calibrator`` and answers at
+once; GET shows ``calibration_status`` and its progress, written to the record before each photo::
+
+    posted -> queued -> running (progress) -> calibrated
+
+What to calibrate is read from the record, never kept only in memory: a calibration is due while the
+record wants one and holds none of its current photo set (``references.calibration_due``). A stop or a
+crash mid-calibration therefore loses only the photos searched so far: every start-up re-queues the due
+models (``resume``). A calibration whose photos change under it (another POST, a DELETE, in any process)
+stops at its next photo; the change's own POST queues the new set. Across processes the model's
+calibration lease (the store's build lease under ``<id>:calibration``) lets one process calibrate a set
+while the others' jobs for it end at once.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+from typing import Any
+
+from service.references import calibrate_stored, calibration_due
+from service.store import Store
+
+log = logging.getLogger("service")
+
+LEASE_S = 120.0  # renewed before every photo (a photo's search takes seconds)
+STOP_WAIT_S = 10.0  # a stopping service waits this long for the photo being searched
+
+
+class _StoppedError(Exception):
+    """Raised from the progress callback: the service is stopping or the photos changed."""
+
+
+def lease_key(mid: str) -> str:
+    return f"{mid}:calibration"
+
+
+class Calibrator:
+    """One background thread calibrating the models handed to it, one at a time, in order."""
+
+    def __init__(self, store: Store) -> None:
+        self.store = store
+        self._cv = threading.Condition()
+        self._queue: collections.deque[str] = collections.deque()
+        self._current: str | None = None
+        self._closing = False
+        self._thread = threading.Thread(target=self._work, name="calibrations", daemon=True)
+        self._thread.start()
+
+    def submit(self, mid: str) -> None:
+        """Queue a calibration of ``mid``'s current photos unless one is already queued here."""
+        with self._cv:
+            if not self._closing and mid not in self._queue:
+                self._queue.append(mid)
+                self._cv.notify_all()
+
+    def resume(self) -> list[str]:
+        """Queue every model whose record wants a calibration it does not hold (a stop or crash ended it)."""
+        due = [r["id"] for r in self.store.records() if r.get("status") == "ready" and calibration_due(r)]
+        for mid in due:
+            log.info("resuming the calibration of model %s", mid)
+            self.submit(mid)
+        return due
+
+    def wait(self, mid: str, timeout_s: float | None = None) -> bool:
+        """Block until this process has no calibration of ``mid`` queued or running; False on timeout."""
+        with self._cv:
+            return self._cv.wait_for(lambda: mid not in self._queue and self._current != mid, timeout_s)
+
+    def shutdown(self) -> None:
+        """Stop after the photo being searched; what is left stays due in the store for the next start."""
+        with self._cv:
+            self._closing = True
+            self._queue.clear()
+            self._cv.notify_all()
+        self._thread.join(STOP_WAIT_S)
+
+    def _work(self) -> None:
+        while True:
+            with self._cv:
+                self._cv.wait_for(lambda: self._queue or self._closing)
+                if self._closing:
+                    return
+                self._current = self._queue.popleft()
+            try:
+                self._calibrate(self._current)
+            except Exception:  # a failed calibration leaves the part at the global operating point
+                log.exception("the calibration of model %s failed", self._current)
+            finally:
+                with self._cv:
+                    self._current = None
+                    self._cv.notify_all()
+
+    def _calibrate(self, mid: str) -> None:
+        record = self.store.get(mid)
+        if record is None or record.get("status") != "ready" or not calibration_due(record):
+            return
+        bank = self.store.bank(mid)
+        token = self.store.try_lock(lease_key(mid), LEASE_S)
+        if bank is None or token is None:  # another process calibrates these photos
+            return
+        version = record.get("references_version")
+
+        def progress(done: int, total: int) -> None:
+            current = self.store.get(mid)
+            if self._closing or current is None or current.get("references_version") != version:
+                raise _StoppedError
+            self.store.renew(lease_key(mid), token, LEASE_S)
+            self.store.update(mid, calibration_progress=_progress(version, done, total))
+
+        try:
+            calibrate_stored(self.store, record, bank, progress)
+            log.info("calibrated model %s on its reference photos", mid)
+        except _StoppedError:
+            log.info("the calibration of model %s stopped (photos changed or service stopping)", mid)
+        finally:
+            self.store.unlock(lease_key(mid), token)
+
+
+def _progress(version: Any, done: int, total: int) -> dict[str, Any]:
+    return {"references_version": version, "done": int(done), "total": int(total)}
