@@ -12,8 +12,10 @@ record wants one and holds none of its current photo set (``references.calibrati
 crash mid-calibration therefore loses only the photos searched so far: every start-up re-queues the due
 models (``resume``). A calibration whose photos change under it (another POST, a DELETE, in any process)
 stops at its next photo; the change's own POST queues the new set. Across processes the model's
-calibration lease (the store's build lease under ``<id>:calibration``) lets one process calibrate a set
-while the others' jobs for it end at once.
+calibration lease (the store's build lease under ``<id>:calibration``, ``Settings.build_lease_s``,
+renewed before every photo) lets one process calibrate a set; another process's job for it looks again
+every half lease while the set is still due, so a calibration whose process was killed is taken over
+once its lease runs out.
 """
 
 from __future__ import annotations
@@ -28,7 +30,6 @@ from service.store import Store
 
 log = logging.getLogger("service")
 
-LEASE_S = 120.0  # renewed before every photo (a photo's search takes seconds)
 STOP_WAIT_S = 10.0  # a stopping service waits this long for the photo being searched
 
 
@@ -43,8 +44,9 @@ def lease_key(mid: str) -> str:
 class Calibrator:
     """One background thread calibrating the models handed to it, one at a time, in order."""
 
-    def __init__(self, store: Store) -> None:
-        self.store = store
+    def __init__(self, store: Store, lease_s: float) -> None:
+        self.store, self.lease_s = store, float(lease_s)  # a photo's search takes seconds: well under it
+        self._retries: dict[str, threading.Timer] = {}
         self._cv = threading.Condition()
         self._queue: collections.deque[str] = collections.deque()
         self._current: str | None = None
@@ -77,6 +79,8 @@ class Calibrator:
         with self._cv:
             self._closing = True
             self._queue.clear()
+            for timer in self._retries.values():
+                timer.cancel()
             self._cv.notify_all()
         self._thread.join(STOP_WAIT_S)
 
@@ -101,8 +105,12 @@ class Calibrator:
         if record is None or record.get("status") != "ready" or not calibration_due(record):
             return
         bank = self.store.bank(mid)
-        token = self.store.try_lock(lease_key(mid), LEASE_S)
-        if bank is None or token is None:  # another process calibrates these photos
+        token = self.store.try_lock(lease_key(mid), self.lease_s)
+        if token is None:  # another process calibrates them (or died doing so: its lease runs out)
+            self._retry_later(mid)
+            return
+        if bank is None:
+            self.store.unlock(lease_key(mid), token)
             return
         version = record.get("references_version")
 
@@ -110,7 +118,7 @@ class Calibrator:
             current = self.store.get(mid)
             if self._closing or current is None or current.get("references_version") != version:
                 raise _StoppedError
-            self.store.renew(lease_key(mid), token, LEASE_S)
+            self.store.renew(lease_key(mid), token, self.lease_s)
             self.store.update(mid, calibration_progress=_progress(version, done, total))
 
         try:
@@ -120,6 +128,20 @@ class Calibrator:
             log.info("the calibration of model %s stopped (photos changed or service stopping)", mid)
         finally:
             self.store.unlock(lease_key(mid), token)
+
+    def _retry_later(self, mid: str) -> None:
+        with self._cv:
+            if self._closing or mid in self._retries:
+                return
+            timer = threading.Timer(self.lease_s / 2, self._retry, args=(mid,))
+            timer.daemon = True
+            self._retries[mid] = timer
+            timer.start()
+
+    def _retry(self, mid: str) -> None:
+        with self._cv:
+            self._retries.pop(mid, None)
+        self.submit(mid)
 
 
 def _progress(version: Any, done: int, total: int) -> dict[str, Any]:

@@ -37,8 +37,8 @@ class Settings(BaseSettings):
         4096, ge=256, description="address-space cap of one template-build process, MiB; a build that needs "
         "more fails with a sentence instead of taking the host")
     build_lease_s: float = Field(
-        30.0, gt=0, description="a build's lock expires this long after its process stops renewing it "
-        "(a crashed build is taken over by another process after at most this long)")
+        30.0, gt=0, description="a build's (or a calibration's) lock expires this long after its process "
+        "stops renewing it (a crashed build is taken over by another process after at most this long)")
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
     workers: int = Field(1, ge=1, description="uvicorn worker processes (they share the cache dir)")

@@ -12,12 +12,13 @@ import numpy as np
 import pytest
 
 from service import pipeline, references
-from service.calibrations import Calibrator
+from service.calibrations import Calibrator, lease_key
 from service.store import Store
 from service.vision.build.appearance import Appearance
 from tests.test_references import _reference
 
 WRONG = 0.97  # the wrong score the stand-in search reports
+LEASE_S = 2.0  # the calibration lease: a killed holder's runs out this fast here
 STEP_S = 30.0  # how long the stand-in waits for a step before the test counts as hung
 
 
@@ -77,7 +78,7 @@ def test_a_calibration_runs_in_the_background_and_is_stored_for_its_photo_set(
         record = _part(store, l_block_bank, 3)
         taught = references.appearance_of(store, record, l_block_bank)
         assert references.calibration_state(record, taught) == ("queued", 0.0)
-        calibrator = Calibrator(store)
+        calibrator = Calibrator(store, LEASE_S)
         try:
             calibrator.submit("m")
             assert search.reached.wait(STEP_S)  # one photo searched, the second not yet
@@ -101,7 +102,7 @@ def test_a_calibration_stopped_by_a_shutdown_is_resumed_at_the_next_start(
     monkeypatch.setattr(pipeline, "calibrate_appearance", search)
     with Store(location) as store:
         record = _part(store, l_block_bank, 3)
-        first = Calibrator(store)
+        first = Calibrator(store, LEASE_S)
         first.submit("m")
         assert search.reached.wait(STEP_S)
         stopping = threading.Thread(target=first.shutdown)
@@ -113,7 +114,7 @@ def test_a_calibration_stopped_by_a_shutdown_is_resumed_at_the_next_start(
         assert "calibration" not in stopped and references.calibration_due(stopped)
         # the next start finds it due in the store, not in any memory, and calibrates it
         search.hold = None
-        second = Calibrator(store)
+        second = Calibrator(store, LEASE_S)
         try:
             assert second.resume() == ["m"]
             assert second.wait("m", STEP_S)
@@ -129,7 +130,7 @@ def test_photos_changed_mid_calibration_stop_it_and_the_old_set_is_never_stored(
     monkeypatch.setattr(pipeline, "calibrate_appearance", search)
     with Store(location) as store, Store(location) as other:
         _part(store, l_block_bank, 2)
-        calibrator = Calibrator(store)
+        calibrator = Calibrator(store, LEASE_S)
         try:
             calibrator.submit("m")
             assert search.reached.wait(STEP_S)
@@ -156,7 +157,7 @@ def test_one_process_calibrates_a_photo_set_while_another_s_job_for_it_ends_at_o
     monkeypatch.setattr(pipeline, "calibrate_appearance", search)
     with Store(location) as a, Store(location) as b:
         _part(a, l_block_bank, 2)
-        first, second = Calibrator(a), Calibrator(b)
+        first, second = Calibrator(a, LEASE_S), Calibrator(b, LEASE_S)
         try:
             first.submit("m")
             assert search.reached.wait(STEP_S)
@@ -179,9 +180,30 @@ def test_a_part_posted_without_calibrate_is_not_calibrated_nor_resumed(location,
         record = _part(store, l_block_bank, 2, wanted=False)
         taught = references.appearance_of(store, record, l_block_bank)
         assert references.calibration_state(record, taught) == ("not_requested", None)
-        calibrator = Calibrator(store)
+        calibrator = Calibrator(store, LEASE_S)
         try:
             assert calibrator.resume() == []
         finally:
             calibrator.shutdown()
         assert search.calls == 0
+
+
+def test_a_calibration_whose_process_was_killed_is_taken_over_once_its_lease_runs_out(
+        location, calibratable, l_block_bank, monkeypatch):
+    """A process killed mid-calibration leaves its lease behind, unrenewed: the restarted service's job
+    finds it held, looks again every half lease, and calibrates once it has run out."""
+    search = Search()
+    monkeypatch.setattr(pipeline, "calibrate_appearance", search)
+    with Store(location) as store, Store(location) as killed:
+        record = _part(store, l_block_bank, 2)
+        assert killed.try_lock(lease_key("m"), LEASE_S) is not None  # and then it died
+        calibrator = Calibrator(store, LEASE_S)
+        try:
+            assert calibrator.resume() == ["m"]
+            assert calibrator.wait("m", STEP_S)
+            assert search.calls == 0 and references.calibration_due(store.get("m"))  # the lease is held
+            _until(lambda: not references.calibration_due(store.get("m")), "taken over after the lease")
+        finally:
+            calibrator.shutdown()
+        assert search.calls == 1
+        assert store.get("m")["calibration"]["references_version"] == record["references_version"]

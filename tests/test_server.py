@@ -16,9 +16,11 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 
 from service.store import Store
+from service.vision.geometry.frames import Rx, Ry
 
 pytestmark = pytest.mark.slow  # every test here starts uvicorn
 
@@ -109,6 +111,10 @@ def wait_status(client: httpx.Client, mid: str, until=("ready", "failed")) -> di
             return info
         assert time.monotonic() < deadline, f"model {mid} still {info['status']}"
         time.sleep(0.1)
+
+
+def references(client: httpx.Client, mid: str) -> dict:
+    return client.get(f"/models/{mid}/references").json()
 
 
 def estimate(client: httpx.Client, mid: str, frame: tuple[bytes, dict]) -> httpx.Response:
@@ -265,3 +271,44 @@ def test_reference_photos_reach_every_worker_and_survive_a_restart(servers, spra
     assert server.client.get(f"/models/{mid}/references").json()["references"] == 1
     assert taught(server.client, mid, n=2) == {True}
     server.stop()
+
+
+def test_a_calibration_killed_mid_way_resumes_after_restart(servers, tmp_path, lbracket):
+    """The server is killed (SIGKILL) while it calibrates a painted part on its photos: the record still
+    asks for the calibration, and the restarted server resumes it (once the dead one's lease has run out)
+    and stores it for that photo set."""
+    from tests.test_api_cell import INTRINSICS, T_CAM_OBJ, transform
+    from tests.test_api_references import LBRACKET_GRID, painted_scene
+
+    server = servers()
+    r = server.client.post("/models", files={"file": ("lbracket.stl", lbracket[0])},
+                           data={"symmetry": "none", "templates": json.dumps(LBRACKET_GRID)})
+    mid = r.json()["id"]
+    assert wait_status(server.client, mid)["status"] == "ready"
+    turns = (np.eye(3), Rx(20.0), Ry(-20.0), Rx(-15.0))  # four views of the painted part: they agree
+    for k, turn in enumerate(turns):
+        T = T_CAM_OBJ.copy()
+        T[:3, :3] = turn @ T[:3, :3]
+        photo = {"image": ("ref.png", painted_scene(lbracket[1], T))}
+        r = server.client.post(f"/models/{mid}/references", files=photo,
+                               data={"camera": json.dumps(INTRINSICS), "pose": json.dumps(transform(T)),
+                                     "calibrate": json.dumps(k == len(turns) - 1)})
+        assert r.status_code == 201, r.text
+    deadline = time.monotonic() + BUILD_WAIT_S
+    while (listed := references(server.client, mid))["calibration_status"] != "running":
+        assert listed["calibration_status"] == "queued" and time.monotonic() < deadline, listed
+        time.sleep(0.01)
+    server.kill()  # mid-calibration: one photo's search or more still to go
+    with Store(tmp_path / "cache") as store:
+        record = store.get(mid)
+        assert record["calibration_wanted"] and "calibration" not in record
+
+    server = servers()
+    while (listed := references(server.client, mid))["calibration_status"] != "calibrated":
+        assert listed["calibration_status"] in ("queued", "running") and time.monotonic() < deadline, listed
+        time.sleep(0.1)
+    assert listed["calibrated"] is True and listed["calibration_progress"] == 1.0
+    server.stop()
+    with Store(tmp_path / "cache") as store:
+        assert store.get(mid)["calibration"]["references_version"] == record["references_version"]
+        assert store.get(mid)["calibration"]["photos"] == len(turns)
