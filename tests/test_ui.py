@@ -186,3 +186,62 @@ def test_api_docs_render_without_internet(browser, served, path, rendered):
     assert "posecell" in browser.wait_for(rendered, timeout_s=60)
     assert "/cameras/{name}" in browser.wait_for("document.body.innerText.includes('/cameras/') && "
                                                  "document.body.innerText", timeout_s=60)
+
+
+@pytest.mark.slow
+def test_operator_page_keeps_a_found_pose_as_a_reference_photo_and_follows_its_calibration(
+        browser, served, lbracket, tmp_path):
+    """Two photos of a painted part were posted without calibrating; the operator estimates a third, keeps
+    it as a reference photo, and the page follows the calibration the POST queued to its end. The kept
+    pose is the estimate's refined one (the known pose, within the found tolerance); Forget removes all."""
+    from service.vision.geometry.frames import Rx, Ry, rotation_angle_deg
+    from tests.test_api_references import FOUND_AT_TRUTH_DEG, FOUND_AT_TRUTH_MM, painted_scene
+
+    server, mid = served
+    c = server.client
+
+    def turned(rotation: np.ndarray) -> np.ndarray:
+        T = T_CAM_OBJ.copy()
+        T[:3, :3] = rotation @ T[:3, :3]
+        return T
+
+    for T in (T_CAM_OBJ, turned(Rx(20.0))):
+        r = c.post(f"/models/{mid}/references", files={"image": ("ref.png", painted_scene(lbracket[1], T))},
+                   data={"camera": json.dumps({"name": "cell-cam"}), "pose": json.dumps(transform(T)),
+                         "calibrate": "false"})
+        assert r.status_code == 201, r.text
+    try:
+        T_query = turned(Ry(-20.0))
+        image = tmp_path / "painted.png"
+        image.write_bytes(painted_scene(lbracket[1], T_query))
+        browser.goto(f"{server.url}/ui")
+        browser.wait_for(f"[...document.querySelectorAll('#model option')].some(o => o.value === '{mid}')")
+        browser.js(f"(() => {{ const s = document.getElementById('model'); s.value = '{mid}'; "
+                   "s.dispatchEvent(new Event('change')); const c = document.getElementById('camera'); "
+                   "c.value = 'cell-cam'; c.dispatchEvent(new Event('change')); "
+                   "document.getElementById('distance').value = '450'; })()")
+        refs = browser.wait_for("(() => { const t = document.getElementById('refs').textContent; "
+                                "return /^2 reference photos/.test(t) ? t : ''; })()")
+        assert "colours used" in refs and "calibrate=false" in refs, refs
+        browser.set_files("#image", image)
+        browser.click("#estimate")
+        verdict = browser.wait_for("(() => { const t = document.getElementById('verdict').textContent; "
+                                   "return /FOUND/.test(t) ? t : ''; })()")
+        assert verdict.startswith("FOUND"), verdict
+        assert browser.js("getComputedStyle(document.getElementById('keep-box')).display") == "block"
+        browser.click("#keep")
+        calibrated = ("(() => { const t = document.getElementById('refs').textContent; "
+                      "return /calibrated: min score/.test(t) ? t : ''; })()")
+        refs = browser.wait_for(calibrated, timeout_s=BUILD_WAIT_S)
+        assert refs.startswith("3 reference photos - colours used"), refs
+        listed = c.get(f"/models/{mid}/references").json()
+        assert listed["calibration_status"] == "calibrated" and f"{listed['min_score']:.3f}" in refs
+        kept = listed["views"][2]["T_cam_obj"]
+        assert rotation_angle_deg(np.asarray(kept["R"]), T_query[:3, :3]) < FOUND_AT_TRUTH_DEG
+        assert np.linalg.norm(np.asarray(kept["t_mm"]) - T_query[:3, 3]) < FOUND_AT_TRUTH_MM
+        browser.click("#forget")
+        browser.wait_for("(() => { const t = document.getElementById('refs').textContent; "
+                         "return /^no reference photos/.test(t) ? t : ''; })()")
+        assert c.get(f"/models/{mid}/references").json()["references"] == 0
+    finally:  # the module's other tests see the part untaught
+        c.delete(f"/models/{mid}/references")
