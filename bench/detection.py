@@ -151,6 +151,10 @@ def main(argv=None) -> int:
     ap.add_argument("--polish-from", type=float, default=None,
                     help="taught parts not calibrated: near misses from this score are polished "
                          "(pipeline.TAUGHT_SEARCH)")
+    ap.add_argument("--colour-sweep", action="store_true",
+                    help="calibrated parts: a last pass of silhouettes swept over the taught colours "
+                         "(pipeline.CALIBRATED_SEARCH.colour_sweep, estimate/colour_sweep.py; off in the "
+                         "service)")
     ap.add_argument("--uncalibrated", action="store_true",
                     help="with --references: the parts' operating points not calibrated on their reference "
                          "photos (as the service does at POST /references: pipeline.calibrate_appearance)")
@@ -172,6 +176,8 @@ def main(argv=None) -> int:
              "scored_fits": a.scored_fits, "polish_from": a.polish_from}
     _pipeline.TAUGHT_SEARCH = _replace(_pipeline.TAUGHT_SEARCH,
                                        **{k: v for k, v in given.items() if v is not None})
+    if a.colour_sweep:
+        _pipeline.CALIBRATED_SEARCH = _replace(_pipeline.CALIBRATED_SEARCH, colour_sweep=True)
     if a.reference_offset:
         import bench.appearance
 
@@ -197,6 +203,9 @@ def main(argv=None) -> int:
                             teach_from=a.teach_from)
                     for _ in range(a.repeat)]
         dump[name] = {"runs": [summarise(recs) for recs in all_recs], "records": all_recs}
+        for r in (r for recs in all_recs for r in recs if r["found"] and not r["mspd640"] < RIGHT_PX):
+            print(f"wrong found: {name} {r['image']} {r['model']} MSPD {r['mspd640']:.1f} px, score "
+                  f"{r['score']:.4f}", file=sys.stderr)
         parts = [("", all_recs)]
         # each half too: the weights were fitted on the even one
         if a.references and a.half == "all" and a.teach_from in (None, name):

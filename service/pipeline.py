@@ -33,6 +33,7 @@ from service.vision.deadline import NO_DEADLINE, Deadline, RunningMean
 from service.vision.estimate.chamfer import distance_tensor
 from service.vision.estimate.coarse import Hypothesis, SearchParams, coarse_search, poses_of
 from service.vision.estimate.colour_prior import part_density
+from service.vision.estimate.colour_sweep import colour_sweep
 from service.vision.estimate.contrast import Contrast, ContrastParams
 from service.vision.estimate.edges import Segments, detect_segments_in_bands, to_grey_u8, undistort_segments
 from service.vision.estimate.evidence import ColourFrame, colour_frame, evidence
@@ -43,7 +44,7 @@ from service.vision.estimate.plane import (
     plane_search,
     rest_gap_mm,
 )
-from service.vision.estimate.regions import region_proposals
+from service.vision.estimate.regions import DISTANCE_SLACK, region_proposals, working_likelihood
 from service.vision.estimate.roi import crop_segments, roi_mask
 from service.vision.estimate.roi import inside as roi_inside
 from service.vision.estimate.verdict import MIN_SCORE, Verdict, decide, verification_score
@@ -300,11 +301,14 @@ class TaughtSearch:
     ``colour_prior``: they are ranked by how part-coloured each region is too (``colour_prior.py``,
     ``regions.propose``'s purity). ``order_first``: the later passes are put in order of unrefined score
     before near duplicates are dropped (the kept one of a group the best-coloured) instead of after.
-    ``polish_from``: near misses from this score are polished (``APPEARANCE_POLISH``)."""
+    ``polish_from``: near misses from this score are polished (``APPEARANCE_POLISH``). ``colour_sweep``: a
+    last pass sweeps the silhouettes over the taught colours (``estimate/colour_sweep.py``), its placements
+    in order of unrefined score."""
     scored_fits: int = 0
     colour_prior: bool = False
     order_first: bool = False
     polish_from: float = 0.9
+    colour_sweep: bool = False
 
 
 # A taught part whose operating point is not calibrated (``calibrate_appearance``): session 16's search.
@@ -351,7 +355,8 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
             colour: np.ndarray | None = None, n_regions: int | None = None,
             part_colours: np.ndarray | None = None,
             order: Callable[[list[PoseCandidate]], list[PoseCandidate]] | None = None,
-            score: Callable[[PoseCandidate], float] | None = None, n_scored: int = 0):
+            score: Callable[[PoseCandidate], float] | None = None, n_scored: int = 0,
+            sweep_colours: bool = False):
     """The proposal engine (the paper's method): LSD edges, their distance tensor and the coarse
     search -> (distinct candidates, lowest chamfer cost first; full-image segments; timing_ms with
     "edges" and "coarse").
@@ -382,7 +387,8 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     proposals' candidates are put in this order before near duplicates are dropped (the first of each
     group of near duplicates is kept: a taught part's candidates by their unrefined score). ``score``: a
     candidate's score as it stands (a taught part's unrefined score): ``n_scored`` region fits are scored,
-    and the best ``n_regions`` of them refined."""
+    and the best ``n_regions`` of them refined. ``sweep_colours`` (with ``part_colours`` and ``order``): a
+    last pass proposes the silhouettes swept over the part's colours (``colour_sweep``), in that order."""
     rest = resting_rotations(bank) if plane is not None else None
     p = params or SEARCH_PARAMS
     threads.use_budget()
@@ -461,6 +467,16 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
                 return _distinct_in_roi(ordered(to_candidates(hs)), bank, intr, None, True)
 
             deferred.append(from_regions)
+        if deferred is not None and sweep_colours and part_colours is not None and colour is not None \
+                and order is not None and roi_uv is None:
+            def from_colours() -> list[PoseCandidate]:
+                lik = working_likelihood(colour, part_colours)
+                near = rng if distance_mm is None else \
+                    (distance_mm / DISTANCE_SLACK, distance_mm * DISTANCE_SLACK)
+                hs = colour_sweep(bank, lik, intr.K, lik.shape[1] / w, near)
+                return _distinct_in_roi(order(to_candidates(hs)), bank, intr, None, True)
+
+            deferred.append(from_colours)
     return (_distinct_in_roi(cands, bank, intr, roi_uv, several), seg, {"edges": t_edges, "coarse": _ms(t1)})
 
 
@@ -572,7 +588,8 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
                                lambda cs: by_unrefined_score(bank, cs, frame, intr, appearance, deadline),
                                score=None if appearance is None else
                                lambda c: unrefined_score(bank, c.pose, frame, intr, None, appearance),
-                               n_scored=search.scored_fits if search is not None else 0)
+                               n_scored=search.scored_fits if search is not None else 0,
+                               sweep_colours=search is not None and search.colour_sweep)
     t0 = time.perf_counter()
     t_second = 0.0
     rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
