@@ -6,6 +6,7 @@ know nothing about HTTP, pydantic or the cache.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable
@@ -44,7 +45,7 @@ from service.vision.estimate.plane import (
     plane_search,
     rest_gap_mm,
 )
-from service.vision.estimate.regions import DISTANCE_SLACK, region_proposals, working_likelihood
+from service.vision.estimate.regions import bgr_u8, region_proposals, searched_range, working_likelihood
 from service.vision.estimate.roi import crop_segments, roi_mask
 from service.vision.estimate.roi import inside as roi_inside
 from service.vision.estimate.verdict import MIN_SCORE, Verdict, decide, verification_score
@@ -456,24 +457,26 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
             deferred.append(lambda: _distinct_in_roi(ordered(to_candidates(later[0]())), bank, intr, roi_uv,
                                                      several))
         n_regions = REGION_PROPOSALS if n_regions is None else n_regions
+        # the taught colours' likelihood, made once for the region and colour-sweep passes that read it
+        taught_likelihood = functools.cache(lambda: working_likelihood(bgr_u8(colour), part_colours)) \
+            if part_colours is not None and colour is not None else None
         if deferred is not None and n_regions and colour is not None and roi_uv is None:
             def from_regions() -> list[PoseCandidate]:
                 hs = region_proposals(bank, colour, intr.K, (h, w), p, distance_mm=distance_mm,
                                       distance_range_mm=rng, n_out=n_regions, deadline=deadline,
                                       part_colours=part_colours, score=None if score is None else hyp_score,
                                       n_scored=n_scored if score is not None else 0,
+                                      likelihood=taught_likelihood,
                                       reserve_ms=_CHECK_MS.high)
                 # by pose: a region's other silhouette fits (other rotations at the same place) stay
                 return _distinct_in_roi(ordered(to_candidates(hs)), bank, intr, None, True)
 
             deferred.append(from_regions)
-        if deferred is not None and sweep_colours and part_colours is not None and colour is not None \
-                and order is not None and roi_uv is None:
+        if deferred is not None and sweep_colours and taught_likelihood is not None and order is not None \
+                and roi_uv is None:
             def from_colours() -> list[PoseCandidate]:
-                lik = working_likelihood(colour, part_colours)
-                near = rng if distance_mm is None else \
-                    (distance_mm / DISTANCE_SLACK, distance_mm * DISTANCE_SLACK)
-                hs = colour_sweep(bank, lik, intr.K, lik.shape[1] / w, near)
+                lik = taught_likelihood()
+                hs = colour_sweep(bank, lik, intr.K, lik.shape[1] / w, searched_range(distance_mm, rng))
                 return _distinct_in_roi(order(to_candidates(hs)), bank, intr, None, True)
 
             deferred.append(from_colours)

@@ -160,12 +160,16 @@ def calibrate_stored(store: Store, record: dict[str, Any], bank: TemplateBank,
     return store.update(record["id"], calibration=cal) or record
 
 
+def _holds_calibration(record: dict[str, Any]) -> bool:
+    """Whether the record's stored calibration is of its current photo set."""
+    return (record.get("calibration") or {}).get("references_version") == record.get("references_version")
+
+
 def calibration_due(record: dict[str, Any]) -> bool:
     """Whether the record asks for a calibration of its current photo set that it does not hold (the photos
     must still be calibratable: ``calibrate_stored`` judges that)."""
-    current = record.get("references_version")
-    return (bool(record.get("references")) and bool(record.get("calibration_wanted"))
-            and (record.get("calibration") or {}).get("references_version") != current)
+    return bool(record.get("references")) and bool(record.get("calibration_wanted")) \
+        and not _holds_calibration(record)
 
 
 def calibration_state(record: dict[str, Any], appearance: Appearance | None
@@ -177,15 +181,14 @@ def calibration_state(record: dict[str, Any], appearance: Appearance | None
     progress it had until the next start of the service resumes it."""
     if appearance is None:
         return None, None
-    current = record.get("references_version")
-    if (record.get("calibration") or {}).get("references_version") == current:
+    if _holds_calibration(record):
         return "calibrated", 1.0
     if not appearance.calibratable:
         return "not_calibratable", None
     if not record.get("calibration_wanted"):
         return "not_requested", None
     run = record.get("calibration_progress") or {}
-    if run.get("references_version") == current and run.get("total"):
+    if run.get("references_version") == record.get("references_version") and run.get("total"):
         return "running", float(run["done"]) / float(run["total"])
     return "queued", 0.0
 

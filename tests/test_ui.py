@@ -109,22 +109,32 @@ def numbers(text: str) -> list[float]:
     return [float(x) for x in re.findall(r"-?\d+\.\d+", text)]
 
 
-@pytest.mark.slow
-def test_operator_page_estimates_and_shows_pose_grasps_and_overlay(browser, served, scene, tmp_path):
-    server, mid = served
-    image = tmp_path / "scene.png"
-    image.write_bytes(scene)
-    browser.goto(f"{server.url}/ui")
+def pick_part_and_camera(browser, mid: str) -> None:
+    """The page's part set to ``mid``, its camera to the cell's, the distance to 450 mm."""
     browser.wait_for(f"[...document.querySelectorAll('#model option')].some(o => o.value === '{mid}') && "
                      "[...document.querySelectorAll('#camera option')].some(o => o.value === 'cell-cam')")
     browser.js(f"(() => {{ const s = document.getElementById('model'); s.value = '{mid}'; "
                "s.dispatchEvent(new Event('change')); const c = document.getElementById('camera'); "
                "c.value = 'cell-cam'; c.dispatchEvent(new Event('change')); "
                "document.getElementById('distance').value = '450'; })()")
+
+
+def text_once(browser, element_id: str, pattern: str, **kw) -> str:
+    """The text of ``element_id`` once it matches the JavaScript regular expression ``pattern``."""
+    return browser.wait_for(f"(() => {{ const t = document.getElementById('{element_id}').textContent; "
+                            f"return /{pattern}/.test(t) ? t : ''; }})()", **kw)
+
+
+@pytest.mark.slow
+def test_operator_page_estimates_and_shows_pose_grasps_and_overlay(browser, served, scene, tmp_path):
+    server, mid = served
+    image = tmp_path / "scene.png"
+    image.write_bytes(scene)
+    browser.goto(f"{server.url}/ui")
+    pick_part_and_camera(browser, mid)
     browser.set_files("#image", image)
     browser.click("#estimate")
-    verdict = browser.wait_for("(() => { const t = document.getElementById('verdict').textContent; "
-                               "return /FOUND/.test(t) ? t : ''; })()")
+    verdict = text_once(browser, "verdict", "FOUND")
     assert verdict.startswith("FOUND - score 0.9"), verdict
     assert browser.js("document.getElementById('error').textContent") == ""
     # the overlay is the image itself, drawn for a person
@@ -151,8 +161,7 @@ def test_operator_page_estimates_and_shows_pose_grasps_and_overlay(browser, serv
     empty.write_bytes(cv2.imencode(".png", np.full((H, W, 3), 90, np.uint8))[1].tobytes())
     browser.set_files("#image", empty)
     browser.click("#estimate")
-    verdict = browser.wait_for("(() => { const t = document.getElementById('verdict').textContent; "
-                               "return /NOT FOUND/.test(t) ? t : ''; })()")
+    verdict = text_once(browser, "verdict", "NOT FOUND")
     assert verdict.startswith("NOT FOUND - no candidate"), verdict
 
 
@@ -215,24 +224,16 @@ def test_operator_page_keeps_a_found_pose_as_a_reference_photo_and_follows_its_c
         image = tmp_path / "painted.png"
         image.write_bytes(painted_scene(lbracket[1], T_query))
         browser.goto(f"{server.url}/ui")
-        browser.wait_for(f"[...document.querySelectorAll('#model option')].some(o => o.value === '{mid}')")
-        browser.js(f"(() => {{ const s = document.getElementById('model'); s.value = '{mid}'; "
-                   "s.dispatchEvent(new Event('change')); const c = document.getElementById('camera'); "
-                   "c.value = 'cell-cam'; c.dispatchEvent(new Event('change')); "
-                   "document.getElementById('distance').value = '450'; })()")
-        refs = browser.wait_for("(() => { const t = document.getElementById('refs').textContent; "
-                                "return /^2 reference photos/.test(t) ? t : ''; })()")
+        pick_part_and_camera(browser, mid)
+        refs = text_once(browser, "refs", "^2 reference photos")
         assert "colours used" in refs and "calibrate=false" in refs, refs
         browser.set_files("#image", image)
         browser.click("#estimate")
-        verdict = browser.wait_for("(() => { const t = document.getElementById('verdict').textContent; "
-                                   "return /FOUND/.test(t) ? t : ''; })()")
+        verdict = text_once(browser, "verdict", "FOUND")
         assert verdict.startswith("FOUND"), verdict
         assert browser.js("getComputedStyle(document.getElementById('keep-box')).display") == "block"
         browser.click("#keep")
-        calibrated = ("(() => { const t = document.getElementById('refs').textContent; "
-                      "return /calibrated: min score/.test(t) ? t : ''; })()")
-        refs = browser.wait_for(calibrated, timeout_s=BUILD_WAIT_S)
+        refs = text_once(browser, "refs", "calibrated: min score", timeout_s=BUILD_WAIT_S)
         assert refs.startswith("3 reference photos - colours used"), refs
         listed = c.get(f"/models/{mid}/references").json()
         assert listed["calibration_status"] == "calibrated" and f"{listed['min_score']:.3f}" in refs
@@ -240,8 +241,7 @@ def test_operator_page_keeps_a_found_pose_as_a_reference_photo_and_follows_its_c
         assert rotation_angle_deg(np.asarray(kept["R"]), T_query[:3, :3]) < FOUND_AT_TRUTH_DEG
         assert np.linalg.norm(np.asarray(kept["t_mm"]) - T_query[:3, 3]) < FOUND_AT_TRUTH_MM
         browser.click("#forget")
-        browser.wait_for("(() => { const t = document.getElementById('refs').textContent; "
-                         "return /^no reference photos/.test(t) ? t : ''; })()")
+        text_once(browser, "refs", "^no reference photos")
         assert c.get(f"/models/{mid}/references").json()["references"] == 0
     finally:  # the module's other tests see the part untaught
         c.delete(f"/models/{mid}/references")

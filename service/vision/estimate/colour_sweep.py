@@ -55,7 +55,6 @@ _GRIDS = Memo(8)
 class Grids:
     masks: np.ndarray  # (N, GRID^2) float32: each template's silhouette share per grid cell
     inside: np.ndarray  # (N,) its cells' sum
-    outside: np.ndarray  # (N,) GRID^2 - inside
     px_per_unit: float  # mask px per normalised unit at the bank's reference distance (``Silhouettes``)
 
 
@@ -67,8 +66,7 @@ def grids(bank: TemplateBank) -> Grids:
         f = MASK_PX // GRID
         n = len(sil.masks)
         m = sil.masks.astype(np.float32).reshape(n, GRID, f, GRID, f).mean((2, 4)).reshape(n, -1)
-        inside = m.sum(1)
-        return Grids(m, np.maximum(inside, 1e-6), np.maximum(GRID * GRID - inside, 1e-6), sil.px_per_unit)
+        return Grids(m, m.sum(1), sil.px_per_unit)
 
     return _GRIDS.get(bank, "grids", make)
 
@@ -141,6 +139,8 @@ def sweep(bank: TemplateBank, L: np.ndarray, K: np.ndarray, scale: float,
     depths = np.geomspace(distance_range_mm[0], distance_range_mm[1], N_DEPTHS)
     n_shift = (2 * SHIFT + 1) ** 2
     f = MASK_PX // GRID
+    # an empty or full silhouette (a template the mesh misses) averages over nothing: scored as 0 cells
+    inside, outside = np.maximum(g.inside, 1e-6), np.maximum(GRID * GRID - g.inside, 1e-6)
     out: list[Hypothesis] = []
     for x, y in locations:
         rows_in, rows_out, keys = [], [], []
@@ -153,7 +153,7 @@ def sweep(bank: TemplateBank, L: np.ndarray, K: np.ndarray, scale: float,
             keys.append((z, cell))
         Pin, Pout = np.concatenate(rows_in), np.concatenate(rows_out)
         # mean inside - mean outside, the outside's sum as the window's sum less the inside's
-        S = (Pin @ g.masks.T) / g.inside - (Pout.sum(1, keepdims=True) - Pout @ g.masks.T) / g.outside
+        S = (Pin @ g.masks.T) / inside - (Pout.sum(1, keepdims=True) - Pout @ g.masks.T) / outside
         out += _best_placements(S, x, y, phis, keys, n_shift, scale, per_location)
     return out
 

@@ -288,6 +288,23 @@ def segment(image_bgr: np.ndarray, work_width: int = WORK_WIDTH,
     return merge(labels, sc, st)
 
 
+def bgr_u8(image: np.ndarray) -> np.ndarray:
+    """A frame as 8-bit BGR (grey repeated, an alpha channel dropped, other depths stretched to 0..255)."""
+    if image.ndim == 2:
+        image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    image = image[..., :3]
+    if image.dtype != np.uint8:
+        image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    return image
+
+
+def searched_range(distance_mm: float | None, distance_range_mm: tuple[float, float]) -> tuple[float, float]:
+    """The depths searched: ``distance_range_mm``, or within ``DISTANCE_SLACK`` of a given distance."""
+    if distance_mm is None:
+        return distance_range_mm
+    return distance_mm / DISTANCE_SLACK, distance_mm * DISTANCE_SLACK
+
+
 def working_likelihood(image_bgr: np.ndarray, part_colours: np.ndarray, work_width: int = WORK_WIDTH
                        ) -> np.ndarray:
     """``colour_prior.likelihood`` of the image shrunk as ``smooth`` shrinks it (before mean shift)."""
@@ -953,7 +970,8 @@ def region_proposals(bank: TemplateBank, image: np.ndarray, K: np.ndarray, image
                      n_out: int, deadline: Deadline = NO_DEADLINE,
                      reserve_ms: float = 0.0, part_colours: np.ndarray | None = None,
                      score: Callable[[list[Hypothesis]], list[float]] | None = None,
-                     n_scored: int = 0) -> list[Hypothesis]:
+                     n_scored: int = 0, likelihood: Callable[[], np.ndarray] | None = None
+                     ) -> list[Hypothesis]:
     """The first ``n_out`` region proposals (``propose``), each refined on its region's outline
     (``refine_on_boundary``), in the proposals' order (silhouette IoU). With ``distance_mm`` the
     regions' areas are judged within ``DISTANCE_SLACK`` of it. Anytime: with a ``deadline`` nothing is
@@ -962,18 +980,18 @@ def region_proposals(bank: TemplateBank, image: np.ndarray, K: np.ndarray, image
     best first, rather than a late answer). ``part_colours``: a taught part's colour density
     (``colour_prior.part_density``): regions are then ranked by how part-coloured they are too (and
     merged by it, ``GUIDED_MERGE``). ``score`` (hypotheses -> their scores) with ``n_scored`` > ``n_out``:
-    that many proposals, up to ``PER_REGION_SCORED`` a region, are scored and the best ``n_out`` refined."""
+    that many proposals, up to ``PER_REGION_SCORED`` a region, are scored and the best ``n_out`` refined.
+    ``likelihood``: makes ``working_likelihood`` of the frame and ``part_colours`` (a caller's, made once
+    for several passes) instead."""
     if not deadline.allows(_PROPOSE_MS.high + reserve_ms):
         return []
-    if image.ndim == 2:
-        image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
-    image = image[..., :3]
-    if image.dtype != np.uint8:
-        image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
-    rng = distance_range_mm if distance_mm is None else \
-        (distance_mm / DISTANCE_SLACK, distance_mm * DISTANCE_SLACK)
+    image = bgr_u8(image)
+    rng = searched_range(distance_mm, distance_range_mm)
     t0 = time.perf_counter()
-    lik = None if part_colours is None else working_likelihood(image, part_colours)
+    if likelihood is None and part_colours is not None:
+        lik = working_likelihood(image, part_colours)
+    else:
+        lik = None if likelihood is None else likelihood()
     reg = segment(image, guide=lik)
     purity = None if lik is None else node_means(reg, lik)
     if score is None or n_scored <= n_out:
