@@ -151,10 +151,10 @@ def main(argv=None) -> int:
     ap.add_argument("--polish-from", type=float, default=None,
                     help="taught parts not calibrated: near misses from this score are polished "
                          "(pipeline.TAUGHT_SEARCH)")
-    ap.add_argument("--colour-sweep", action="store_true",
-                    help="calibrated parts: a last pass of silhouettes swept over the taught colours "
-                         "(pipeline.CALIBRATED_SEARCH.colour_sweep, estimate/colour_sweep.py; off in the "
-                         "service)")
+    ap.add_argument("--sweep-min-photos", type=int, default=None,
+                    help="parts calibrated on this many photos or more have a last pass of silhouettes "
+                         "swept over the taught colours (pipeline.SWEEP_MIN_PHOTOS, estimate/colour_sweep.py;"
+                         " 2: every calibrated part, 1000: none)")
     ap.add_argument("--uncalibrated", action="store_true",
                     help="with --references: the parts' operating points not calibrated on their reference "
                          "photos (as the service does at POST /references: pipeline.calibrate_appearance)")
@@ -176,8 +176,8 @@ def main(argv=None) -> int:
              "scored_fits": a.scored_fits, "polish_from": a.polish_from}
     _pipeline.TAUGHT_SEARCH = _replace(_pipeline.TAUGHT_SEARCH,
                                        **{k: v for k, v in given.items() if v is not None})
-    if a.colour_sweep:
-        _pipeline.CALIBRATED_SEARCH = _replace(_pipeline.CALIBRATED_SEARCH, colour_sweep=True)
+    if a.sweep_min_photos is not None:
+        _pipeline.SWEEP_MIN_PHOTOS = a.sweep_min_photos
     if a.reference_offset:
         import bench.appearance
 
@@ -215,6 +215,8 @@ def main(argv=None) -> int:
             parts += [(f", {h} half", [[r for r in recs if halves[r["image"]] == h] for recs in all_recs])
                       for h in ("even", "odd")]
         for suffix, recs_runs in parts:
+            if not any(recs_runs):  # a half --every-image left without queries
+                continue
             rows.append(_row(Path(name).name + suffix, [summarise(recs) for recs in recs_runs]))
             print(rows[-1], file=sys.stderr)
     dist = "given" if a.distance_given else "not given"

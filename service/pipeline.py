@@ -321,13 +321,24 @@ class TaughtSearch:
 # calibrated on its own photos.
 TAUGHT_SEARCH = TaughtSearch()
 CALIBRATED_SEARCH = TaughtSearch(scored_fits=48, colour_prior=True, order_first=True, polish_from=0.85)
+# A part calibrated on this many photos or more also has the colour sweep (``SWEPT_SEARCH``). The sweep
+# judges more candidates, so more wrong ones, and a calibration on few photos under-estimates the wrong
+# scores of a wider search: session 20, lmo_dev, the sweep at every photo count, right / wrong on all seven
+# reference choices 279 / 1 -> 310 / 2, the added wrong the duck 58 px off at 0.980 on a choice where it
+# was calibrated on 3 photos (their highest wrong score 0.92); from 5 photos on it added 0 wrong on every
+# choice (README, Detection, session 21). Session 18 saw the same with the glue: 3-4 photos met wrong
+# scores up to 0.895 where its queries' reached 0.983.
+SWEEP_MIN_PHOTOS = 5
+SWEPT_SEARCH = replace(CALIBRATED_SEARCH, colour_sweep=True)
 
 
 def taught_search(appearance: Appearance | None) -> TaughtSearch | None:
-    """The search of a taught part (None untaught): ``CALIBRATED_SEARCH`` once its operating point is
-    calibrated, else ``TAUGHT_SEARCH``."""
+    """The search of a taught part (None untaught): ``SWEPT_SEARCH`` once its operating point is calibrated
+    on ``SWEEP_MIN_PHOTOS`` photos or more, ``CALIBRATED_SEARCH`` on fewer, else ``TAUGHT_SEARCH``."""
     if appearance is None:
         return None
+    if appearance.calibrated_photos >= SWEEP_MIN_PHOTOS:
+        return SWEPT_SEARCH
     return CALIBRATED_SEARCH if appearance.calibrated_photos > 0 else TAUGHT_SEARCH
 
 

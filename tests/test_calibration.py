@@ -5,6 +5,7 @@ counted as a wrong answer the cell can produce."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -140,3 +141,16 @@ def test_photos_that_agree_less_are_used_only_once_calibrated():
     assert not below.calibratable and not below.used
     plain = Appearance(faces, 3, reference_shading_r2=0.95, hue_share=0.0, agreement=0.9, calibrated_photos=3)
     assert plain.plain and not plain.calibratable and not plain.used
+
+
+def test_a_part_calibrated_on_enough_photos_is_also_searched_with_the_colour_sweep():
+    faces = np.full((1, 3), 100.0, np.float32)
+    assert pipeline.taught_search(None) is None
+    assert pipeline.taught_search(Appearance(faces, 6)) is pipeline.TAUGHT_SEARCH  # not calibrated
+    fewer = pipeline.SWEEP_MIN_PHOTOS - 1
+    calibrated = pipeline.taught_search(Appearance(faces, fewer, calibrated_photos=fewer))
+    assert calibrated is pipeline.CALIBRATED_SEARCH
+    assert not pipeline.CALIBRATED_SEARCH.colour_sweep
+    enough = pipeline.SWEEP_MIN_PHOTOS
+    swept = pipeline.taught_search(Appearance(faces, enough, calibrated_photos=enough))
+    assert swept.colour_sweep and swept == replace(pipeline.CALIBRATED_SEARCH, colour_sweep=True)
