@@ -132,6 +132,14 @@ TARGETS = _targets()
 # --- data ------------------------------------------------------------------------------------------
 
 
+def read_colour(path: Path) -> np.ndarray:
+    """The image file as stored (colour BGR, grey, 16-bit): what a cell posts."""
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise OSError(f"cannot read {path}")
+    return img
+
+
 def read_gt(set_dir: Path) -> list[dict]:
     return [json.loads(line) for line in (set_dir / "gt.jsonl").read_text().splitlines() if line.strip()]
 

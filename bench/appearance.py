@@ -44,9 +44,13 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.accuracy import DATA_DIR, gt_bank, read_gt  # noqa: E402
+from bench.accuracy import (  # noqa: E402
+    DATA_DIR,
+    gt_bank,
+    read_colour,
+    read_gt,
+)
 from bench.fit_verdict import fit_monotone  # noqa: E402
-from bench.hypotheses import read_colour  # noqa: E402
 from bench.truth_evidence import auc  # noqa: E402
 from service.pipeline import teach_appearance  # noqa: E402
 from service.vision.build.appearance import Appearance  # noqa: E402

@@ -34,11 +34,11 @@ from bench.accuracy import (  # noqa: E402
     OUT_DIR,
     gt_bank,
     load_model_info,
+    read_colour,
     read_gt,
     read_meta,
     stage_errors,
 )
-from bench.hypotheses import read_colour  # noqa: E402
 from service.pipeline import estimate  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 

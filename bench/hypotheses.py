@@ -22,7 +22,6 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,6 +33,7 @@ from bench.accuracy import (  # noqa: E402
     DATA_DIR,
     gt_bank,
     load_model_info,
+    read_colour,  # noqa: F401 (the benches that study the visible part's evidence read images through here)
     read_gt,
     read_meta,
     stage_errors,
@@ -41,7 +41,6 @@ from bench.accuracy import (  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
 
-_evidence.VISIBLE_PART = True  # the visible part's evidence is what these tables study too
 
 OUT = ROOT / "bench" / "out" / "hyps"
 RIGHT_PX = 20.0  # MSPD at 640 px width: a pose under this is "right" (BOP's loosest threshold)
@@ -52,13 +51,6 @@ def set_dir_of(name: str, data: Path | None) -> Path:
     if p.is_dir():
         return p
     return (data or DATA_DIR) / name
-
-
-def read_colour(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise OSError(f"cannot read {path}")
-    return img
 
 
 def queries(set_dir: Path, limit: int | None) -> list[dict]:
@@ -217,6 +209,9 @@ def cache_path(set_name: str, tag: str) -> Path:
 
 
 def main(argv=None) -> int:
+    # the visible part's evidence is what these tables study too (set here: importing a helper of this
+    # module leaves the service's evidence as it is)
+    _evidence.VISIBLE_PART = True
     ap = argparse.ArgumentParser()
     ap.add_argument("cmd", choices=["proposals", "recall", "features", "truths", "reevidence"])
     ap.add_argument("--set", required=True)

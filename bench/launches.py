@@ -26,8 +26,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 import service.vision as vision  # noqa: E402
-from bench.accuracy import gt_bank  # noqa: E402
-from bench.hypotheses import read_colour  # noqa: E402
+from bench.accuracy import gt_bank, read_colour  # noqa: E402
 from bench.repeat import frames  # noqa: E402
 from service.pipeline import estimate  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402

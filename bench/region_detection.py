@@ -22,9 +22,16 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.accuracy import MIN_VISIBLE, gt_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
+from bench.accuracy import (  # noqa: E402
+    MIN_VISIBLE,
+    gt_bank,
+    load_model_info,
+    read_colour,
+    read_gt,
+    read_meta,
+    stage_errors,
+)
 from bench.detection import RIGHT_PX, set_dir_of, summarise  # noqa: E402
-from bench.hypotheses import read_colour  # noqa: E402
 from service import pipeline  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 

@@ -21,8 +21,12 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.accuracy import gt_bank, load_model_info, stage_errors  # noqa: E402
-from bench.hypotheses import read_colour  # noqa: E402
+from bench.accuracy import (  # noqa: E402
+    gt_bank,
+    load_model_info,
+    read_colour,
+    stage_errors,
+)
 from bench.stages import target_queries  # noqa: E402
 from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, SEARCH_PARAMS  # noqa: E402
 from service.vision.estimate import regions  # noqa: E402

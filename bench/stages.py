@@ -31,8 +31,15 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.accuracy import DATA_DIR, gt_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
-from bench.hypotheses import read_colour  # noqa: E402
+from bench.accuracy import (  # noqa: E402
+    DATA_DIR,
+    gt_bank,
+    load_model_info,
+    read_colour,
+    read_gt,
+    read_meta,
+    stage_errors,
+)
 from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, SEARCH_PARAMS  # noqa: E402
 from service.vision.bank import view_dirs_obj  # noqa: E402
 from service.vision.estimate import coarse, contrast  # noqa: E402

@@ -75,8 +75,7 @@ def test_segment_matches_the_reference_on_noisy_scenes(seed):
 
 @pytest.mark.slow
 def test_segment_and_proposals_match_the_reference_on_real_photos(data_dir, monkeypatch):
-    from bench.accuracy import gt_bank, read_gt
-    from bench.hypotheses import read_colour
+    from bench.accuracy import gt_bank, read_colour, read_gt
 
     monkeypatch.setattr(regions, "LOOKALIKE_GATE", False)  # the reference has no look-alike gate
 
