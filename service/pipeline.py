@@ -37,7 +37,13 @@ from service.vision.estimate.colour_prior import part_density
 from service.vision.estimate.colour_sweep import colour_sweep
 from service.vision.estimate.contrast import Contrast, ContrastParams
 from service.vision.estimate.edges import Segments, detect_segments_in_bands, to_grey_u8, undistort_segments
-from service.vision.estimate.evidence import ColourFrame, colour_frame, evidence
+from service.vision.estimate.evidence import (
+    REGION_AND_SHADING,
+    ColourFrame,
+    colour_frame,
+    evidence,
+    region_and_shading,
+)
 from service.vision.estimate.plane import (
     PLANE_TOLERANCE_MM,
     Plane,
@@ -48,7 +54,14 @@ from service.vision.estimate.plane import (
 from service.vision.estimate.regions import bgr_u8, region_proposals, searched_range, working_likelihood
 from service.vision.estimate.roi import crop_segments, roi_mask
 from service.vision.estimate.roi import inside as roi_inside
-from service.vision.estimate.verdict import MIN_SCORE, Verdict, decide, verification_score
+from service.vision.estimate.verdict import (
+    APPEARANCE_WEIGHTS,
+    MIN_SCORE,
+    WEIGHTS,
+    Verdict,
+    decide,
+    verification_score,
+)
 from service.vision.geometry.camera import Intrinsics, project, undistort_image
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz, canonical_spin
 from service.vision.geometry.render import rasterise_roi
@@ -767,8 +780,16 @@ TWIN_UNREFINED_MIN_SCORE = 0.5
 def unrefined_score(bank: TemplateBank, pose: Pose, frame: ColourFrame, intr: Intrinsics,
                     others_depth_mm: np.ndarray | None, appearance: Appearance | None = None) -> float:
     """The verification score of ``pose`` as it stands, the refinement's own evidence read as perfect."""
-    ev = evidence(bank, pose, intr, frame, others_depth_mm, _face_bgr(appearance)).as_dict()
-    return verification_score(ev | {"edge_support": 1.0, "unexplained": 0.0})
+    face_bgr = _face_bgr(appearance)
+    read = set(APPEARANCE_WEIGHTS if face_bgr is not None else WEIGHTS) - {"bias", *PERFECT_EDGES}
+    if read <= set(REGION_AND_SHADING):  # the service's weights: what the score reads, measured alone
+        ev = region_and_shading(bank, pose, intr, frame, others_depth_mm, face_bgr)
+    else:
+        ev = evidence(bank, pose, intr, frame, others_depth_mm, face_bgr).as_dict()
+    return verification_score(ev | PERFECT_EDGES)
+
+
+PERFECT_EDGES = {"edge_support": 1.0, "unexplained": 0.0}  # the refinement's evidence, before it runs
 
 
 def taught_colour_density(bank: TemplateBank, appearance: Appearance | None) -> np.ndarray | None:

@@ -6,6 +6,7 @@ from types import SimpleNamespace
 
 import cv2
 import numpy as np
+import pytest
 import trimesh
 
 from service.vision.estimate.evidence import (
@@ -19,7 +20,7 @@ from service.vision.estimate.evidence import (
     _shading,
     _window,
 )
-from service.vision.geometry.frames import Pose, Rx
+from service.vision.geometry.frames import Pose, Rx, Ry, Rz
 from service.vision.geometry.render import face_normals_cam
 
 
@@ -151,3 +152,49 @@ def test_visible_evidence_measures_the_uncovered_part_of_an_occluded_part(monkey
         assert abs(ev.visible - uncovered) < 0.05, (cover, ev.visible, uncovered)
         assert abs(ev.shading_r2_robust - clear.shading_r2_robust) < 0.03
         assert ev.shading_r2 < clear.shading_r2 - 0.1  # the plain grey fit is spoiled by the occluder
+
+
+# Poses of the painted box of tests/test_appearance.py: in full view, turned, cut by the image's left border,
+# and wholly outside the image.
+_SCORED_POSES = [Pose(Rx(-35.0) @ Ry(30.0), np.array([0.0, 0.0, 400.0])),
+                 Pose(Rx(140.0) @ Ry(-40.0) @ Rz(20.0), np.array([10.0, -5.0, 420.0])),
+                 Pose(Rx(-35.0) @ Ry(30.0), np.array([-120.0, 0.0, 400.0])),
+                 Pose(Rx(-35.0) @ Ry(30.0), np.array([-900.0, 0.0, 400.0]))]
+
+
+def test_the_region_and_shading_measure_alone_equals_the_whole_evidence_s(box_photo):
+    """``region_and_shading`` is ``evidence`` without the measures a score does not read: on every pose,
+    taught and untaught, with another part hiding some of it and without, its values are the whole
+    evidence's, and the pipeline's unrefined score is the score of the whole evidence."""
+    from service import pipeline
+    from service.vision.estimate.evidence import REGION_AND_SHADING, evidence, region_and_shading
+    from service.vision.estimate.verdict import verification_score
+
+    part, frame, intr, face_bgr, others = box_photo
+    for pose in _SCORED_POSES:
+        for taught in (None, face_bgr):
+            for depth in (None, others):
+                whole = evidence(part, pose, intr, frame, depth, taught).as_dict()
+                alone = region_and_shading(part, pose, intr, frame, depth, taught)
+                assert alone == {k: whole[k] for k in REGION_AND_SHADING if k in whole}
+                app = None if taught is None else SimpleNamespace(face_bgr=taught)
+                assert pipeline.unrefined_score(part, pose, frame, intr, depth, app) == verification_score(
+                    whole | {"edge_support": 1.0, "unexplained": 0.0})
+    assert region_and_shading(part, _SCORED_POSES[2], intr, frame)["in_image"] < 1.0  # the cut one
+    # the nearer block changes what is measured: the comparison above covers the hidden pixels' handling
+    assert region_and_shading(part, _SCORED_POSES[0], intr, frame, others) != region_and_shading(
+        part, _SCORED_POSES[0], intr, frame)
+
+
+@pytest.fixture(scope="module")
+def box_photo():
+    """The painted box at the first pose, its colours taught from that photo, and a nearer block's depth
+    over part of it."""
+    from service.vision.build.appearance import ReferenceView, teach
+    from tests.test_appearance import BOX, INTR, _photo
+
+    image, _ = _photo(_SCORED_POSES[0])
+    face_bgr = teach(BOX.vertices_mm, BOX.faces, [ReferenceView(image, INTR, _SCORED_POSES[0])]).face_bgr
+    others = np.full(image.shape[:2], np.inf, np.float32)
+    others[100:140, 150:200] = 300.0  # nearer than the box (400 mm): hides some of it
+    return BOX, ColourFrame(image), INTR, face_bgr, others

@@ -430,6 +430,52 @@ def appearance(win: _Window, fid: np.ndarray, inside: _Inside | None, face_bgr: 
 APPEARANCE_TRIM = 0.25  # the share of the known pixels left out as an occluder's (``appearance``)
 
 
+@dataclass(frozen=True)
+class _Covered:
+    """What ``pose`` covers in the frame, as every measure of it reads it."""
+    fid: np.ndarray  # (h, w) visible face index in the window, -1 off the part or hidden by another part
+    mask: np.ndarray  # (h, w) bool: the silhouette (hidden pixels included)
+    hidden: np.ndarray | None  # silhouette pixels another, nearer part covers
+    explained: np.ndarray | None  # pixels outside the silhouette another part covers
+    win: _Window
+    band: int  # region band width, px
+    p: np.ndarray  # (N, 2) outline points, window px (``_outline``)
+    n: np.ndarray  # (N, 2) their outward normals
+    in_image: np.ndarray  # (N,) bool: the outline point lies inside the image
+
+
+def _covered(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFrame,
+             others_depth_mm: np.ndarray | None) -> _Covered | None:
+    """``None`` where the pose covers no pixel or has no outline in the frame."""
+    H, W = frame.shape
+    fid, invz, (u0, v0) = face_ids_roi(bank, pose, intr, (W, H), margin_px=BAND_MAX_PX + 2)
+    mask = fid >= 0
+    hidden = explained = None
+    if others_depth_mm is not None:
+        others = others_depth_mm[v0:v0 + mask.shape[0], u0:u0 + mask.shape[1]]
+        with np.errstate(divide="ignore"):
+            own_depth = np.where(mask, 1.0 / np.maximum(invz, 1e-12), np.inf)
+        hidden = mask & (others < own_depth - OCCLUSION_MARGIN_MM)
+        explained = ~mask & np.isfinite(others)
+        fid = np.where(hidden, -1, fid)
+    n_px = int(mask.sum())
+    if n_px == 0:
+        return None
+    p, n = _outline(mask)
+    if len(p) == 0:
+        return None
+    u, v = p[:, 0] + u0, p[:, 1] + v0
+    in_image = (u >= 1) & (u < W - 1) & (v >= 1) & (v < H - 1)
+    band = int(np.clip(BAND_FRACTION * np.sqrt(n_px / np.pi), BAND_MIN_PX, BAND_MAX_PX))
+    return _Covered(fid, mask, hidden, explained, _window(frame, u0, v0, mask.shape[1], mask.shape[0]), band,
+                    p, n, in_image)
+
+
+def _nothing(face_bgr: np.ndarray | None) -> Evidence:
+    # a part with taught colours keeps reporting its appearance: the verdict it gets reads it
+    return NO_EVIDENCE if face_bgr is None else replace(NO_EVIDENCE, appearance=0.0, appearance_known=0.0)
+
+
 def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFrame,
              others_depth_mm: np.ndarray | None = None, face_bgr: np.ndarray | None = None) -> Evidence:
     """The colour, polarity and region evidence for ``pose`` (T_cam_obj) in ``frame`` (ideal camera
@@ -443,44 +489,49 @@ def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFram
 
     ``face_bgr``: the part's taught colours (``build/appearance.Appearance.face_bgr``), if it has any:
     the evidence then includes ``appearance`` and ``appearance_known``."""
-    H, W = frame.shape
-    fid, invz, (u0, v0) = face_ids_roi(bank, pose, intr, (W, H), margin_px=BAND_MAX_PX + 2)
-    mask = fid >= 0
-    hidden = explained = None
-    if others_depth_mm is not None:
-        others = others_depth_mm[v0:v0 + mask.shape[0], u0:u0 + mask.shape[1]]
-        with np.errstate(divide="ignore"):
-            own_depth = np.where(mask, 1.0 / np.maximum(invz, 1e-12), np.inf)
-        hidden = mask & (others < own_depth - OCCLUSION_MARGIN_MM)
-        explained = ~mask & np.isfinite(others)
-        fid = np.where(hidden, -1, fid)
-    n_px = int(mask.sum())
-    # (a part with taught colours keeps reporting its appearance: the verdict it gets reads it)
-    nothing = NO_EVIDENCE if face_bgr is None else replace(NO_EVIDENCE, appearance=0.0, appearance_known=0.0)
-    if n_px == 0:
-        return nothing
-    win = _window(frame, u0, v0, mask.shape[1], mask.shape[0])
-    band = int(np.clip(BAND_FRACTION * np.sqrt(n_px / np.pi), BAND_MIN_PX, BAND_MAX_PX))
+    c = _covered(bank, pose, intr, frame, others_depth_mm)
+    if c is None:
+        return _nothing(face_bgr)
     # The region test (its distance transforms release the GIL) on the second core meanwhile.
-    region_fut = threads.background().submit(_region, win, mask, band, hidden, explained)
-    p, n = _outline(mask)
-    if len(p) == 0:
-        region_fut.result()
-        return nothing
-    u, v = p[:, 0] + u0, p[:, 1] + v0
-    in_image = (u >= 1) & (u < W - 1) & (v >= 1) & (v < H - 1)
-    colour_edge, polarity, coherence = _edge_and_polarity(win, p, n, in_image)
-    inside = _inside_samples(fid, bank, pose)
-    shading_r2, shading_std = _shading(win, inside)
+    region_fut = threads.background().submit(_region, c.win, c.mask, c.band, c.hidden, c.explained)
+    colour_edge, polarity, coherence = _edge_and_polarity(c.win, c.p, c.n, c.in_image)
+    inside = _inside_samples(c.fid, bank, pose)
+    shading_r2, shading_std = _shading(c.win, inside)
     visible = robust_r2 = None
     if VISIBLE_PART:
-        fit = _robust_shading(win, inside)
+        fit = _robust_shading(c.win, inside)
         visible, robust_r2 = (fit.visible, fit.r2) if fit else (0.0, 0.0)
     taught = known = None
     if face_bgr is not None:
-        taught, known = appearance(win, fid, inside, face_bgr)
-    generic = genericity(mask)
+        taught, known = appearance(c.win, c.fid, inside, face_bgr)
+    generic = genericity(c.mask)
     region, region_low, region_global = region_fut.result()
     return Evidence(colour_edge, polarity, region, region_low, region_global, coherence, shading_r2,
-                    shading_std, float(in_image.mean()), generic, distinct_px(mask, generic), visible=visible,
-                    shading_r2_robust=robust_r2, appearance=taught, appearance_known=known)
+                    shading_std, float(c.in_image.mean()), generic, distinct_px(c.mask, generic),
+                    visible=visible, shading_r2_robust=robust_r2, appearance=taught, appearance_known=known)
+
+
+# The evidence ``region_and_shading`` measures: all a verification score of the service reads besides the
+# refinement's own edge evidence (``verdict.WEIGHTS``, ``APPEARANCE_WEIGHTS``).
+REGION_AND_SHADING = ("region", "region_low", "region_global", "shading_r2", "shading_std", "in_image",
+                      "appearance", "appearance_known")
+
+
+def region_and_shading(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFrame,
+                       others_depth_mm: np.ndarray | None = None, face_bgr: np.ndarray | None = None
+                       ) -> dict[str, float]:
+    """``evidence(...).as_dict()``'s ``REGION_AND_SHADING`` entries (those a part without taught colours
+    lacks left out), the same values, without the outline's edges or the plain-shape fit: the search
+    scores hundreds of poses a frame as they stand, on the region and shading evidence only."""
+    c = _covered(bank, pose, intr, frame, others_depth_mm)
+    if c is None:
+        ev = _nothing(face_bgr).as_dict()
+        return {k: ev[k] for k in REGION_AND_SHADING if k in ev}
+    region_fut = threads.background().submit(_region, c.win, c.mask, c.band, c.hidden, c.explained)
+    inside = _inside_samples(c.fid, bank, pose)
+    shading_r2, shading_std = _shading(c.win, inside)
+    out = {"shading_r2": shading_r2, "shading_std": shading_std, "in_image": float(c.in_image.mean())}
+    if face_bgr is not None:
+        out["appearance"], out["appearance_known"] = appearance(c.win, c.fid, inside, face_bgr)
+    out["region"], out["region_low"], out["region_global"] = region_fut.result()
+    return out
