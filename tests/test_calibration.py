@@ -14,7 +14,7 @@ import trimesh
 
 from service import pipeline
 from service.vision.build.appearance import Appearance
-from service.vision.estimate.verdict import MIN_SCORE
+from service.vision.estimate.verdict import MIN_SCORE, Verdict
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz
 from service.vision.geometry.render import render
@@ -60,6 +60,23 @@ def test_a_revolved_part_spun_about_its_axis_is_not_an_error_and_tilted_it_is():
     tilted = Pose(truth.R @ Rx(35.0), truth.t_mm)
     assert pipeline._error_px(part, spun, truth, intr, 640) < 1e-6
     assert pipeline._error_px(part, tilted, truth, intr, 640) > pipeline.CALIBRATION_WRONG_PX
+
+
+def _checked(reason: str, in_image: float = 1.0) -> pipeline.Checked:
+    v = Verdict(reason == "found", 0.99, reason, {"in_image": in_image})
+    return pipeline.Checked(None, None, v)
+
+
+def test_the_calibration_counts_wrong_poses_the_cell_produces_even_where_the_verdict_refuses_them():
+    """A wrong pose cut by a photo's border is refused there ("outside_image"), but half inside it is a
+    score the part's other frames produce; a pose off the distance range or the plane is never returned."""
+    assert pipeline._counts_as_met(_checked("found"))
+    assert pipeline._counts_as_met(_checked("low_support"))
+    half = pipeline.CALIBRATION_MIN_IN_IMAGE
+    assert pipeline._counts_as_met(_checked("outside_image", half))
+    assert not pipeline._counts_as_met(_checked("outside_image", half - 0.01))
+    assert not pipeline._counts_as_met(_checked("outside_distance_range"))
+    assert not pipeline._counts_as_met(_checked("off_plane"))
 
 
 def test_the_operating_point_lies_the_margin_above_the_highest_wrong_score_and_never_under_the_global_one(

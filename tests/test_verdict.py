@@ -106,6 +106,7 @@ def test_true_like_evidence_is_found():
       "coherence": 0.0}, "region_mismatch"),
     ({"shading_r2": 0.0, "shading_r2_robust": 0.0, "region_global": 0.6}, "shading_mismatch"),
     ({"in_image": 0.2}, "outside_image"),
+    ({"in_image": 0.7}, "outside_image"),  # a pose cut by the border: its cut-off part is not checked
     # fair region and shading evidence along an outline an ellipse or a cylinder view has as well
     ({"region_global": 0.8, "shading_r2": 0.82, "shading_r2_robust": 0.82, "generic": 0.99},
      "generic_outline"),
@@ -113,6 +114,12 @@ def test_true_like_evidence_is_found():
 def test_each_rejection_names_its_evidence(change, reason):
     v = verdict.decide(TRUE_LIKE | change, z_mm=500.0, distance_range_mm=(300.0, 1200.0))
     assert not v.found and v.reason == reason
+
+
+def test_a_pose_cut_by_the_border_is_judged_only_when_nearly_all_its_outline_is_inside():
+    below, at = verdict.MIN_IN_IMAGE - 0.01, verdict.MIN_IN_IMAGE
+    assert verdict.decide(TRUE_LIKE | {"in_image": below}).reason == "outside_image"
+    assert verdict.decide(TRUE_LIKE | {"in_image": at}).found
 
 
 def test_an_outline_within_min_distinct_px_of_a_plain_shape_is_not_found_whatever_the_score(monkeypatch):

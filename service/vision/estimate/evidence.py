@@ -67,7 +67,7 @@ class Evidence:
     coherence: float  # |sum of inside-outside colour differences| / sum of their norms along the outline
     shading_r2: float  # share of the inside's grey variance explained by a quadratic in the normals
     shading_std: float  # grey-level standard deviation inside (small: the fit above says little)
-    in_image: float  # fraction of the silhouette's pixels inside the image
+    in_image: float  # fraction of the outline points inside the image
     # how closely a plain shape (ellipse, rectangle, cylinder or box view) fits the pose's silhouette
     # (``shapes.genericity``): near 1, any everyday object of that outline explains the rest as well
     generic: float = 1.0
