@@ -41,7 +41,6 @@ from bench.accuracy import (  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
 
-
 OUT = ROOT / "bench" / "out" / "hyps"
 RIGHT_PX = 20.0  # MSPD at 640 px width: a pose under this is "right" (BOP's loosest threshold)
 

@@ -34,7 +34,6 @@ from bench.accuracy import DATA_DIR, gt_bank, load_model_info, read_gt, read_met
 from bench.hypotheses import read_colour  # noqa: E402
 from service.vision.estimate.verdict import FEATURES, MIN_SCORE, WEIGHTS, verification_score  # noqa: E402
 
-
 OUT = ROOT / "bench" / "out" / "truth_ev"
 HYPS = ROOT / "bench" / "out" / "hyps"
 RIGHT_PX = 20.0
