@@ -90,14 +90,25 @@ def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: fl
         ms = 1000 * (time.perf_counter() - t0)
         pose = (out.refined or out.coarse).pose if out.found else None
         mspd = float("inf")
-        if pose is not None and not absent:
+        right_checked = None
+        if not absent:
             info = load_model_info(set_dir, g["model"], meta, minfo)
-            mspd = stage_errors(pose, g, info, np.asarray(g["K"], float), int(g["width"]))["mspd640_px"]
+            if pose is not None:
+                mspd = _mspd640(pose, g, info)
+            # the best-scoring checked candidate within RIGHT_PX (found or not): the verdict's part in recall
+            right = [c for c in out.checked if _mspd640(c.refined.pose, g, info) < RIGHT_PX]
+            if right:
+                best = max(right, key=lambda c: c.verdict.score)
+                right_checked = {"score": best.verdict.score, "reason": best.verdict.reason}
         recs.append({"image": g["image"], "model": g["model"], "absent": absent, "found": out.found,
                      "mspd640": mspd, "visible": float(g.get("visible_fraction", 0.0 if absent else 1.0)),
                      "reason": out.verdict.reason, "score": out.verdict.score, "ms": ms,
-                     "evidence": out.verdict.evidence})
+                     "evidence": out.verdict.evidence, "right_checked": right_checked})
     return recs
+
+
+def _mspd640(pose, g: dict, info) -> float:
+    return stage_errors(pose, g, info, np.asarray(g["K"], float), int(g["width"]))["mspd640_px"]
 
 
 def summarise(recs: list[dict]) -> dict:
@@ -206,6 +217,8 @@ def main(argv=None) -> int:
         for r in (r for recs in all_recs for r in recs if r["found"] and not r["mspd640"] < RIGHT_PX):
             print(f"wrong found: {name} {r['image']} {r['model']} MSPD {r['mspd640']:.1f} px, score "
                   f"{r['score']:.4f}", file=sys.stderr)
+        for recs in all_recs:
+            print(_checked_line(name, recs), file=sys.stderr)
         parts = [("", all_recs)]
         # each half too: the weights were fitted on the even one
         if a.references and a.half == "all" and a.teach_from in (None, name):
@@ -228,6 +241,23 @@ def main(argv=None) -> int:
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     (OUT_DIR / "detection.json").write_text(json.dumps(dump, indent=1))
     return 0
+
+
+def _checked_line(name: str, recs: list[dict]) -> str:
+    """Of the targets not found right, how many had a right candidate checked (the verdict refused it:
+    its scores and reasons) and how many had none (the proposals missed)."""
+    missed = [r for r in recs if not r["absent"] and r["visible"] >= MIN_VISIBLE
+              and not (r["found"] and r["mspd640"] < RIGHT_PX)]
+    refused = [r["right_checked"] for r in missed if r.get("right_checked")]
+    scores = np.array([c["score"] for c in refused])
+    reasons: dict[str, int] = {}
+    for c in refused:
+        reasons[c["reason"]] = reasons.get(c["reason"], 0) + 1
+    spread = (f", scores p10 / p50 / p90 {np.percentile(scores, 10):.3f} / {np.median(scores):.3f} / "
+              f"{np.percentile(scores, 90):.3f}, {sorted(reasons.items(), key=lambda kv: -kv[1])}"
+              if len(scores) else "")
+    return (f"{name}: {len(missed)} targets not found right: a right candidate checked and refused on "
+            f"{len(refused)}{spread}; none checked on {len(missed) - len(refused)}")
 
 
 def _row(name: str, runs: list[dict]) -> str:
