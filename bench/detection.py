@@ -53,7 +53,8 @@ def set_dir_of(name: str) -> Path:
 
 def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: float | None,
             every_image: int = 1, references: int = 0, half: str = "all",
-            teach_from: str | None = None) -> list[dict]:
+            teach_from: str | None = None, distance_range_mm: tuple[float, float] | None = None
+            ) -> list[dict]:
     """``references`` > 0: each part's colours are taught from that many of the set's images
     (``bench/appearance.py``), which are then not queried; ``half``: only the even or odd half of the
     rest. ``teach_from``: another set whose images teach them (its parts' meshes the same), every image
@@ -86,6 +87,7 @@ def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: fl
         dist = float(g["t_mm"][2]) if distance_given and not absent else None
         t0 = time.perf_counter()
         out = estimate(bank, image, intr, distance_mm=dist, min_score=min_score,
+                       distance_range_mm=distance_range_mm,
                        appearance=appearance.get(g["model"]))
         ms = 1000 * (time.perf_counter() - t0)
         pose = (out.refined or out.coarse).pose if out.found else None
@@ -135,6 +137,9 @@ def main(argv=None) -> int:
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--distance-given", action="store_true")
+    ap.add_argument("--distance-range", type=lambda v: tuple(float(x) for x in v.split(",")), default=None,
+                    help="LO,HI mm: the queries' distance range, as a cell that knows it gives it (default: "
+                         "the service's, pipeline.DEFAULT_DISTANCE_RANGE_MM; the calibration keeps it)")
     ap.add_argument("--min-score", type=float, default=None)
     ap.add_argument("--every-image", type=int, default=1, help="every n-th image of each set (a first look)")
     ap.add_argument("--weights", type=Path, default=None,
@@ -211,7 +216,7 @@ def main(argv=None) -> int:
     for name in a.sets.split(","):
         all_recs = [run_set(name, limit=a.limit, distance_given=a.distance_given, min_score=a.min_score,
                             every_image=a.every_image, references=a.references, half=a.half,
-                            teach_from=a.teach_from)
+                            teach_from=a.teach_from, distance_range_mm=a.distance_range)
                     for _ in range(a.repeat)]
         dump[name] = {"runs": [summarise(recs) for recs in all_recs], "records": all_recs}
         for r in (r for recs in all_recs for r in recs if r["found"] and not r["mspd640"] < RIGHT_PX):
