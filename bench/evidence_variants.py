@@ -38,8 +38,12 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 import service.vision.estimate.evidence as _evidence  # noqa: E402
-from bench.accuracy import gt_bank, read_gt  # noqa: E402
-from bench.hypotheses import OUT, read_colour, set_dir_of  # noqa: E402
+from bench.accuracy import (  # noqa: E402
+    gt_bank,
+    read_colour,
+    read_gt,
+)
+from bench.hypotheses import OUT, set_dir_of  # noqa: E402
 from service.vision.estimate import evidence as ev  # noqa: E402
 from service.vision.geometry.camera import Intrinsics, undistort_image  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402

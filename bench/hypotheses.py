@@ -33,7 +33,7 @@ from bench.accuracy import (  # noqa: E402
     DATA_DIR,
     gt_bank,
     load_model_info,
-    read_colour,  # noqa: F401 (the benches that study the visible part's evidence read images through here)
+    read_colour,
     read_gt,
     read_meta,
     stage_errors,

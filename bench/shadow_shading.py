@@ -28,9 +28,13 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.accuracy import gt_bank, read_gt  # noqa: E402
+from bench.accuracy import (  # noqa: E402
+    gt_bank,
+    read_colour,
+    read_gt,
+)
 from bench.fit_verdict import load  # noqa: E402
-from bench.hypotheses import read_colour, set_dir_of  # noqa: E402
+from bench.hypotheses import set_dir_of  # noqa: E402
 from service.pipeline import DEFAULT_DISTANCE_RANGE_MM  # noqa: E402
 from service.vision.estimate import evidence as ev  # noqa: E402
 from service.vision.estimate.verdict import verification_score  # noqa: E402

@@ -30,8 +30,12 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.accuracy import DATA_DIR, gt_bank, read_gt  # noqa: E402
-from bench.hypotheses import read_colour  # noqa: E402
+from bench.accuracy import (  # noqa: E402
+    DATA_DIR,
+    gt_bank,
+    read_colour,
+    read_gt,
+)
 from bench.stages import edge_tensor  # noqa: E402
 from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, SEARCH_PARAMS  # noqa: E402
 from service.vision.estimate import coarse, contrast  # noqa: E402

@@ -30,8 +30,15 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 import service.vision.estimate.evidence as _evidence  # noqa: E402
-from bench.accuracy import DATA_DIR, gt_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
-from bench.hypotheses import read_colour  # noqa: E402
+from bench.accuracy import (  # noqa: E402
+    DATA_DIR,
+    gt_bank,
+    load_model_info,
+    read_colour,
+    read_gt,
+    read_meta,
+    stage_errors,
+)
 from service.vision.estimate.verdict import FEATURES, MIN_SCORE, WEIGHTS, verification_score  # noqa: E402
 
 OUT = ROOT / "bench" / "out" / "truth_ev"

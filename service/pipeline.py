@@ -790,6 +790,9 @@ def _against_twins(bank: TemplateBank, c: Checked, check: Callable[..., Checked 
 TWIN_UNREFINED_MIN_SCORE = 0.5
 
 
+PERFECT_EDGES = {"edge_support": 1.0, "unexplained": 0.0}  # the refinement's evidence, before it runs
+
+
 def unrefined_score(bank: TemplateBank, pose: Pose, frame: ColourFrame, intr: Intrinsics,
                     others_depth_mm: np.ndarray | None, appearance: Appearance | None = None) -> float:
     """The verification score of ``pose`` as it stands, the refinement's own evidence read as perfect."""
@@ -800,9 +803,6 @@ def unrefined_score(bank: TemplateBank, pose: Pose, frame: ColourFrame, intr: In
     else:
         ev = evidence(bank, pose, intr, frame, others_depth_mm, face_bgr).as_dict()
     return verification_score(ev | PERFECT_EDGES)
-
-
-PERFECT_EDGES = {"edge_support": 1.0, "unexplained": 0.0}  # the refinement's evidence, before it runs
 
 
 def taught_colour_density(bank: TemplateBank, appearance: Appearance | None) -> np.ndarray | None:

@@ -32,6 +32,7 @@ weight, and they cost ~5 ms a hypothesis.
 
 from __future__ import annotations
 
+from concurrent.futures import Future
 from dataclasses import dataclass, replace
 
 import cv2
@@ -492,23 +493,18 @@ def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFram
     c = _covered(bank, pose, intr, frame, others_depth_mm)
     if c is None:
         return _nothing(face_bgr)
-    # The region test (its distance transforms release the GIL) on the second core meanwhile.
-    region_fut = threads.background().submit(_region, c.win, c.mask, c.band, c.hidden, c.explained)
+    region_fut, inside, m = _start_region_and_shading(c, bank, pose, face_bgr)
     colour_edge, polarity, coherence = _edge_and_polarity(c.win, c.p, c.n, c.in_image)
-    inside = _inside_samples(c.fid, bank, pose)
-    shading_r2, shading_std = _shading(c.win, inside)
     visible = robust_r2 = None
     if VISIBLE_PART:
         fit = _robust_shading(c.win, inside)
         visible, robust_r2 = (fit.visible, fit.r2) if fit else (0.0, 0.0)
-    taught = known = None
-    if face_bgr is not None:
-        taught, known = appearance(c.win, c.fid, inside, face_bgr)
     generic = genericity(c.mask)
     region, region_low, region_global = region_fut.result()
-    return Evidence(colour_edge, polarity, region, region_low, region_global, coherence, shading_r2,
-                    shading_std, float(c.in_image.mean()), generic, distinct_px(c.mask, generic),
-                    visible=visible, shading_r2_robust=robust_r2, appearance=taught, appearance_known=known)
+    return Evidence(colour_edge, polarity, region, region_low, region_global, coherence, m["shading_r2"],
+                    m["shading_std"], m["in_image"], generic, distinct_px(c.mask, generic),
+                    visible=visible, shading_r2_robust=robust_r2, appearance=m.get("appearance"),
+                    appearance_known=m.get("appearance_known"))
 
 
 # The evidence ``region_and_shading`` measures: all a verification score of the service reads besides the
@@ -527,11 +523,20 @@ def region_and_shading(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: 
     if c is None:
         ev = _nothing(face_bgr).as_dict()
         return {k: ev[k] for k in REGION_AND_SHADING if k in ev}
+    region_fut, _, out = _start_region_and_shading(c, bank, pose, face_bgr)
+    out["region"], out["region_low"], out["region_global"] = region_fut.result()
+    return out
+
+
+def _start_region_and_shading(c: _Covered, bank: TemplateBank, pose: Pose, face_bgr: np.ndarray | None
+                              ) -> tuple[Future, _Inside | None, dict[str, float]]:
+    """The region test started on the second core (its distance transforms release the GIL), and meanwhile
+    the shading fit, the share in the image and the taught appearance: (the region's future, the inside's
+    samples, those measures)."""
     region_fut = threads.background().submit(_region, c.win, c.mask, c.band, c.hidden, c.explained)
     inside = _inside_samples(c.fid, bank, pose)
     shading_r2, shading_std = _shading(c.win, inside)
     out = {"shading_r2": shading_r2, "shading_std": shading_std, "in_image": float(c.in_image.mean())}
     if face_bgr is not None:
         out["appearance"], out["appearance_known"] = appearance(c.win, c.fid, inside, face_bgr)
-    out["region"], out["region_low"], out["region_global"] = region_fut.result()
-    return out
+    return region_fut, inside, out
