@@ -390,14 +390,14 @@ def test_serial_rounds_and_blocks_give_the_parallel_kernels_answer(seed):
         np.testing.assert_array_equal(got, want)
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_level_a_block_scan_equals_the_anchor_scan(seed):
-    """Level A's blocked scan (tiles, several scales, any subset of the stride grid, anchors near and past
+@pytest.mark.parametrize("seed,stride", [(0, 2), (1, 2), (2, 1), (3, 3)])
+def test_level_a_block_scan_equals_the_anchor_scan(seed, stride):
+    """Level A's banded scan (tiles, several scales, any subset of the stride grid, anchors near and past
     the image border) returns exactly ``_scan``'s per-anchor best."""
     from service.vision.estimate.coarse import LEVEL_A_SENTINEL_POINTS, _scan, _scan_level_a_blocks
 
     rng = np.random.default_rng(seed)
-    H, W, C, J, D, T, P, stride = 40, 56, 4, 2, 3, 30, 32, 2
+    H, W, C, J, D, T, P = 40, 56, 4, 2, 3, 30, 32
     tau_q = 32
     yy, xx = np.mgrid[0:H, 0:W]
     dt = np.stack([np.minimum(np.abs(np.sin(0.3 * xx + c) * np.cos(0.25 * yy - c)) * 3 * tau_q, tau_q)
@@ -419,6 +419,38 @@ def test_level_a_block_scan_equals_the_anchor_scan(seed):
             np.testing.assert_array_equal(g_, w_)
         found.append(np.isfinite(want[0]).mean())
     assert 0 < found[-1] <= 1 and found[0] < 1
+
+
+def test_level_a_scan_of_scattered_blocks_equals_the_anchor_scan():
+    """A deadline scans level A in chunks of whole blocks in edge-count order, not in rows: a chunk of
+    scattered blocks (gaps inside a band) still gets exactly ``_scan``'s per-anchor best."""
+    from service.vision.estimate.coarse import (
+        LEVEL_A_BLOCK_ANCHORS,
+        LEVEL_A_SENTINEL_POINTS,
+        _scan,
+        _scan_level_a_blocks,
+    )
+
+    rng = np.random.default_rng(7)
+    H, W, C, J, D, T, P, stride = 48, 96, 3, 1, 2, 20, 32, 2
+    tau_q = 24
+    dt = rng.integers(0, tau_q + 1, (H, W, C)).astype(np.uint8)
+    off_u = rng.integers(-12, 13, (J, D, T, P)).astype(np.int16)
+    off_v = rng.integers(-12, 13, (J, D, T, P)).astype(np.int16)
+    chan = rng.integers(0, C, (T, P)).astype(np.int32)
+    grid = np.meshgrid(np.arange(0, W, stride), np.arange(0, H, stride))
+    au, av = (x.ravel().astype(np.int32) for x in grid)
+    span = stride * LEVEL_A_BLOCK_ANCHORS
+    block_col = au // span
+    chosen = (block_col % 3 == 0) | ((block_col == 4) & (av < span))  # gaps of one and two blocks
+    au, av = au[chosen], av[chosen]
+    tile = np.zeros(len(au), np.int32)
+    got = _scan_level_a_blocks(dt, tau_q, off_u, off_v, chan, au, av, tile, np.int64(tau_q // 2), stride)
+    want = _scan(dt, tau_q, off_u, off_v, chan, au, av, tile, np.int64(tau_q // 2), LEVEL_A_SENTINEL_POINTS,
+                 False)
+    for g_, w_ in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g_, w_)
+    assert np.isfinite(want[0]).any()
 
 
 def test_views_within_adds_a_revolved_parts_mirror_tilt(sprayer_bank):
