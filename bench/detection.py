@@ -105,7 +105,9 @@ def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: fl
         recs.append({"image": g["image"], "model": g["model"], "absent": absent, "found": out.found,
                      "mspd640": mspd, "visible": float(g.get("visible_fraction", 0.0 if absent else 1.0)),
                      "reason": out.verdict.reason, "score": out.verdict.score, "ms": ms,
-                     "evidence": out.verdict.evidence, "right_checked": right_checked})
+                     "evidence": out.verdict.evidence, "right_checked": right_checked,
+                     "t_mm": None if pose is None else [float(x) for x in pose.t_mm],
+                     "t_true_mm": None if absent else [float(x) for x in g["t_mm"]]})
     return recs
 
 

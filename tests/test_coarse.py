@@ -742,3 +742,18 @@ def test_level_a_tables_the_deadline_leaves_no_time_for_are_made_in_the_backgrou
     again = Deadline(100.0, clock=lambda: 0.0)
     assert coarse._level_a_in_time(*args, again, reserve_ms=100.0) is tpl  # made once, no wait
     assert not again.hit
+
+
+@pytest.mark.parametrize("distance_range_mm", [(300.0, 1200.0), (150.0, 400.0)])
+def test_level_a_padding_covers_every_scaled_offset(sprayer_bank, distance_range_mm):
+    """Level A's banded scan reads its padded DT3 without bounds tests: the padding it is given from the
+    templates' extent (``scan_level_a``) must cover every scaled offset it will read."""
+    from service.vision.estimate import coarse
+
+    intr = Intrinsics.from_K(np.array([[1100.0, 0, 643.0], [0, 1100.0, 477.0], [0, 0, 1]]))
+    p = coarse.SearchParams()
+    z_ref, scales = coarse.depth_scales(distance_range_mm, p.depth_step)
+    tpl = coarse.level_a_templates(sprayer_bank, intr, (960, 1280), p, distance_mm=None, z_ref_mm=z_ref)
+    off_u, off_v = coarse.scaled_offsets(tpl, scales)
+    reach = int(np.ceil(tpl.extent_px * float(scales.max()))) + 1
+    assert max(np.abs(off_u).max(), np.abs(off_v).max()) <= reach

@@ -461,15 +461,17 @@ def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, 
             + np.minimum((uf / w * nj_u).astype(np.int32), nj_u - 1)).astype(np.int32)
     off_u, off_v = scaled_offsets(tpl, scales)
     accept = np.int64(p.accept_frac * tau_q)
+    # |rint(offset x scale)| <= ceil(extent x largest scale): the padding every placement stays within
+    layout = _level_a_layout(dt_q, tau_q, int(math.ceil(tpl.extent_px * float(scales.max()))) + 1,
+                             p.anchor_stride)
     if deadline.ms is None:
         cost, t, d = _scan_level_a_blocks(dt_q, tau_q, off_u, off_v, tpl.chan, au, av, tile, accept,
-                                          p.anchor_stride)
+                                          p.anchor_stride, layout)
         return au, av, tile, cost / DT_QUANT, t, d
     cost = np.full(len(au), np.inf)
     t = np.full(len(au), -1, np.int32)
     d = np.full(len(au), -1, np.int32)
     deadline.new_loop()
-    layout = _level_a_layout(dt_q, tau_q, off_u, off_v, p.anchor_stride)
     for chunk in _block_chunks(au, av, tile, count[keep], p.anchor_stride):
         if not deadline.allows_next(LEVEL_A_RESERVE_FACTOR * reserve_ms):
             break
@@ -576,7 +578,10 @@ def _scan_level_a_blocks(dt_q, tau_q, off_u, off_v, chan, au, av, tile, accept, 
     A = len(au)
     if A == 0:
         return np.full(0, np.inf), np.full(0, -1, np.int32), np.full(0, -1, np.int32)
-    dtx, Hp, Q, m = layout if layout is not None else _level_a_layout(dt_q, tau_q, off_u, off_v, stride)
+    if layout is None:
+        reach = int(max(np.abs(off_u).max(initial=0), np.abs(off_v).max(initial=0)))
+        layout = _level_a_layout(dt_q, tau_q, reach, stride)
+    dtx, Hp, Q, m = layout
     assert min(LEVEL_A_SENTINEL_POINTS, off_u.shape[3]) * 255 < 2 ** 15  # _scan_bands' int16 first sums
     gx, gy = (np.asarray(au, np.int64) // stride), (np.asarray(av, np.int64) // stride)
     band = gy // LEVEL_A_BAND_ROWS
@@ -610,13 +615,13 @@ def _block_ids(tile: np.ndarray, bv: np.ndarray, bu: np.ndarray) -> tuple[np.nda
     return np.stack([keys // (nv * nu), keys // nu % nv, keys % nu], 1), inverse.ravel()
 
 
-def _level_a_layout(dt_q, tau_q, off_u, off_v, stride) -> tuple[np.ndarray, int, int, int]:
-    """(dtx, Hp, Q, m): the (H, W, C) DT3 padded by ``m`` (every template point of an anchor on the image
-    lands inside; padding costs ``tau_q``, as a point off the image does) and laid out (C, Hp, stride, Q)
-    with x = stride * q + x % stride, flattened: the costs at one row of stride-grid anchors are then
-    contiguous for every template point."""
+def _level_a_layout(dt_q, tau_q, reach, stride) -> tuple[np.ndarray, int, int, int]:
+    """(dtx, Hp, Q, m): the (H, W, C) DT3 padded by ``m`` (at least ``reach``, the largest |offset| of a
+    template point: every point of an anchor on the image lands inside; padding costs ``tau_q``, as a
+    point off the image does) and laid out (C, Hp, stride, Q) with x = stride * q + x % stride, flattened:
+    the costs at one row of stride-grid anchors are then contiguous for every template point."""
     H, W, C = dt_q.shape
-    m = int(max(np.abs(off_u).max(initial=0), np.abs(off_v).max(initial=0))) + stride
+    m = int(reach) + stride
     Hp, Wp = H + 2 * m, -(-(W + 2 * m) // stride) * stride
     padded = np.full((Hp, Wp, C), tau_q, np.uint8)
     padded[m:m + H, m:m + W] = dt_q
