@@ -20,6 +20,7 @@ import argparse
 import json
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -257,11 +258,9 @@ def _checked_line(name: str, recs: list[dict]) -> str:
               and not (r["found"] and r["mspd640"] < RIGHT_PX)]
     refused = [r["right_checked"] for r in missed if r.get("right_checked")]
     scores = np.array([c["score"] for c in refused])
-    reasons: dict[str, int] = {}
-    for c in refused:
-        reasons[c["reason"]] = reasons.get(c["reason"], 0) + 1
+    reasons = Counter(c["reason"] for c in refused)
     spread = (f", scores p10 / p50 / p90 {np.percentile(scores, 10):.3f} / {np.median(scores):.3f} / "
-              f"{np.percentile(scores, 90):.3f}, {sorted(reasons.items(), key=lambda kv: -kv[1])}"
+              f"{np.percentile(scores, 90):.3f}, {reasons.most_common()}"
               if len(scores) else "")
     return (f"{name}: {len(missed)} targets not found right: a right candidate checked and refused on "
             f"{len(refused)}{spread}; none checked on {len(missed) - len(refused)}")

@@ -394,7 +394,7 @@ def test_serial_rounds_and_blocks_give_the_parallel_kernels_answer(seed):
 def test_level_a_block_scan_equals_the_anchor_scan(seed, stride):
     """Level A's banded scan (tiles, several scales, any subset of the stride grid, anchors near and past
     the image border) returns exactly ``_scan``'s per-anchor best."""
-    from service.vision.estimate.coarse import LEVEL_A_SENTINEL_POINTS, _scan, _scan_level_a_blocks
+    from service.vision.estimate.coarse import LEVEL_A_SENTINEL_POINTS, _scan, _scan_level_a_bands
 
     rng = np.random.default_rng(seed)
     H, W, C, J, D, T, P = 40, 56, 4, 2, 3, 30, 32
@@ -412,7 +412,7 @@ def test_level_a_block_scan_equals_the_anchor_scan(seed, stride):
     tile = (au >= W // 2).astype(np.int32)
     found = []
     for accept in (6, 12, tau_q // 2, tau_q):
-        got = _scan_level_a_blocks(dt, tau_q, off_u, off_v, chan, au, av, tile, np.int64(accept), stride)
+        got = _scan_level_a_bands(dt, tau_q, off_u, off_v, chan, au, av, tile, np.int64(accept), stride)
         want = _scan(dt, tau_q, off_u, off_v, chan, au, av, tile, np.int64(accept), LEVEL_A_SENTINEL_POINTS,
                      False)
         for g_, w_ in zip(got, want, strict=True):
@@ -428,7 +428,7 @@ def test_level_a_scan_of_scattered_blocks_equals_the_anchor_scan():
         LEVEL_A_BLOCK_ANCHORS,
         LEVEL_A_SENTINEL_POINTS,
         _scan,
-        _scan_level_a_blocks,
+        _scan_level_a_bands,
     )
 
     rng = np.random.default_rng(7)
@@ -445,7 +445,7 @@ def test_level_a_scan_of_scattered_blocks_equals_the_anchor_scan():
     chosen = (block_col % 3 == 0) | ((block_col == 4) & (av < span))  # gaps of one and two blocks
     au, av = au[chosen], av[chosen]
     tile = np.zeros(len(au), np.int32)
-    got = _scan_level_a_blocks(dt, tau_q, off_u, off_v, chan, au, av, tile, np.int64(tau_q // 2), stride)
+    got = _scan_level_a_bands(dt, tau_q, off_u, off_v, chan, au, av, tile, np.int64(tau_q // 2), stride)
     want = _scan(dt, tau_q, off_u, off_v, chan, au, av, tile, np.int64(tau_q // 2), LEVEL_A_SENTINEL_POINTS,
                  False)
     for g_, w_ in zip(got, want, strict=True):

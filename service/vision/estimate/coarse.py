@@ -465,7 +465,7 @@ def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, 
     layout = _level_a_layout(dt_q, tau_q, int(math.ceil(tpl.extent_px * float(scales.max()))) + 1,
                              p.anchor_stride)
     if deadline.ms is None:
-        cost, t, d = _scan_level_a_blocks(dt_q, tau_q, off_u, off_v, tpl.chan, au, av, tile, accept,
+        cost, t, d = _scan_level_a_bands(dt_q, tau_q, off_u, off_v, tpl.chan, au, av, tile, accept,
                                           p.anchor_stride, layout)
         return au, av, tile, cost / DT_QUANT, t, d
     cost = np.full(len(au), np.inf)
@@ -475,7 +475,7 @@ def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, 
     for chunk in _block_chunks(au, av, tile, count[keep], p.anchor_stride):
         if not deadline.allows_next(LEVEL_A_RESERVE_FACTOR * reserve_ms):
             break
-        cost[chunk], t[chunk], d[chunk] = _scan_level_a_blocks(
+        cost[chunk], t[chunk], d[chunk] = _scan_level_a_bands(
             dt_q, tau_q, off_u, off_v, tpl.chan, au[chunk], av[chunk], tile[chunk], accept, p.anchor_stride,
             layout)
     return au, av, tile, cost / DT_QUANT, t, d
@@ -518,9 +518,7 @@ def _scan_bands(dtx, Hp, Q, s, m, off_u, off_v, chan, band_tile, band_gy0, band_
     best_sum = np.full(A, accept * P, np.int64)
     best_t = np.full(A, -1, np.int32)
     best_d = np.full(A, -1, np.int32)
-    limit = np.empty(A, np.int64)
-    for a in range(A):
-        limit[a] = _pass_limit(accept * P, P, n_sentinel, sentinel)
+    limit = np.full(A, _pass_limit(accept * P, P, n_sentinel, sentinel), np.int64)
     for k in nb.prange(band_tile.shape[0]):
         j = band_tile[k]
         rows = band_rows[k]
@@ -568,7 +566,7 @@ def _scan_bands(dtx, Hp, Q, s, m, off_u, off_v, chan, band_tile, band_gy0, band_
     return best_cost, best_t, best_d
 
 
-def _scan_level_a_blocks(dt_q, tau_q, off_u, off_v, chan, au, av, tile, accept, stride, layout=None):
+def _scan_level_a_bands(dt_q, tau_q, off_u, off_v, chan, au, av, tile, accept, stride, layout=None):
     """``_scan(dt_q, tau_q, off_u, off_v, chan, au, av, tile, accept, LEVEL_A_SENTINEL_POINTS, False)``
     by ``_scan_bands``: the anchors (any subset of level A's stride grid) grouped per tile in bands of
     LEVEL_A_BAND_ROWS anchor rows, split where whole blocks of LEVEL_A_BLOCK_ANCHORS columns are missing
@@ -630,7 +628,7 @@ def _level_a_layout(dt_q, tau_q, reach, stride) -> tuple[np.ndarray, int, int, i
 
 
 def _block_chunks(au, av, tile, count, stride) -> list[np.ndarray]:
-    """Level A's anchors (indices) in chunks of whole blocks (``_scan_level_a_blocks``'s) of at least
+    """Level A's anchors (indices) in chunks of whole blocks (``_scan_level_a_bands``'s) of at least
     LEVEL_A_CHUNK_ANCHORS anchors, the blocks with the most edge pixels round an anchor first: chunks of
     scattered anchors would leave the block bounds one anchor each (a 450 ms deadline made level A
     22 -> 33 ms a paper frame that way)."""
