@@ -62,6 +62,80 @@ def test_a_flat_part_on_a_checker_floor_is_proposed_at_its_pose(l_block_bank, vi
     assert np.hypot(*(refined[best].uv - c_uv)) < tol_px
 
 
+# a region's outline refined on: its depth within this of the truth's, the median over several poses
+OUTLINE_DEPTH_REL = 0.005
+
+
+@pytest.mark.parametrize("on_edge", [True, False])
+def test_a_region_outline_refines_to_the_rendered_depth(l_block_bank, monkeypatch, on_edge):
+    """A flat part on a checker floor at template poses (depths 400-1100 mm): the pose refined on its
+    region's outline through the edge (``regions.OUTLINE_ON_EDGE``) is at the rendered depth; through the
+    boundary pixels' centres, a pixel small all round, it is farther (x 1.023 at the median)."""
+    monkeypatch.setattr(regions, "OUTLINE_ON_EDGE", on_edge)
+    bank = l_block_bank
+    rs = np.random.default_rng(0)
+    ratios = []
+    for _ in range(10):
+        truth = template_pose(bank, int(rs.integers(bank.n_templates)), float(rs.uniform(0, 360)),
+                              (float(rs.uniform(200, 440)), float(rs.uniform(150, 330))),
+                              float(rs.uniform(400, 1100)))
+        props, reg = regions.propose(bank, checker_scene(bank, truth), K, DEFAULT_DISTANCE_RANGE_MM, n_out=5)
+        refined = [regions.refine_on_boundary(bank, r, reg, K, (H, W), SEARCH_PARAMS) for r in props]
+        Rs, ts = poses_of(bank, refined, K, None)
+        errs = [max_vertex_px(bank, Pose(R, t), truth) for R, t in zip(Rs, ts, strict=True)]
+        z_true = float(truth.t_mm[2] + (truth.R @ bank.centre_obj)[2])  # the reference point's depth
+        if errs and min(errs) < 3.0:
+            ratios.append(refined[int(np.argmin(errs))].z_mm / z_true)
+    assert len(ratios) >= 7
+    if on_edge:
+        assert abs(np.median(ratios) - 1.0) < OUTLINE_DEPTH_REL, ratios
+    else:
+        assert np.median(ratios) > 1.0 + 2 * OUTLINE_DEPTH_REL, ratios
+
+
+@pytest.mark.parametrize("scale", [1.0, 0.5])
+def test_a_rectangular_region_s_outline_lies_on_its_edges(scale, monkeypatch):
+    """A rectangle of pixels [x0, x1) x [y0, y1) has its edges at x0 - 0.5 .. x1 - 0.5 (pixel centres at
+    integers), at full resolution whatever the working scale (``regions.OUTLINE_ON_EDGE``)."""
+    monkeypatch.setattr(regions, "OUTLINE_ON_EDGE", True)
+    H0, W0 = 480, 640
+    img = np.full((H0, W0, 3), 30, np.uint8)
+    x0, y0, x1, y1 = 160, 120, 320, 280
+    img[y0:y1, x0:x1] = (40, 150, 210)
+    reg = regions.segment(img, work_width=int(W0 * scale))
+    target = np.zeros(reg.labels.shape, bool)
+    target[int(y0 * scale):int(y1 * scale), int(x0 * scale):int(x1 * scale)] = True
+    c = next(c for c in range(len(reg.children)) if reg.area[c] == target.sum()
+             and tuple(reg.bbox[c]) == (x0 * scale, y0 * scale, x1 * scale, y1 * scale))
+    seg = regions.boundary_segments(reg, c, (H0, W0))
+    ends = np.concatenate([seg.uv0, seg.uv1]).astype(float)
+    lo, hi = np.array([x0, y0]) - 0.5, np.array([x1, y1]) - 0.5
+    # every end on the rectangle's outline: on one of its sides, within the other side's span
+    d = np.minimum(np.abs(ends - lo), np.abs(ends - hi)).min(1)
+    assert d.max() < 1e-3, d.max()
+    assert (ends >= lo - 1e-3).all() and (ends <= hi + 1e-3).all()
+    # and it covers the sides but for half a working pixel at each corner (pixel centres end the segments)
+    length = float(np.hypot(*(seg.uv1 - seg.uv0).T).sum())
+    assert 2 * (x1 - x0 + y1 - y0) - 4 / scale - 1e-3 <= length <= 2 * (x1 - x0 + y1 - y0)
+
+
+def test_a_disc_region_s_outline_lies_on_its_circle():
+    """A digital disc (pixels whose centre lies within r of the centre): its outline segments lie on
+    the circle, on average over them within a tenth of a pixel, at r 6-30 px."""
+    import cv2
+
+    for r in (6.0, 12.0, 30.0):
+        yy, xx = np.mgrid[0:100, 0:100]
+        m = ((xx - 50.3) ** 2 + (yy - 49.6) ** 2 <= r * r).astype(np.uint8)
+        cs, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        a, b = regions._edge_lines(cs[0].reshape(-1, 2))
+        t = np.linspace(0, 1, 11)[:, None, None]
+        pts = (a[None] * (1 - t) + b[None] * t).reshape(-1, 2)  # points along every segment
+        dev = np.hypot(pts[:, 0] - 50.3, pts[:, 1] - 49.6) - r
+        assert abs(dev.mean()) < 0.1, (r, dev.mean())
+        assert np.abs(dev).max() < 0.8, (r, np.abs(dev).max())
+
+
 def test_region_proposals_give_the_distance_they_were_asked_for(l_block_bank):
     bank = l_block_bank
     truth = template_pose(bank, 100, -60.0, (250.0, 280.0), 700.0)
