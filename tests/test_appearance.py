@@ -231,6 +231,35 @@ def test_estimate_with_taught_colours_finds_the_painted_pose(box_bank):
     assert np.linalg.norm(out.refined.pose.t_mm - POSE_T.t_mm) < 5.0
 
 
+@pytest.mark.parametrize("rivals", [True, False])
+def test_a_taught_found_candidate_gives_way_to_a_later_one_that_verifies_better(box_bank, monkeypatch,
+                                                                                  rivals):
+    """Two candidates at one place, the box turned 180 degrees about its axis first (the same outline, other
+    colours), then the painted truth, with an operating point both pass: the found answer is the better
+    verified truth (``pipeline.RIVALS``); without rivals the first found candidate ends the pass."""
+    from service import pipeline
+    from service.vision.estimate.evidence import colour_frame
+
+    monkeypatch.setattr(pipeline, "RIVALS", rivals)
+    photos = [(_photo(p, seed=7, intr=INTR_E2E, size=SIZE_E2E)[0], INTR_E2E, p)
+              for p in (POSE_A, POSE_C, POSE_B)]
+    app = pipeline.teach_appearance(box_bank, photos)
+    img, _ = _photo(POSE_T, seed=8, intr=INTR_E2E, size=SIZE_E2E)
+    turned = Pose(POSE_T.R @ Rz(180.0), POSE_T.t_mm)
+    frame = colour_frame(img)
+    s_turned = pipeline.unrefined_score(box_bank, turned, frame, INTR_E2E, None, app)
+    s_truth = pipeline.unrefined_score(box_bank, POSE_T, frame, INTR_E2E, None, app)
+    assert s_turned < s_truth - 0.05  # the taught colours tell them apart
+    cands = [pipeline.PoseCandidate(pose, 0.0, 0.0) for pose in (turned, POSE_T)]
+    checked = pipeline.verify_candidates(box_bank, cands, pipeline.to_grey_u8(img), frame, INTR_E2E,
+                                         distance_mm=None, distance_range_mm=(350.0, 550.0),
+                                         min_score=s_turned - 0.1, n_channels=16, appearance=app)
+    assert checked[0].verdict.found
+    best_rot = _rot_deg(checked[0].refined.pose.R, POSE_T.R)
+    assert (best_rot < TAUGHT_FOUND_ROT_DEG) == rivals, best_rot
+    assert len(checked) == (2 if rivals else 1)
+
+
 def test_a_revolved_part_is_taught_at_every_spin_about_its_axis():
     """The spins turn the part about its own axis: the axis's points stay where the pose puts them, and
     spin k is k steps of a full turn (about y here: R @ Ry)."""
