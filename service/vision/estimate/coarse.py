@@ -498,6 +498,13 @@ def _pass_limit(best, P, n_sentinel, sentinel):
     return lim
 
 
+@nb.njit(cache=True, inline="always")
+def _dtx_at(c, y, e, gx, s, Hp, Q):
+    """Index in ``_level_a_layout``'s flattened DT3 of channel ``c``, padded row ``y``, padded column
+    ``e`` + ``s`` x ``gx`` (stride ``s``: column x lies at x % s, x // s)."""
+    return ((c * Hp + y) * s + e % s) * Q + e // s + gx
+
+
 @nb.njit(parallel=True, cache=True, nogil=True)
 def _scan_bands(dtx, Hp, Q, s, m, off_u, off_v, chan, band_tile, band_gy0, band_gx0, band_rows, band_cols,
                 band_start, anchor_cell, accept, n_sentinel):
@@ -532,9 +539,8 @@ def _scan_bands(dtx, Hp, Q, s, m, off_u, off_v, chan, band_tile, band_gy0, band_
             for d in range(D):
                 first[:] = 0
                 for i in range(n_lb):
-                    e = m + off_u[j, d, t, i]
-                    y = m + off_v[j, d, t, i] + gy0 * s
-                    row0 = ((chan[t, i] * Hp + y) * s + e % s) * Q + e // s + gx0
+                    row0 = _dtx_at(chan[t, i], m + off_v[j, d, t, i] + gy0 * s, m + off_u[j, d, t, i], gx0,
+                                   s, Hp, Q)
                     for r in range(rows):
                         src = row0 + r * s * s * Q
                         dst = r * cols
@@ -549,9 +555,8 @@ def _scan_bands(dtx, Hp, Q, s, m, off_u, off_v, chan, band_tile, band_gy0, band_
                     gy = gy0 + anchor_cell[a] // cols
                     gx = gx0 + anchor_cell[a] % cols
                     for i in range(n_lb, P):
-                        e = m + off_u[j, d, t, i]
-                        acc += dtx[((chan[t, i] * Hp + m + off_v[j, d, t, i] + gy * s) * s + e % s) * Q
-                                   + e // s + gx]
+                        acc += dtx[_dtx_at(chan[t, i], m + off_v[j, d, t, i] + gy * s, m + off_u[j, d, t, i],
+                                           gx, s, Hp, Q)]
                         if acc >= best:
                             break
                     if acc < best:
@@ -630,8 +635,8 @@ def _level_a_layout(dt_q, tau_q, reach, stride) -> tuple[np.ndarray, int, int, i
 def _block_chunks(au, av, tile, count, stride) -> list[np.ndarray]:
     """Level A's anchors (indices) in chunks of whole blocks (``_scan_level_a_bands``'s) of at least
     LEVEL_A_CHUNK_ANCHORS anchors, the blocks with the most edge pixels round an anchor first: chunks of
-    scattered anchors would leave the block bounds one anchor each (a 450 ms deadline made level A
-    22 -> 33 ms a paper frame that way)."""
+    scattered anchors would split ``_scan_bands``' bands into many short ones (with session 23's block
+    bounds a 450 ms deadline made level A 22 -> 33 ms a paper frame that way)."""
     if len(au) == 0:
         return []
     span = stride * LEVEL_A_BLOCK_ANCHORS

@@ -939,21 +939,27 @@ def boundary_segments(reg: Regions, c: int, image_shape: tuple[int, int]) -> Seg
 
 
 def _chords(contour: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """The contour's polygon (``approxPolyDP``) as segments through its boundary pixels' centres."""
-    poly = cv2.approxPolyDP(contour.reshape(-1, 1, 2), 0.7, True).reshape(-1, 2).astype(np.float32)
+    """The contour's polygon as segments through its boundary pixels' centres."""
+    poly = _polygon(contour).astype(np.float32)
     return (poly, np.roll(poly, -1, axis=0)) if len(poly) >= 2 else None
+
+
+def _polygon(contour: np.ndarray) -> np.ndarray:
+    """The vertices (M, 2) int of a contour's polygon (``approxPolyDP``, within 0.7 px), a subset of its
+    points in its order."""
+    return cv2.approxPolyDP(contour.reshape(-1, 1, 2), 0.7, True).reshape(-1, 2)
 
 
 def _edge_lines(contour: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """A region's contour (n, 2) int, the centres of its boundary pixels in order, as the segments
-    (M, 2) -> (M, 2) float32 of its polygon (``approxPolyDP``) moved onto the region's edge.
+    (M, 2) -> (M, 2) float32 of its polygon (``_polygon``) moved onto the region's edge.
 
     Two biases are taken out, each making the outline smaller all round: a chord between two vertices
     cuts inside the pixels it stands for on a convex arc, so each segment is moved to their mean offset
     from it; and boundary pixels' centres lie inside the edge, by half a pixel across an edge along x or
     y and by 0.5 x the larger normal component on average over a straight edge at any angle.
     ``findContours`` runs outer and hole contours alike with the region on the side of (dy, -dx)."""
-    poly = cv2.approxPolyDP(contour.reshape(-1, 1, 2), 0.7, True).reshape(-1, 2)
+    poly = _polygon(contour)
     if len(poly) < 2:
         return None
     a = poly.astype(np.float64)
