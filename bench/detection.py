@@ -177,6 +177,15 @@ def main(argv=None) -> int:
     ap.add_argument("--uncalibrated", action="store_true",
                     help="with --references: the parts' operating points not calibrated on their reference "
                          "photos (as the service does at POST /references: pipeline.calibrate_appearance)")
+    ap.add_argument("--region-contour", choices=["on", "off"], default=None,
+                    help="a taught candidate moved to its colours' outline before the edge refinement "
+                         "(pipeline.REGION_CONTOUR; default: the service's)")
+    ap.add_argument("--region-contour-found", choices=["on", "off"], default=None,
+                    help="a taught found answer moved to its colours' outline and refined again "
+                         "(pipeline.REGION_CONTOUR_FOUND; default: the service's)")
+    ap.add_argument("--range-hold", choices=["on", "off"], default=None,
+                    help="a refinement ending past the searched range refined again at its bound "
+                         "(pipeline.RANGE_HOLD; default: the service's)")
     ap.add_argument("--calibration-margin", type=float, default=None,
                     help="logit margin over the highest wrong score (pipeline.CALIBRATION_MARGIN)")
     a = ap.parse_args(argv)
@@ -186,6 +195,12 @@ def main(argv=None) -> int:
         import bench.appearance
 
         bench.appearance.CALIBRATE = True
+    if a.region_contour is not None:
+        _pipeline.REGION_CONTOUR = a.region_contour == "on"
+    if a.region_contour_found is not None:
+        _pipeline.REGION_CONTOUR_FOUND = a.region_contour_found == "on"
+    if a.range_hold is not None:
+        _pipeline.RANGE_HOLD = a.range_hold == "on"
     if a.calibration_margin is not None:
         _pipeline.CALIBRATION_MARGIN = a.calibration_margin
 
@@ -227,6 +242,7 @@ def main(argv=None) -> int:
                   f"{r['score']:.4f}", file=sys.stderr)
         for recs in all_recs:
             print(_checked_line(name, recs), file=sys.stderr)
+            print(_depth_line(name, recs), file=sys.stderr)
         parts = [("", all_recs)]
         # each half too: the weights were fitted on the even one
         if a.references and a.half == "all" and a.teach_from in (None, name):
@@ -264,6 +280,17 @@ def _checked_line(name: str, recs: list[dict]) -> str:
               if len(scores) else "")
     return (f"{name}: {len(missed)} targets not found right: a right candidate checked and refused on "
             f"{len(refused)}{spread}; none checked on {len(missed) - len(refused)}")
+
+
+def _depth_line(name: str, recs: list[dict]) -> str:
+    """The right answers' depth against the truth's: MSPD hardly sees a pose a few percent too far."""
+    q = np.array([r["t_mm"][2] / r["t_true_mm"][2] for r in recs
+                  if r["found"] and not r["absent"] and r["mspd640"] < RIGHT_PX])
+    if not len(q):
+        return f"{name}: no right answer"
+    p10, p50, p90 = np.percentile(q, [10, 50, 90])
+    return (f"{name}: right answers' tz / true tz p10 / p50 / p90 {p10:.3f} / {p50:.3f} / {p90:.3f}, "
+            f"within 2 % {np.mean(np.abs(q - 1) < 0.02):.0%} of {len(q)}")
 
 
 def _row(name: str, runs: list[dict]) -> str:

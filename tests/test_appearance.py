@@ -29,6 +29,7 @@ FLOOR_BGR = (110.0, 110.0, 110.0)
 INTR = Intrinsics(500.0, 500.0, 159.5, 119.5)
 SIZE = (320, 240)
 COLOUR_TOL = 3.0  # grey levels: the rendered colours are exact, the photo's pixels are rounded
+DEPTH_TOL = 0.01  # a rendered outline is known to half a pixel: on a box ~150 px across, a depth to ~0.7 %
 
 
 def _box():
@@ -321,3 +322,32 @@ def test_no_polish_step_is_taken_past_the_deadline():
     off = Pose(POSE_T.R, POSE_T.t_mm + np.array([3.0, 0.0, 0.0]))
     spent = Deadline(1.0, start=time.perf_counter() - 1.0)
     assert polish_appearance(BOX, off, ColourFrame(img), INTR, app, None, spent) is off
+
+
+@pytest.mark.parametrize("on", [True, False])
+def test_a_taught_found_answer_too_far_is_moved_to_its_colours_outline(box_bank, monkeypatch, on):
+    """A found answer 6 % too far (as region proposals on real photos end, ``bench/depth_from_gt.py``) is
+    moved to where the box's colours end and refined again: its depth comes back to the painted truth's
+    (``pipeline.REGION_CONTOUR_FOUND``); switched off, the answer is left as it was."""
+    from dataclasses import replace
+
+    from service import pipeline
+    from service.vision.estimate.evidence import colour_frame
+
+    monkeypatch.setattr(pipeline, "REGION_CONTOUR_FOUND", on)
+    photos = [(_photo(p, seed=7, intr=INTR_E2E, size=SIZE_E2E)[0], INTR_E2E, p)
+              for p in (POSE_A, POSE_C, POSE_B)]
+    app = pipeline.teach_appearance(box_bank, photos)
+    img, _ = _photo(POSE_T, seed=8, intr=INTR_E2E, size=SIZE_E2E)
+    check = pipeline._Checker(box_bank, pipeline.to_grey_u8(img), colour_frame(img), INTR_E2E, None, 16,
+                              dict(distance_range_mm=(350.0, 550.0), min_score=0.0, appearance=app))
+    far = Pose(POSE_T.R, POSE_T.t_mm * 1.06)
+    found = pipeline.Checked(pipeline.PoseCandidate(far, 0.0, 0.0), pipeline.RefinedPose(far, 0.0, 0.0),
+                             replace(pipeline.decide(None), found=True, reason="found"))
+    out = check.outlined_on_colours(found, None)
+    if on:
+        assert out.verdict.found
+        assert abs(out.refined.pose.t_mm[2] / POSE_T.t_mm[2] - 1.0) < DEPTH_TOL
+        assert _rot_deg(out.refined.pose.R, POSE_T.R) < TAUGHT_FOUND_ROT_DEG
+    else:
+        assert out is found
