@@ -748,8 +748,10 @@ class _Checker:
 
     def outlined_on_colours(self, c: Checked, others_depth_mm: np.ndarray | None) -> Checked:
         """A taught part's found answer moved to its colours' outline and refined again on edges
-        (``REGION_CONTOUR_FOUND``), if it is found there too; else ``c``."""
-        if not (REGION_CONTOUR_FOUND and c.verdict.found and self._on_colours()):
+        (``REGION_CONTOUR_FOUND``), if it is found there too; else ``c``, also when the frame's deadline
+        leaves no time for a check."""
+        if not (REGION_CONTOUR_FOUND and c.verdict.found and self._on_colours()
+                and self.deadline.allows(_CHECK_MS.high)):
             return c
         pose = region_contour_refine(self.bank, c.refined.pose, self.frame.bgr, self.intr)
         if pose is c.refined.pose:
