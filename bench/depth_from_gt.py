@@ -4,11 +4,12 @@ as the service refines a candidate (``pipeline._refine``), and the refined depth
 truth's.
 
     python bench/depth_from_gt.py [--sets lmo_dev,paper] [--every 4] [--factors 0.94,1.06]
-                                  [--variants service,line-only,gate6,region,region-then] [--references N]
+                                  [--variants service,line-only,gate6,region,region-then,service-depth]
+                                  [--references N]
 
 Per set, variant and start factor: the lines refined, the median and p10 / p90 of refined tz / true tz,
-the share within 1 % and 2 % of the truth's depth, and the median MSPD (640 px). A variant is a set of
-the refinement's settings (``VARIANTS``); "service" is the refinement as it is.
+the share within 1 % and 2 % of the truth's depth, and the median MSPD (640 px). A variant is a way of
+refining (``VARIANTS``); "service" is the edge refinement as it is.
 """
 
 from __future__ import annotations
@@ -40,15 +41,33 @@ from service.vision.estimate.contour_region import region_contour_refine  # noqa
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
 
-# name -> (module constants of refine.py set while it runs, refine_pose keyword arguments)
-VARIANTS: dict[str, tuple[dict, dict]] = {
-    "service": ({}, {}),
-    "line-only": ({}, {"residual": "line"}),
-    "gate6": ({"LINE_GATE_PX": 6.0}, {}),
-    "region": ({}, {}),  # _region_variant
-    "region-then": ({}, {}),
-    "service-depth": ({}, {}),
-}
+
+def _edges(**consts):
+    """The edge refinement (``refine.refine_pose``) with these module constants of refine.py set."""
+    def run(bank, start: Pose, image, grey, intr) -> Pose:
+        with _settings(consts):
+            return refine.refine_pose(bank, start, grey, intr, None).pose
+    return run
+
+
+def _edges_line_only(bank, start: Pose, image, grey, intr) -> Pose:
+    return refine.refine_pose(bank, start, grey, intr, None, residual="line").pose
+
+
+def _outline(bank, start: Pose, image, grey, intr) -> Pose:
+    """The colour outline alone (``contour_region``)."""
+    return region_contour_refine(bank, start, image, intr)
+
+
+def _outline_then_edges(bank, start: Pose, image, grey, intr) -> Pose:
+    return _edges()(bank, _outline(bank, start, image, grey, intr), image, grey, intr)
+
+
+def _edges_depth_from_outline(bank, start: Pose, image, grey, intr) -> Pose:
+    """The edge refinement's pose, its depth from the colour outline."""
+    pose = _edges()(bank, start, image, grey, intr)
+    moved = _outline(bank, pose, image, grey, intr)
+    return Pose(pose.R, pose.t_mm * (moved.t_mm[2] / pose.t_mm[2]))
 
 
 @contextmanager
@@ -63,15 +82,15 @@ def _settings(consts: dict):
             setattr(refine, k, v)
 
 
-def _region_variant(v: str, bank, start: Pose, image, grey, intr) -> Pose:
-    """"region": the colour outline alone (``contour_region``); "region-then": it, then the edge
-    refinement (what the service does for a taught part's candidate)."""
-    if v == "service-depth":  # the edge refinement's pose, its depth from the colour outline
-        pose = refine.refine_pose(bank, start, grey, intr, None).pose
-        moved = region_contour_refine(bank, pose, image, intr)
-        return Pose(pose.R, pose.t_mm * (moved.t_mm[2] / pose.t_mm[2]))
-    pose = region_contour_refine(bank, start, image, intr)
-    return refine.refine_pose(bank, pose, grey, intr, None).pose if v == "region-then" else pose
+# name -> (bank, start pose, colour image, grey image, intrinsics) -> refined pose
+VARIANTS = {
+    "service": _edges(),
+    "line-only": _edges_line_only,
+    "gate6": _edges(LINE_GATE_PX=6.0),
+    "region": _outline,
+    "region-then": _outline_then_edges,
+    "service-depth": _edges_depth_from_outline,
+}
 
 
 def run(set_name: str, every: int, factors: list[float], variants: list[str], limit: int | None,
@@ -99,12 +118,7 @@ def run(set_name: str, every: int, factors: list[float], variants: list[str], li
         for f in factors:
             start = Pose(truth.R, truth.t_mm * f)
             for v in variants:
-                if v.startswith("region") or v == "service-depth":
-                    pose = _region_variant(v, bank, start, image, grey, intr)
-                else:
-                    consts, kw = VARIANTS[v]
-                    with _settings(consts):
-                        pose = refine.refine_pose(bank, start, grey, intr, None, **kw).pose
+                pose = VARIANTS[v](bank, start, image, grey, intr)
                 e = stage_errors(pose, g, info, np.asarray(g["K"], float), int(g["width"]))
                 rows.append({"variant": v, "factor": f, "ratio": float(pose.t_mm[2] / truth.t_mm[2]),
                              "mspd": e["mspd640_px"]})

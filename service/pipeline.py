@@ -726,12 +726,16 @@ class _Checker:
         kept, unexplained = self._refined(start)
         if unless_at is not None and _same_place(self.bank, kept.pose, unless_at, self.intr.K):
             return None
-        c = judge(self.bank, Checked(cand, kept, decide(None)), self.frame, self.intr,
-                  edge_support=kept.score, unexplained=unexplained, others_depth_mm=others_depth_mm,
-                  **self.judge_kw)
+        c = self._judged(cand, kept, unexplained, others_depth_mm)
         c = self.outlined_on_colours(self.polished(c, others_depth_mm), others_depth_mm)
         _CHECK_MS.add(_ms(t0))
         return c
+
+    def _judged(self, cand: PoseCandidate, kept: RefinedPose, unexplained: float | Callable[[], float],
+                others_depth_mm: np.ndarray | None) -> Checked:
+        return judge(self.bank, Checked(cand, kept, decide(None)), self.frame, self.intr,
+                     edge_support=kept.score, unexplained=unexplained, others_depth_mm=others_depth_mm,
+                     **self.judge_kw)
 
     def _on_colours(self) -> bool:
         return self.distance_mm is None and self.judge_kw.get("appearance") is not None
@@ -757,9 +761,7 @@ class _Checker:
         if pose is c.refined.pose:
             return c
         kept, unexplained = self._refined(replace(c.candidate, pose=pose))
-        moved = judge(self.bank, Checked(c.candidate, kept, decide(None)), self.frame, self.intr,
-                      edge_support=kept.score, unexplained=unexplained, others_depth_mm=others_depth_mm,
-                      **self.judge_kw)
+        moved = self._judged(c.candidate, kept, unexplained, others_depth_mm)
         return moved if moved.verdict.found else c
 
     def _bound_passed(self, pose: Pose) -> float | None:

@@ -30,9 +30,8 @@ def scene(l_block_bank):
 def check(bank, img, start: Pose, distance_range_mm, *, hold: bool, monkeypatch):
     monkeypatch.setattr(pipeline, "RANGE_HOLD", hold)
     return pipeline.check_candidate(bank, PoseCandidate(start, 0.0, 1.0), img[..., 0], colour_frame(img),
-                                    INTR,
-                                    distance_mm=None, distance_range_mm=distance_range_mm, min_score=0.0,
-                                    n_channels=16)
+                                    INTR, distance_mm=None, distance_range_mm=distance_range_mm,
+                                    min_score=0.0, n_channels=16)
 
 
 def test_a_refinement_past_the_far_bound_is_held_at_it(l_block_bank, scene, monkeypatch):

@@ -31,8 +31,11 @@ def lab_bins(bgr: np.ndarray) -> np.ndarray:
     return ((b[0] * BINS[1] + b[1]) * BINS[2] + b[2]).reshape(np.shape(bgr)[:-1])
 
 
-def _density(bins: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    h = np.bincount(bins.ravel(), weights.ravel(), minlength=int(np.prod(BINS))).reshape(BINS)
+def density(bins: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """(BINS) the smoothed, normalised histogram of ``lab_bins`` indices (each counted once, or by its
+    weight)."""
+    w = None if weights is None else np.asarray(weights, float).ravel()
+    h = np.bincount(bins.ravel(), w, minlength=int(np.prod(BINS))).astype(float).reshape(BINS)
     h = gaussian_filter(h, SMOOTH_BINS, mode="constant")
     return h / max(float(h.sum()), 1e-12)
 
@@ -41,13 +44,13 @@ def part_density(face_bgr: np.ndarray, face_area: np.ndarray) -> np.ndarray:
     """(BINS) the part's colour density: its taught faces' colours weighted by their areas (faces no
     photo saw are left out)."""
     known = np.isfinite(face_bgr[:, 0])
-    return _density(lab_bins(face_bgr[known]), np.asarray(face_area, float)[known])
+    return density(lab_bins(face_bgr[known]), np.asarray(face_area, float)[known])
 
 
 def likelihood(image_bgr: np.ndarray, part: np.ndarray) -> np.ndarray:
     """(h, w) float32 in [0, 1]: p_part / (p_part + p_frame) of each pixel's colour, the frame's density
     made from the image itself (a colour everywhere in the frame is weak evidence for the part)."""
     bins = lab_bins(image_bgr)
-    frame = _density(bins, np.ones(bins.shape))
+    frame = density(bins)
     pf, pb = part.ravel()[bins] + FLOOR / part.size, frame.ravel()[bins] + FLOOR / part.size
     return (pf / (pf + pb)).astype(np.float32)

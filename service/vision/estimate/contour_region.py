@@ -17,10 +17,9 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scipy.ndimage import gaussian_filter
 
 from service.vision.estimate import refine as rf
-from service.vision.estimate.colour_prior import BINS, SMOOTH_BINS, lab_bins
+from service.vision.estimate.colour_prior import density, lab_bins
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
 from service.vision.geometry.render import rasterise_roi
@@ -95,16 +94,10 @@ def _inside_log_odds(bgr: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
     if not inside.any() or not outside.any():
         return None
     bins = lab_bins(bgr)
-    p_in, p_out = _density(bins[inside]), _density(bins[outside])
+    p_in, p_out = density(bins[inside]), density(bins[outside])
     floor = 1e-6
     lo = np.log(p_in.ravel()[bins] + floor) - np.log(p_out.ravel()[bins] + floor)
     return np.clip(lo, -LOG_ODDS_CLIP, LOG_ODDS_CLIP).astype(np.float32)
-
-
-def _density(bins: np.ndarray) -> np.ndarray:
-    h = np.bincount(bins, minlength=int(np.prod(BINS))).astype(float).reshape(BINS)
-    h = gaussian_filter(h, SMOOTH_BINS, mode="constant")
-    return h / max(float(h.sum()), 1e-12)
 
 
 def steps_along_normals(L: np.ndarray, mask: np.ndarray, uv: np.ndarray, theta: np.ndarray):
