@@ -784,7 +784,7 @@ class _Checker:
                 or c.verdict.reason in NOT_POLISHED):
             return c
         pose = polish_appearance(self.bank, c.refined.pose, self.frame, self.intr, appearance,
-                                 others_depth_mm, self.deadline)
+                                 others_depth_mm, self.deadline, self.judge_kw.get("distance_range_mm"))
         if pose is c.refined.pose:
             return c
         ev = c.verdict.evidence
@@ -896,9 +896,11 @@ NOT_POLISHED = ("outside_distance_range", "outside_image", "off_plane")
 
 def polish_appearance(bank: TemplateBank, pose: Pose, frame: ColourFrame, intr: Intrinsics,
                       appearance: Appearance, others_depth_mm: np.ndarray | None,
-                      deadline: Deadline = NO_DEADLINE) -> Pose:
+                      deadline: Deadline = NO_DEADLINE,
+                      distance_range_mm: tuple[float, float] | None = None) -> Pose:
     """``pose`` moved to the neighbour whose unrefined score (taught colours included) is highest, while
-    a step raises it (see ``APPEARANCE_POLISH``); ``pose`` itself (the same object) if none does."""
+    a step raises it (see ``APPEARANCE_POLISH``); ``pose`` itself (the same object) if none does. With
+    ``distance_range_mm`` no step leaves it (the unrefined score does not read the range)."""
     best = unrefined_score(bank, pose, frame, intr, others_depth_mm, appearance)
     for _ in range(POLISH_ROUNDS):
         improved = False
@@ -907,12 +909,18 @@ def polish_appearance(bank: TemplateBank, pose: Pose, frame: ColourFrame, intr: 
                 if not deadline.allows(EVIDENCE_MS):
                     return pose
                 trial = _nudged(pose, kind, axis, sign * step)
+                if distance_range_mm is not None and not _in_range(trial, distance_range_mm):
+                    continue
                 score = unrefined_score(bank, trial, frame, intr, others_depth_mm, appearance)
                 if score > best + POLISH_MIN_GAIN:
                     best, pose, improved = score, trial, True
         if not improved:
             break
     return pose
+
+
+def _in_range(pose: Pose, distance_range_mm: tuple[float, float]) -> bool:
+    return distance_range_mm[0] <= float(pose.t_mm[2]) <= distance_range_mm[1]
 
 
 def _nudged(pose: Pose, kind: str, axis: int, step: float) -> Pose:

@@ -311,6 +311,25 @@ def test_the_taught_colours_polish_a_pose_a_few_millimetres_off_back_onto_the_tr
     assert unrefined_score(BOX, polished, frame, INTR, None, app) > before
 
 
+def test_the_polish_never_steps_out_of_the_searched_distance_range():
+    """The truth 8 mm beyond the range's far bound, a start 8 mm inside it: unbounded, the polish's 4 mm
+    depth steps walk to the truth; bounded, the polish ends within the range (the depth at most the bound:
+    the closest the steps come to the truth), its lateral position unchanged."""
+    from service.pipeline import polish_appearance
+
+    app = _taught()
+    img, _ = _photo(POSE_T, seed=9)
+    frame = ColourFrame(img)
+    z = float(POSE_T.t_mm[2])
+    start = Pose(POSE_T.R, POSE_T.t_mm - np.array([0.0, 0.0, 16.0]))
+    free = polish_appearance(BOX, start, frame, INTR, app, None)
+    assert abs(free.t_mm[2] - z) < 4.0  # the 4 mm steps reach the truth's depth unbounded
+    bounded = polish_appearance(BOX, start, frame, INTR, app, None, distance_range_mm=(z - 40.0, z - 8.0))
+    assert z - 16.0 <= bounded.t_mm[2] <= z - 8.0
+    assert bounded.t_mm[2] == pytest.approx(z - 8.0)
+    np.testing.assert_allclose(bounded.t_mm[:2], POSE_T.t_mm[:2], atol=1.0)
+
+
 def test_no_polish_step_is_taken_past_the_deadline():
     import time
 
