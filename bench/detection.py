@@ -183,6 +183,9 @@ def main(argv=None) -> int:
     ap.add_argument("--region-contour-found", choices=["on", "off"], default=None,
                     help="a taught found answer moved to its colours' outline and refined again "
                          "(pipeline.REGION_CONTOUR_FOUND; default: the service's)")
+    ap.add_argument("--region-contour-hold", choices=["on", "off"], default=None,
+                    help="the moved found answer refined again with its depth held at the outline's "
+                         "(pipeline.REGION_CONTOUR_HOLD; default: the service's)")
     ap.add_argument("--range-hold", choices=["on", "off"], default=None,
                     help="a refinement ending past the searched range refined again at its bound "
                          "(pipeline.RANGE_HOLD; default: the service's)")
@@ -199,6 +202,8 @@ def main(argv=None) -> int:
         _pipeline.REGION_CONTOUR = a.region_contour == "on"
     if a.region_contour_found is not None:
         _pipeline.REGION_CONTOUR_FOUND = a.region_contour_found == "on"
+    if a.region_contour_hold is not None:
+        _pipeline.REGION_CONTOUR_HOLD = a.region_contour_hold == "on"
     if a.range_hold is not None:
         _pipeline.RANGE_HOLD = a.range_hold == "on"
     if a.calibration_margin is not None:

@@ -311,6 +311,35 @@ def test_the_taught_colours_polish_a_pose_a_few_millimetres_off_back_onto_the_tr
     assert unrefined_score(BOX, polished, frame, INTR, None, app) > before
 
 
+@pytest.mark.parametrize("hold", [True, False])
+def test_a_found_answer_s_depth_is_its_colours_outline_s_where_the_edges_disagree(box_bank, monkeypatch, hold):
+    """The grey image's edges drawn 6 % too far (as printed edges inside a real part's rim pull the edge
+    refinement, ``bench/depth_from_gt.py``), the colours at the truth: held at its colours' outline's depth
+    (``pipeline.REGION_CONTOUR_HOLD``), the found answer keeps the truth's depth; refined freely on the
+    edges afterwards, it goes back towards theirs."""
+    from dataclasses import replace
+
+    from service import pipeline
+    from service.vision.estimate.evidence import colour_frame
+
+    monkeypatch.setattr(pipeline, "REGION_CONTOUR_HOLD", hold)
+    photos = [(_photo(p, seed=7, intr=INTR_E2E, size=SIZE_E2E)[0], INTR_E2E, p)
+              for p in (POSE_A, POSE_C, POSE_B)]
+    app = pipeline.teach_appearance(box_bank, photos)
+    far = Pose(POSE_T.R, POSE_T.t_mm * 1.06)
+    colours, _ = _photo(POSE_T, seed=8, intr=INTR_E2E, size=SIZE_E2E)
+    edges, _ = _photo(far, seed=8, intr=INTR_E2E, size=SIZE_E2E)
+    check = pipeline._Checker(box_bank, pipeline.to_grey_u8(edges), colour_frame(colours), INTR_E2E, None, 16,
+                              dict(distance_range_mm=(350.0, 550.0), min_score=0.0, appearance=app))
+    found = pipeline.Checked(pipeline.PoseCandidate(far, 0.0, 0.0), pipeline.RefinedPose(far, 0.0, 0.0),
+                             replace(pipeline.decide(None), found=True, reason="found"))
+    ratio = check.outlined_on_colours(found, None).refined.pose.t_mm[2] / POSE_T.t_mm[2]
+    if hold:
+        assert abs(ratio - 1.0) < DEPTH_TOL
+    else:
+        assert ratio > 1.0 + 2 * DEPTH_TOL
+
+
 def test_the_polish_never_steps_out_of_the_searched_distance_range():
     """The truth 8 mm beyond the range's far bound, a start 8 mm inside it: unbounded, the polish's 4 mm
     depth steps walk to the truth; bounded, the polish ends within the range (the depth at most the bound:
