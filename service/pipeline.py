@@ -752,8 +752,8 @@ class _Checker:
 
     def outlined_on_colours(self, c: Checked, others_depth_mm: np.ndarray | None) -> Checked:
         """A taught part's found answer moved to its colours' outline and refined again on edges, its depth
-        held there (``REGION_CONTOUR_FOUND``, ``REGION_CONTOUR_HOLD``), if it is found there too; else ``c``, also when the frame's deadline
-        leaves no time for a check."""
+        held there (``REGION_CONTOUR_FOUND``, ``REGION_CONTOUR_HOLD``), if it is found there too; else
+        ``c``, also when the frame's deadline leaves no time for a check."""
         if not (REGION_CONTOUR_FOUND and c.verdict.found and self._on_colours()
                 and self.deadline.allows(_CHECK_MS.high)):
             return c

@@ -312,7 +312,7 @@ def test_the_taught_colours_polish_a_pose_a_few_millimetres_off_back_onto_the_tr
 
 
 @pytest.mark.parametrize("hold", [True, False])
-def test_a_found_answer_s_depth_is_its_colours_outline_s_where_the_edges_disagree(box_bank, monkeypatch, hold):
+def test_a_found_answer_keeps_its_colour_outline_depth_where_the_edges_disagree(box_bank, monkeypatch, hold):
     """The grey image's edges drawn 6 % too far (as printed edges inside a real part's rim pull the edge
     refinement, ``bench/depth_from_gt.py``), the colours at the truth: held at its colours' outline's depth
     (``pipeline.REGION_CONTOUR_HOLD``), the found answer keeps the truth's depth; refined freely on the
