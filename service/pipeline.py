@@ -747,8 +747,13 @@ class _Checker:
         bound = self._bound_passed(kept.pose)
         if bound is None:
             return kept, unexplained
-        held = replace(cand, pose=Pose(kept.pose.R, kept.pose.t_mm * (bound / kept.pose.t_mm[2])))
-        return _refine(self.bank, held, self.grey, self.intr, distance_mm=bound, n_channels=self.n_channels)
+        return self._refined_at(cand, kept.pose, bound)
+
+    def _refined_at(self, cand: PoseCandidate, pose: Pose, z_mm: float
+                    ) -> tuple[RefinedPose, float | Callable[[], float]]:
+        """``_refine`` from ``pose`` moved along its line of sight to depth ``z_mm``, the depth held there."""
+        held = replace(cand, pose=Pose(pose.R, pose.t_mm * (z_mm / pose.t_mm[2])))
+        return _refine(self.bank, held, self.grey, self.intr, distance_mm=z_mm, n_channels=self.n_channels)
 
     def outlined_on_colours(self, c: Checked, others_depth_mm: np.ndarray | None) -> Checked:
         """A taught part's found answer moved to its colours' outline and refined again on edges, its depth
@@ -761,16 +766,13 @@ class _Checker:
         if pose is c.refined.pose:
             return c
         if REGION_CONTOUR_HOLD:
-            kept, unexplained = _refine(self.bank, replace(c.candidate, pose=pose), self.grey, self.intr,
-                                        distance_mm=float(pose.t_mm[2]), n_channels=self.n_channels)
+            kept, unexplained = self._refined_at(c.candidate, pose, float(pose.t_mm[2]))
+            if not _same_place_but_depth(self.bank, c.refined.pose, kept.pose, self.intr.K):
+                return c  # the edges turned the held pose: not the found answer at a better depth
         else:
             kept, unexplained = self._refined(replace(c.candidate, pose=pose))
         moved = self._judged(c.candidate, kept, unexplained, others_depth_mm)
-        if not moved.verdict.found:
-            return c
-        turned = REGION_CONTOUR_HOLD and not _same_place_but_depth(self.bank, c.refined.pose, kept.pose,
-                                                                   self.intr.K)
-        return c if turned else moved
+        return moved if moved.verdict.found else c
 
     def _bound_passed(self, pose: Pose) -> float | None:
         """The searched range's bound a refined ``pose`` lies beyond by at most ``RANGE_HOLD_MAX``
