@@ -174,6 +174,10 @@ def main(argv=None) -> int:
                     help="parts calibrated on this many photos or more have a last pass of silhouettes "
                          "swept over the taught colours (pipeline.SWEEP_MIN_PHOTOS, estimate/colour_sweep.py;"
                          " 2: every calibrated part, 1000: none)")
+    ap.add_argument("--sweep-per-location", type=int, default=None,
+                    help="placements the colour sweep proposes per blob (colour_sweep.PER_LOCATION)")
+    ap.add_argument("--sweep-locations", type=int, default=None,
+                    help="blobs the colour sweep sweeps (colour_sweep.N_LOCATIONS)")
     ap.add_argument("--uncalibrated", action="store_true",
                     help="with --references: the parts' operating points not calibrated on their reference "
                          "photos (as the service does at POST /references: pipeline.calibrate_appearance)")
@@ -217,6 +221,12 @@ def main(argv=None) -> int:
                                        **{k: v for k, v in given.items() if v is not None})
     if a.sweep_min_photos is not None:
         _pipeline.SWEEP_MIN_PHOTOS = a.sweep_min_photos
+    from service.vision.estimate import colour_sweep as _sweep
+
+    if a.sweep_per_location is not None:
+        _sweep.PER_LOCATION = a.sweep_per_location
+    if a.sweep_locations is not None:
+        _sweep.N_LOCATIONS = a.sweep_locations
     if a.reference_offset:
         import bench.appearance
 
