@@ -193,6 +193,11 @@ def main(argv=None) -> int:
     ap.add_argument("--range-hold", choices=["on", "off"], default=None,
                     help="a refinement ending past the searched range refined again at its bound "
                          "(pipeline.RANGE_HOLD; default: the service's)")
+    ap.add_argument("--calibrated-floor", type=float, default=None,
+                    help="a calibrated part's operating point is never under this (pipeline.CALIBRATED_MIN_SCORE)")
+    ap.add_argument("--calibration-turned", action="store_true",
+                    help="the calibration also searches each reference photo turned upside down "
+                         "(pipeline.CALIBRATION_TURNED)")
     ap.add_argument("--calibration-margin", type=float, default=None,
                     help="logit margin over the highest wrong score (pipeline.CALIBRATION_MARGIN)")
     a = ap.parse_args(argv)
@@ -212,6 +217,10 @@ def main(argv=None) -> int:
         _pipeline.RANGE_HOLD = a.range_hold == "on"
     if a.calibration_margin is not None:
         _pipeline.CALIBRATION_MARGIN = a.calibration_margin
+    if a.calibration_turned:
+        _pipeline.CALIBRATION_TURNED = True
+    if a.calibrated_floor is not None:
+        _pipeline.CALIBRATED_MIN_SCORE = a.calibrated_floor
 
     from dataclasses import replace as _replace
 

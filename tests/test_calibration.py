@@ -171,3 +171,31 @@ def test_a_part_calibrated_on_enough_photos_is_also_searched_with_the_colour_swe
     enough = pipeline.SWEEP_MIN_PHOTOS
     swept = pipeline.taught_search(Appearance(faces, enough, calibrated_photos=enough))
     assert swept.colour_sweep and swept == replace(pipeline.CALIBRATED_SEARCH, colour_sweep=True)
+
+
+def test_a_reference_photo_turned_upside_down_shows_the_part_where_its_turned_pose_projects():
+    """``_turned_view`` (``CALIBRATION_TURNED``): the box rendered at the turned pose through the turned
+    camera is the photo's render rotated 180 deg, and a lens's distorted projection of a point is mirrored
+    through the image's centre too (OpenCV's five coefficients: the tangential ones change sign)."""
+    w, h = SIZE_E2E
+    shown = render(BOX.vertices_mm, BOX.faces, POSE_A, INTR_E2E.K, SIZE_E2E).face_id
+    image = np.where(shown[..., None] >= 0, 200, 30).astype(np.uint8).repeat(3, axis=2)
+    turned_image, turned_intr, turned_pose = pipeline._turned_view((image, INTR_E2E, POSE_A))
+    assert np.array_equal(turned_image, image[::-1, ::-1])
+    again = render(BOX.vertices_mm, BOX.faces, turned_pose, turned_intr.K, SIZE_E2E).face_id
+    assert np.mean((again >= 0) == (shown[::-1, ::-1] >= 0)) > 0.999
+
+    import cv2
+
+    lens = Intrinsics(INTR_E2E.fx, INTR_E2E.fy, INTR_E2E.cx + 7.0, INTR_E2E.cy - 5.0,
+                      (-0.21, 0.08, 0.004, -0.006, 0.01))
+    _, turned_lens, turned_pose = pipeline._turned_view((image, lens, POSE_A))
+    p_obj = np.asarray(BOX.vertices_mm, float)
+
+    def distorted(intr: Intrinsics, pose: Pose) -> np.ndarray:
+        uv, _ = cv2.projectPoints(pose.apply(p_obj), np.zeros(3), np.zeros(3), intr.K, intr.dist_coeffs)
+        return uv.reshape(-1, 2)
+
+    mirrored = np.array([w - 1, h - 1]) - distorted(lens, POSE_A)
+    assert np.abs(distorted(turned_lens, turned_pose) - mirrored).max() < PX_TOL
+    assert pipeline._turned_view((image, Intrinsics(500, 500, 320, 240, (0.1,) * 8), POSE_A)) is None
