@@ -194,7 +194,8 @@ def main(argv=None) -> int:
                     help="a refinement ending past the searched range refined again at its bound "
                          "(pipeline.RANGE_HOLD; default: the service's)")
     ap.add_argument("--calibrated-floor", type=float, default=None,
-                    help="a calibrated part's operating point is never under this (pipeline.CALIBRATED_MIN_SCORE)")
+                    help="a calibrated part's operating point is never under this "
+                         "(pipeline.CALIBRATED_MIN_SCORE)")
     ap.add_argument("--calibration-turned", action="store_true",
                     help="the calibration also searches each reference photo turned upside down "
                          "(pipeline.CALIBRATION_TURNED)")
