@@ -207,9 +207,9 @@ def calibrate_appearance(bank: TemplateBank, views: list[tuple], appearance: App
     if len(views) < 2 or not appearance.calibratable:
         return appearance
     taught = taught or _read_references(bank, views)
-    searched = [(i, v) for i, v in enumerate(views)]
+    searched = list(enumerate(views))
     if CALIBRATION_TURNED:
-        searched += [(i, t) for i, t in ((i, _turned_view(v)) for i, v in enumerate(views)) if t is not None]
+        searched += [(i, t) for i, t in ((i, _turned_view(v)) for i, v in searched) if t is not None]
     wrong = -math.inf
     for k, (i, (image, intr, pose, *_)) in enumerate(searched):
         if progress is not None:

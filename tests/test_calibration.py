@@ -199,3 +199,19 @@ def test_a_reference_photo_turned_upside_down_shows_the_part_where_its_turned_po
     mirrored = np.array([w - 1, h - 1]) - distorted(lens, POSE_A)
     assert np.abs(distorted(turned_lens, turned_pose) - mirrored).max() < PX_TOL
     assert pipeline._turned_view((image, Intrinsics(500, 500, 320, 240, (0.1,) * 8), POSE_A)) is None
+
+
+def test_the_calibration_with_turned_photos_meets_every_wrong_score_it_met_without(box_bank, monkeypatch):
+    """``CALIBRATION_TURNED`` searches each photo as it is and turned: the highest wrong score is over a
+    superset of the searches, so it is never lower; and the turned photos are searched too (the progress
+    counts twice the photos)."""
+    photos = _photos(True)
+    plain = pipeline.teach_appearance(box_bank, photos, calibrate=True)
+    monkeypatch.setattr(pipeline, "CALIBRATION_TURNED", True)
+    seen: list[tuple[int, int]] = []
+    taught = pipeline.teach_appearance(box_bank, photos)
+    turned = pipeline.calibrate_appearance(box_bank, photos, taught,
+                                           progress=lambda i, n: seen.append((i, n)))
+    assert seen == [(i, 2 * len(photos)) for i in range(2 * len(photos))]
+    assert turned.calibrated_photos == len(photos)
+    assert turned.wrong_score >= plain.wrong_score
