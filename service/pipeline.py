@@ -230,7 +230,7 @@ def calibrate_appearance(bank: TemplateBank, views: list[tuple], appearance: App
 # -> 0.985, the eggbox 0.772 -> 0.915) but not the eggbox's or the cat's on 10 images, whose wrong answers
 # stayed (55 / 2), and cost right ones (6 images 61 / 0).
 CALIBRATION_TURNED = False
-_TURN = np.diag([-1.0, -1.0, 1.0])  # Rz(180): the camera turned about its optical axis
+_TURN = Rz(180.0)  # the camera turned about its optical axis
 
 
 def _turned_view(view: tuple) -> tuple | None:

@@ -190,14 +190,12 @@ def _best_placements(S: np.ndarray, x: float, y: float, phis: np.ndarray, keys: 
 
 
 def colour_sweep(bank: TemplateBank, likelihood: np.ndarray, K: np.ndarray, scale: float,
-                 distance_range_mm: tuple[float, float], n_locations: int | None = None,
-                 per_location: int | None = None) -> list[Hypothesis]:
+                 distance_range_mm: tuple[float, float]) -> list[Hypothesis]:
     """Hypotheses from the taught colours' ``likelihood`` (working px, the frame shrunk by ``scale``):
-    the ``n_locations`` most part-coloured blobs (``blob_locations``, the part's projected size at
-    ``BLOB_DEPTHS`` depths over the range), each swept (``sweep``); blob by blob, best first."""
+    the ``N_LOCATIONS`` most part-coloured blobs (``blob_locations``, the part's projected size at
+    ``BLOB_DEPTHS`` depths over the range), each swept (``sweep``, ``PER_LOCATION`` placements a blob);
+    blob by blob, best first. Both counts are read at each call (``bench/detection.py`` sets them)."""
     L = log_odds(likelihood)
     depths = np.geomspace(distance_range_mm[0], distance_range_mm[1], BLOB_DEPTHS)
     radii = [BLOB_RADIUS * bank.diameter_mm * float(K[0, 0]) / z * scale for z in depths]
-    locations = blob_locations(L, radii, N_LOCATIONS if n_locations is None else n_locations)
-    return sweep(bank, L, K, scale, distance_range_mm, locations,
-                 PER_LOCATION if per_location is None else per_location)
+    return sweep(bank, L, K, scale, distance_range_mm, blob_locations(L, radii, N_LOCATIONS), PER_LOCATION)
