@@ -134,6 +134,61 @@ def _cell(vals: list[float], fmt: str) -> str:
     return f"{format(float(np.mean(vals)), fmt)} ({format(min(vals), fmt)}-{format(max(vals), fmt)})"
 
 
+# Bench switches that set one module constant of the service for a run: option -> (module.CONSTANT, kind,
+# help). Kinds: "on/off" (a bool), "flag" (turns it on), int, float. Default: the service's value.
+SWITCHES: dict[str, tuple[str, str | type, str]] = {
+    "--regions": ("pipeline.REGION_PROPOSALS", int, "region proposals per frame instead of the service's"),
+    "--sweep-min-photos": ("pipeline.SWEEP_MIN_PHOTOS", int,
+                           "parts calibrated on this many photos or more have a last pass of silhouettes swept "
+                           "over the taught colours (estimate/colour_sweep.py; 2: every calibrated part, 1000: "
+                           "none)"),
+    "--sweep-per-location": ("colour_sweep.PER_LOCATION", int, "placements the colour sweep proposes per blob"),
+    "--sweep-locations": ("colour_sweep.N_LOCATIONS", int, "blobs the colour sweep sweeps"),
+    "--region-contour": ("pipeline.REGION_CONTOUR", "on/off",
+                         "a taught candidate moved to its colours' outline before the edge refinement"),
+    "--region-contour-found": ("pipeline.REGION_CONTOUR_FOUND", "on/off",
+                               "a taught found answer moved to its colours' outline and refined again"),
+    "--region-contour-hold": ("pipeline.REGION_CONTOUR_HOLD", "on/off",
+                              "the moved found answer refined again with its depth held at the outline's"),
+    "--range-hold": ("pipeline.RANGE_HOLD", "on/off",
+                     "a refinement ending past the searched range refined again at its bound"),
+    "--calibrated-floor": ("pipeline.CALIBRATED_MIN_SCORE", float,
+                           "a calibrated part's operating point is never under this"),
+    "--calibration-turned": ("pipeline.CALIBRATION_TURNED", "flag",
+                             "the calibration also searches each reference photo turned upside down"),
+    "--calibration-margin": ("pipeline.CALIBRATION_MARGIN", float, "logit margin over the highest wrong score"),
+}
+_SWITCH_MODULES = {"pipeline": "service.pipeline", "colour_sweep": "service.vision.estimate.colour_sweep"}
+
+
+def add_switches(ap: argparse.ArgumentParser) -> None:
+    for option, (target, kind, text) in SWITCHES.items():
+        _add_switch(ap, option, target, kind, text)
+
+
+def _add_switch(ap: argparse.ArgumentParser, option: str, target: str, kind: str | type, text: str) -> None:
+    text = f"{text} ({target}; default: the service's)"
+    if kind == "flag":
+        ap.add_argument(option, action="store_true", help=text)
+    elif kind == "on/off":
+        ap.add_argument(option, choices=["on", "off"], default=None, help=text)
+    else:
+        ap.add_argument(option, type=kind, default=None, help=text)
+
+
+def apply_switches(a: argparse.Namespace) -> None:
+    """Set the constant of every switch given (a flag only when given)."""
+    import importlib
+
+    for option, (target, kind, _) in SWITCHES.items():
+        value = getattr(a, option.lstrip("-").replace("-", "_"))
+        if value is None or value is False:
+            continue
+        module, name = target.split(".")
+        setattr(importlib.import_module(_SWITCH_MODULES[module]), name,
+                value == "on" if kind == "on/off" else value)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sets", default="clutter,absent,paper,lmo_dev")
@@ -147,8 +202,6 @@ def main(argv=None) -> int:
     ap.add_argument("--every-image", type=int, default=1, help="every n-th image of each set (a first look)")
     ap.add_argument("--weights", type=Path, default=None,
                     help="JSON verdict weights (bench/fit_verdict.py --save) instead of the service's")
-    ap.add_argument("--regions", type=int, default=None,
-                    help="region proposals per frame (pipeline.REGION_PROPOSALS) instead of the service's")
     ap.add_argument("--references", type=int, default=0,
                     help="teach each part's colours from this many of the set's images (bench/appearance.py)")
     ap.add_argument("--reference-offset", type=int, default=0,
@@ -170,37 +223,10 @@ def main(argv=None) -> int:
     ap.add_argument("--polish-from", type=float, default=None,
                     help="taught parts not calibrated: near misses from this score are polished "
                          "(pipeline.TAUGHT_SEARCH)")
-    ap.add_argument("--sweep-min-photos", type=int, default=None,
-                    help="parts calibrated on this many photos or more have a last pass of silhouettes "
-                         "swept over the taught colours (pipeline.SWEEP_MIN_PHOTOS, estimate/colour_sweep.py;"
-                         " 2: every calibrated part, 1000: none)")
-    ap.add_argument("--sweep-per-location", type=int, default=None,
-                    help="placements the colour sweep proposes per blob (colour_sweep.PER_LOCATION)")
-    ap.add_argument("--sweep-locations", type=int, default=None,
-                    help="blobs the colour sweep sweeps (colour_sweep.N_LOCATIONS)")
     ap.add_argument("--uncalibrated", action="store_true",
                     help="with --references: the parts' operating points not calibrated on their reference "
                          "photos (as the service does at POST /references: pipeline.calibrate_appearance)")
-    ap.add_argument("--region-contour", choices=["on", "off"], default=None,
-                    help="a taught candidate moved to its colours' outline before the edge refinement "
-                         "(pipeline.REGION_CONTOUR; default: the service's)")
-    ap.add_argument("--region-contour-found", choices=["on", "off"], default=None,
-                    help="a taught found answer moved to its colours' outline and refined again "
-                         "(pipeline.REGION_CONTOUR_FOUND; default: the service's)")
-    ap.add_argument("--region-contour-hold", choices=["on", "off"], default=None,
-                    help="the moved found answer refined again with its depth held at the outline's "
-                         "(pipeline.REGION_CONTOUR_HOLD; default: the service's)")
-    ap.add_argument("--range-hold", choices=["on", "off"], default=None,
-                    help="a refinement ending past the searched range refined again at its bound "
-                         "(pipeline.RANGE_HOLD; default: the service's)")
-    ap.add_argument("--calibrated-floor", type=float, default=None,
-                    help="a calibrated part's operating point is never under this "
-                         "(pipeline.CALIBRATED_MIN_SCORE)")
-    ap.add_argument("--calibration-turned", action="store_true",
-                    help="the calibration also searches each reference photo turned upside down "
-                         "(pipeline.CALIBRATION_TURNED)")
-    ap.add_argument("--calibration-margin", type=float, default=None,
-                    help="logit margin over the highest wrong score (pipeline.CALIBRATION_MARGIN)")
+    add_switches(ap)
     a = ap.parse_args(argv)
     from service import pipeline as _pipeline
 
@@ -208,43 +234,17 @@ def main(argv=None) -> int:
         import bench.appearance
 
         bench.appearance.CALIBRATE = True
-    if a.region_contour is not None:
-        _pipeline.REGION_CONTOUR = a.region_contour == "on"
-    if a.region_contour_found is not None:
-        _pipeline.REGION_CONTOUR_FOUND = a.region_contour_found == "on"
-    if a.region_contour_hold is not None:
-        _pipeline.REGION_CONTOUR_HOLD = a.region_contour_hold == "on"
-    if a.range_hold is not None:
-        _pipeline.RANGE_HOLD = a.range_hold == "on"
-    if a.calibration_margin is not None:
-        _pipeline.CALIBRATION_MARGIN = a.calibration_margin
-    if a.calibration_turned:
-        _pipeline.CALIBRATION_TURNED = True
-    if a.calibrated_floor is not None:
-        _pipeline.CALIBRATED_MIN_SCORE = a.calibrated_floor
-
     from dataclasses import replace as _replace
 
     given = {"colour_prior": a.colour_prior or None, "order_first": a.order_first or None,
              "scored_fits": a.scored_fits, "polish_from": a.polish_from}
     _pipeline.TAUGHT_SEARCH = _replace(_pipeline.TAUGHT_SEARCH,
                                        **{k: v for k, v in given.items() if v is not None})
-    if a.sweep_min_photos is not None:
-        _pipeline.SWEEP_MIN_PHOTOS = a.sweep_min_photos
-    from service.vision.estimate import colour_sweep as _sweep
-
-    if a.sweep_per_location is not None:
-        _sweep.PER_LOCATION = a.sweep_per_location
-    if a.sweep_locations is not None:
-        _sweep.N_LOCATIONS = a.sweep_locations
+    apply_switches(a)
     if a.reference_offset:
         import bench.appearance
 
         bench.appearance.REFERENCE_OFFSET = a.reference_offset
-    if a.regions is not None:
-        from service import pipeline
-
-        pipeline.REGION_PROPOSALS = a.regions
     if a.weights:  # the verdict reads its module's weights at every call
         from service.vision.estimate import verdict
 

@@ -25,3 +25,33 @@ def test_the_service_benchmarks_leave_the_service_s_evidence_as_it_is():
             "from service.vision.estimate import evidence; print(evidence.VISIBLE_PART)")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "True", out.stderr
+
+
+def test_each_bench_switch_sets_the_service_constant_it_names(monkeypatch):
+    import argparse
+    import importlib
+
+    sys.path.insert(0, str(ROOT))
+    from bench import detection
+
+    argv, expected = [], {}
+    for option, (target, kind, _) in detection.SWITCHES.items():
+        module_name, name = target.split(".")
+        module = importlib.import_module(detection._SWITCH_MODULES[module_name])
+        original = getattr(module, name)  # a renamed constant fails here
+        monkeypatch.setattr(module, name, original)  # restored after the test
+        if kind == "flag":
+            argv.append(option)
+            value = True
+        elif kind == "on/off":
+            value = not original
+            argv += [option, "on" if value else "off"]
+        else:
+            value = kind(original) + kind(1)
+            argv += [option, str(value)]
+        expected[(module, name)] = value
+    ap = argparse.ArgumentParser()
+    detection.add_switches(ap)
+    detection.apply_switches(ap.parse_args(argv))
+    for (module, name), value in expected.items():
+        assert getattr(module, name) == value, name
