@@ -156,6 +156,8 @@ SWITCHES: dict[str, tuple[str, str | type, str]] = {
                            "a calibrated part's operating point is never under this"),
     "--calibration-turned": ("pipeline.CALIBRATION_TURNED", "flag",
                              "the calibration also searches each reference photo turned upside down"),
+    "--agreement": ("pipeline.AGREEMENT", "on/off",
+                    "a pose under the operating point found when another checked candidate refines to it"),
     "--calibration-margin": ("pipeline.CALIBRATION_MARGIN", float, "logit margin over the highest wrong score"),
 }
 _SWITCH_MODULES = {"pipeline": "service.pipeline", "colour_sweep": "service.vision.estimate.colour_sweep"}

@@ -432,3 +432,35 @@ def test_a_taught_found_answer_too_far_is_moved_to_its_colours_outline(box_bank,
         assert _rot_deg(out.refined.pose.R, POSE_T.R) < TAUGHT_FOUND_ROT_DEG
     else:
         assert out is found
+
+
+def _checked(pose: Pose, score: float, reason: str = "low_support"):
+    from service import pipeline
+    from service.vision.estimate.verdict import Verdict
+
+    return pipeline.Checked(pipeline.PoseCandidate(pose, 0.0, 0.0), pipeline.RefinedPose(pose, 0.0, 0.0),
+                            Verdict(False, score, reason, {"appearance": 0.9}))
+
+
+def test_two_candidates_refined_to_one_pose_agree(box_bank):
+    """Known answers (``AGREEMENT_PX`` 5 px; the box 450 mm away at f = 800 px: 1 mm sideways is 1.78 px):
+    the best candidate over ``AGREED_MIN_SCORE`` is found when a supporter over ``AGREEMENT_SUPPORT_SCORE``
+    lies 2.5 mm (4.4 px) from it, not 3 mm (5.3 px); not under the floor, not with a weak supporter, not
+    when refused for where it lies; the supporter's score is its evidence."""
+    from service import pipeline
+
+    K = INTR_E2E.K
+    beside = Pose(POSE_T.R, POSE_T.t_mm + [2.5, 0.0, 0.0])
+    apart = Pose(POSE_T.R, POSE_T.t_mm + [3.0, 0.0, 0.0])
+    best = _checked(POSE_T, 0.975)
+    agreed = pipeline.agreed_answer(box_bank, [best, _checked(beside, 0.95)], K)
+    assert agreed is not None and agreed.verdict.found and agreed.verdict.reason == "found"
+    assert agreed.refined is best.refined and agreed.verdict.evidence["agreed_score"] == 0.95
+    assert pipeline.agreed_answer(box_bank, [best, _checked(apart, 0.95)], K) is None
+    assert pipeline.agreed_answer(box_bank, [_checked(POSE_T, 0.965), _checked(beside, 0.95)], K) is None
+    assert pipeline.agreed_answer(box_bank, [best, _checked(beside, 0.85)], K) is None
+    refused = _checked(POSE_T, 0.99, "outside_distance_range")
+    assert pipeline.agreed_answer(box_bank, [refused, _checked(beside, 0.95)], K) is None
+    # the best judged candidate is the one that must agree: a lower pair does not lend it support
+    other = Pose(POSE_T.R, POSE_T.t_mm + [40.0, 0.0, 0.0])
+    assert pipeline.agreed_answer(box_bank, [_checked(other, 0.978), best, _checked(beside, 0.95)], K) is None
