@@ -135,7 +135,8 @@ def _cell(vals: list[float], fmt: str) -> str:
 
 
 # Bench switches that set one module constant of the service for a run: option -> (module.CONSTANT, kind,
-# help). Kinds: "on/off" (a bool), "flag" (turns it on), int, float. Default: the service's value.
+# help). Kinds: "on/off" (a bool), "flag" (turns it on), "floats" (a comma-separated tuple), int, float.
+# Default: the service's value.
 SWITCHES: dict[str, tuple[str, str | type, str]] = {
     "--regions": ("pipeline.REGION_PROPOSALS", int, "region proposals per frame instead of the service's"),
     "--sweep-min-photos": ("pipeline.SWEEP_MIN_PHOTOS", int,
@@ -158,6 +159,8 @@ SWITCHES: dict[str, tuple[str, str | type, str]] = {
                              "the calibration also searches each reference photo turned upside down"),
     "--agreement": ("pipeline.AGREEMENT", "on/off",
                     "a pose under the operating point found when another checked candidate refines to it"),
+    "--polish-scales": ("pipeline.POLISH_SCALES", "floats",
+                        "the taught polish's step scales, coarse to fine (e.g. 8,4,2,1)"),
     "--calibration-margin": ("pipeline.CALIBRATION_MARGIN", float, "logit margin over the highest wrong score"),
 }
 _SWITCH_MODULES = {"pipeline": "service.pipeline", "colour_sweep": "service.vision.estimate.colour_sweep"}
@@ -174,6 +177,8 @@ def _add_switch(ap: argparse.ArgumentParser, option: str, target: str, kind: str
         ap.add_argument(option, action="store_true", help=text)
     elif kind == "on/off":
         ap.add_argument(option, choices=["on", "off"], default=None, help=text)
+    elif kind == "floats":
+        ap.add_argument(option, type=lambda v: tuple(float(x) for x in v.split(",")), default=None, help=text)
     else:
         ap.add_argument(option, type=kind, default=None, help=text)
 

@@ -373,6 +373,31 @@ def _outlined_against_edges(box_bank, edges_scale: float, found=None):
     return check.outlined_on_colours(found or _found_at(Pose(POSE_T.R, POSE_T.t_mm * 1.06)), None)
 
 
+def test_the_polish_s_coarse_scales_turn_a_pose_16_degrees_off_back_onto_the_truth(monkeypatch):
+    """Started 16 deg off the painted truth about the optical axis: the 1 deg steps' 4 rounds end at least
+    12 deg away; with steps scaled 8, 4, 2 and 1 the climb reaches the truth within the finest scale's step
+    about each axis (1 deg each: sqrt(3) deg at most) and 1 mm along each, and the score rises more."""
+    from service import pipeline
+    from service.pipeline import polish_appearance, unrefined_score
+
+    app = _taught()
+    img, _ = _photo(POSE_T, seed=9)
+    frame = ColourFrame(img)
+    off = Pose(Rz(16.0) @ POSE_T.R, POSE_T.t_mm)
+
+    def turn_deg(pose):
+        c = (np.trace(pose.R @ POSE_T.R.T) - 1.0) / 2.0
+        return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+    fine = polish_appearance(BOX, off, frame, INTR, app, None)
+    assert turn_deg(fine) >= 12.0 - 1e-6
+    monkeypatch.setattr(pipeline, "POLISH_SCALES", (8.0, 4.0, 2.0, 1.0))
+    coarse = polish_appearance(BOX, off, frame, INTR, app, None)
+    assert turn_deg(coarse) <= np.sqrt(3.0) + 1e-6
+    assert np.abs(coarse.t_mm - POSE_T.t_mm).max() <= 1.0 + 1e-6
+    assert unrefined_score(BOX, coarse, frame, INTR, None, app) > unrefined_score(BOX, fine, frame, INTR, None, app)
+
+
 def test_the_polish_never_steps_out_of_the_searched_distance_range():
     """The truth 8 mm beyond the range's far bound, a start 8 mm inside it: unbounded, the polish's 4 mm
     depth steps walk to the truth; bounded, the polish ends within the range (the depth at most the bound:

@@ -46,6 +46,9 @@ def test_each_bench_switch_sets_the_service_constant_it_names(monkeypatch):
         elif kind == "on/off":
             value = not original
             argv += [option, "on" if value else "off"]
+        elif kind == "floats":
+            value = tuple(2.0 * x for x in original) + (1.0,)
+            argv += [option, ",".join(map(str, value))]
         else:
             value = kind(original) + kind(1)
             argv += [option, str(value)]
