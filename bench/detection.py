@@ -140,10 +140,11 @@ def _cell(vals: list[float], fmt: str) -> str:
 SWITCHES: dict[str, tuple[str, str | type, str]] = {
     "--regions": ("pipeline.REGION_PROPOSALS", int, "region proposals per frame instead of the service's"),
     "--sweep-min-photos": ("pipeline.SWEEP_MIN_PHOTOS", int,
-                           "parts calibrated on this many photos or more have a last pass of silhouettes swept "
-                           "over the taught colours (estimate/colour_sweep.py; 2: every calibrated part, 1000: "
-                           "none)"),
-    "--sweep-per-location": ("colour_sweep.PER_LOCATION", int, "placements the colour sweep proposes per blob"),
+                           "parts calibrated on this many photos or more have a last pass of silhouettes "
+                           "swept over the taught colours (estimate/colour_sweep.py; 2: every calibrated "
+                           "part, 1000: none)"),
+    "--sweep-per-location": ("colour_sweep.PER_LOCATION", int,
+                             "placements the colour sweep proposes per blob"),
     "--sweep-locations": ("colour_sweep.N_LOCATIONS", int, "blobs the colour sweep sweeps"),
     "--region-contour": ("pipeline.REGION_CONTOUR", "on/off",
                          "a taught candidate moved to its colours' outline before the edge refinement"),
@@ -161,7 +162,8 @@ SWITCHES: dict[str, tuple[str, str | type, str]] = {
                     "a pose under the operating point found when another checked candidate refines to it"),
     "--polish-scales": ("pipeline.POLISH_SCALES", "floats",
                         "the taught polish's step scales, coarse to fine (e.g. 8,4,2,1)"),
-    "--calibration-margin": ("pipeline.CALIBRATION_MARGIN", float, "logit margin over the highest wrong score"),
+    "--calibration-margin": ("pipeline.CALIBRATION_MARGIN", float,
+                             "logit margin over the highest wrong score"),
 }
 _SWITCH_MODULES = {"pipeline": "service.pipeline", "colour_sweep": "service.vision.estimate.colour_sweep"}
 

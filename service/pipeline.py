@@ -1027,8 +1027,9 @@ def _same_place_but_depth(bank: TemplateBank, a: Pose, b: Pose, K: np.ndarray) -
 # three more choices, 10 images 58 / 0 -> 61 / 0, 8 images 54 / 0 -> 63 / 0, offset 3 12 / 1 unchanged. But
 # agreement is weak evidence: on those four choices wrong checks agree half as often as right ones (scoring
 # 0.90-0.97: 37 of 290 wrong, 19 of 74 right; from 0.97: 2 of 23 wrong, 43 of 274 right), and on 8 images
-# the duck's wrong pose 38 px off agreed at 0.9816 on 000362, beaten only by a right one at 0.9819; most of the gain passes parts whose calibration met a wrong pose that high (the duck's
-# 0.989 on its 8 photos). Under each part's calibrated point instead of over it, the gain is 0-1 answer.
+# the duck's wrong pose 38 px off agreed at 0.9816 on 000362, beaten only by a right one at 0.9819. Most
+# of the gain passes parts whose calibration met a wrong pose that high (the duck's 0.989 on its 8 photos);
+# under each part's calibrated point instead of over it, the gain is 0-1 answer.
 AGREEMENT = False
 AGREED_MIN_SCORE = 0.97
 AGREEMENT_SUPPORT_SCORE = 0.9
@@ -1044,7 +1045,8 @@ def agreed_answer(bank: TemplateBank, checked: list[Checked], K: np.ndarray) -> 
     best = max(judged, key=lambda c: c.verdict.score)
     if best.verdict.score < AGREED_MIN_SCORE:
         return None
-    support = [c.verdict.score for c in checked if c is not best and c.verdict.score >= AGREEMENT_SUPPORT_SCORE
+    support = [c.verdict.score for c in checked
+               if c is not best and c.verdict.score >= AGREEMENT_SUPPORT_SCORE
                and _same_place(bank, best.refined.pose, c.refined.pose, K, AGREEMENT_PX)]
     if not support:
         return None

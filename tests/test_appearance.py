@@ -395,7 +395,8 @@ def test_the_polish_s_coarse_scales_turn_a_pose_16_degrees_off_back_onto_the_tru
     coarse = polish_appearance(BOX, off, frame, INTR, app, None)
     assert turn_deg(coarse) <= np.sqrt(3.0) + 1e-6
     assert np.abs(coarse.t_mm - POSE_T.t_mm).max() <= 1.0 + 1e-6
-    assert unrefined_score(BOX, coarse, frame, INTR, None, app) > unrefined_score(BOX, fine, frame, INTR, None, app)
+    assert unrefined_score(BOX, coarse, frame, INTR, None, app) > unrefined_score(BOX, fine, frame, INTR,
+                                                                                    None, app)
 
 
 def test_the_polish_never_steps_out_of_the_searched_distance_range():
