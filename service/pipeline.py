@@ -941,7 +941,9 @@ POLISH_ROUNDS = 4
 # and 30 deg; refined from the truth it scores 0.98-0.99 on 8 of 10 such queries), the coarse climb lifts
 # 7 rights over their points on 6 reference images but lifts the calibration's wrong poses as much (the
 # duck's point 0.979 -> 0.988, the can's 0.979 -> 0.984), which then refuse 7 others: 66 / 0 -> 66 / 0;
-# 10 images 58 / 0 -> 58 / 1 (the eggbox on 000438, 70 px off at 0.988).
+# 10 images 58 / 0 -> 58 / 1 (the eggbox on 000438, 70 px off at 0.988). Scales 4, 2, 1: another 4 at
+# offset 3 12 / 1 -> 16 / 0, but 10 images 58 / 0 -> 51 / 1 (the can on 000368 27 px off at 0.984; the ape's
+# and the duck's points rise to 0.993 and 0.996 and refuse 8 apes and 5 ducks).
 POLISH_SCALES: tuple[float, ...] = (1.0,)
 POLISH_MIN_GAIN = 1e-4  # a step must raise the score by this much
 NOT_POLISHED = ("outside_distance_range", "outside_image", "off_plane")
