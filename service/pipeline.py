@@ -634,7 +634,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
         distance_mm = None  # the plane fixes the depth of every placement
     if appearance is not None and not appearance.used:
         appearance = None  # a plain part's, or photos that disagree (``Appearance.used``)
-    min_score_given = min_score
+    at_service_point = min_score is None  # a request's min_score is the integrator's own operating point
     if min_score is None:
         min_score = operating_point(appearance)
     search = taught_search(appearance)
@@ -687,7 +687,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
                              key=lambda c: (c.verdict.found, c.verdict.score), reverse=True)
             cands = cands + more
         best = checked[0] if checked else None
-        if AGREEMENT and best is not None and not best.verdict.found and min_score_given is None:
+        if AGREEMENT and at_service_point and best is not None and not best.verdict.found:
             best = agreed_answer(bank, checked, intr.K) or best
         found_list = [best] if best is not None and best.verdict.found else []
     else:
@@ -1006,13 +1006,12 @@ SAME_PLACE_VERTICES = 256
 HOLD_SAME_PLACE_PX = 3.0
 
 
-def _same_place(bank: TemplateBank, a: Pose, b: Pose, K: np.ndarray, px: float | None = None) -> bool:
-    """The model's vertices at ``a`` and at ``b`` project within ``px`` (default ``SAME_PLACE_PX``) of
-    each other on average."""
+def _same_place(bank: TemplateBank, a: Pose, b: Pose, K: np.ndarray, px: float = SAME_PLACE_PX) -> bool:
+    """The model's vertices at ``a`` and at ``b`` project within ``px`` of each other on average."""
     v = np.asarray(bank.vertices_mm, float)
     v = v[:: max(1, len(v) // SAME_PLACE_VERTICES)]
     d = np.linalg.norm(project(a.apply(v), K) - project(b.apply(v), K), axis=1)
-    return float(d.mean()) < (SAME_PLACE_PX if px is None else px)
+    return float(d.mean()) < px
 
 
 def _same_place_but_depth(bank: TemplateBank, a: Pose, b: Pose, K: np.ndarray) -> bool:

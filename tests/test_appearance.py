@@ -353,8 +353,7 @@ def _found_at(pose: Pose):
 
     from service import pipeline
 
-    return pipeline.Checked(pipeline.PoseCandidate(pose, 0.0, 0.0), pipeline.RefinedPose(pose, 0.0, 0.0),
-                            replace(pipeline.decide(None), found=True, reason="found"))
+    return _checked(pose, replace(pipeline.decide(None), found=True, reason="found"))
 
 
 def _outlined_against_edges(box_bank, edges_scale: float, found=None):
@@ -460,12 +459,18 @@ def test_a_taught_found_answer_too_far_is_moved_to_its_colours_outline(box_bank,
         assert out is found
 
 
-def _checked(pose: Pose, score: float, reason: str = "low_support"):
+def _checked(pose: Pose, verdict):
+    """A check whose candidate and refined pose are ``pose``."""
     from service import pipeline
-    from service.vision.estimate.verdict import Verdict
 
     return pipeline.Checked(pipeline.PoseCandidate(pose, 0.0, 0.0), pipeline.RefinedPose(pose, 0.0, 0.0),
-                            Verdict(False, score, reason, {"appearance": 0.9}))
+                            verdict)
+
+
+def _refused(pose: Pose, score: float, reason: str = "low_support"):
+    from service.vision.estimate.verdict import Verdict
+
+    return _checked(pose, Verdict(False, score, reason, {"appearance": 0.9}))
 
 
 def test_two_candidates_refined_to_one_pose_agree(box_bank):
@@ -478,15 +483,15 @@ def test_two_candidates_refined_to_one_pose_agree(box_bank):
     K = INTR_E2E.K
     beside = Pose(POSE_T.R, POSE_T.t_mm + [2.5, 0.0, 0.0])
     apart = Pose(POSE_T.R, POSE_T.t_mm + [3.0, 0.0, 0.0])
-    best = _checked(POSE_T, 0.975)
-    agreed = pipeline.agreed_answer(box_bank, [best, _checked(beside, 0.95)], K)
+    best = _refused(POSE_T, 0.975)
+    agreed = pipeline.agreed_answer(box_bank, [best, _refused(beside, 0.95)], K)
     assert agreed is not None and agreed.verdict.found and agreed.verdict.reason == "found"
     assert agreed.refined is best.refined and agreed.verdict.evidence["agreed_score"] == 0.95
-    assert pipeline.agreed_answer(box_bank, [best, _checked(apart, 0.95)], K) is None
-    assert pipeline.agreed_answer(box_bank, [_checked(POSE_T, 0.965), _checked(beside, 0.95)], K) is None
-    assert pipeline.agreed_answer(box_bank, [best, _checked(beside, 0.85)], K) is None
-    refused = _checked(POSE_T, 0.99, "outside_distance_range")
-    assert pipeline.agreed_answer(box_bank, [refused, _checked(beside, 0.95)], K) is None
+    assert pipeline.agreed_answer(box_bank, [best, _refused(apart, 0.95)], K) is None
+    assert pipeline.agreed_answer(box_bank, [_refused(POSE_T, 0.965), _refused(beside, 0.95)], K) is None
+    assert pipeline.agreed_answer(box_bank, [best, _refused(beside, 0.85)], K) is None
+    refused = _refused(POSE_T, 0.99, "outside_distance_range")
+    assert pipeline.agreed_answer(box_bank, [refused, _refused(beside, 0.95)], K) is None
     # the best judged candidate is the one that must agree: a lower pair does not lend it support
     other = Pose(POSE_T.R, POSE_T.t_mm + [40.0, 0.0, 0.0])
-    assert pipeline.agreed_answer(box_bank, [_checked(other, 0.978), best, _checked(beside, 0.95)], K) is None
+    assert pipeline.agreed_answer(box_bank, [_refused(other, 0.978), best, _refused(beside, 0.95)], K) is None
