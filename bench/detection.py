@@ -45,6 +45,13 @@ from service.vision.geometry.camera import Intrinsics  # noqa: E402
 
 RIGHT_PX = 20.0
 FINE_PX = 5.0
+NEAR_PX = 50.0  # a checked pose this close is the right place at a wrong turn or depth (a near miss)
+# under this share visible no lmo_dev query had a right candidate checked (session 19: 0 of 53)
+OCCLUDED_BELOW = 0.7
+# Linemod-Occluded's object numbers, as the README names them
+PART_NAMES = {"lmo_01": "ape", "lmo_05": "can", "lmo_06": "cat", "lmo_08": "driller", "lmo_09": "duck",
+              "lmo_10": "eggbox", "lmo_11": "glue", "lmo_12": "holepuncher"}
+FATES = ("found right", "found wrong", "right checked, refused", "near miss", "not proposed")
 
 
 def set_dir_of(name: str) -> Path:
@@ -94,12 +101,15 @@ def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: fl
         pose = (out.refined or out.coarse).pose if out.found else None
         mspd = float("inf")
         right_checked = None
+        nearest_checked = float("inf")
         if not absent:
             info = load_model_info(set_dir, g["model"], meta, minfo)
             if pose is not None:
                 mspd = _mspd640(pose, g, info)
+            checked = [(c, _mspd640(c.refined.pose, g, info)) for c in out.checked]
+            nearest_checked = min((m for _, m in checked), default=float("inf"))
             # the best-scoring checked candidate within RIGHT_PX (found or not): the verdict's part in recall
-            right = [c for c in out.checked if _mspd640(c.refined.pose, g, info) < RIGHT_PX]
+            right = [c for c, m in checked if m < RIGHT_PX]
             if right:
                 best = max(right, key=lambda c: c.verdict.score)
                 right_checked = {"score": best.verdict.score, "reason": best.verdict.reason}
@@ -107,6 +117,7 @@ def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: fl
                      "mspd640": mspd, "visible": float(g.get("visible_fraction", 0.0 if absent else 1.0)),
                      "reason": out.verdict.reason, "score": out.verdict.score, "ms": ms,
                      "evidence": out.verdict.evidence, "right_checked": right_checked,
+                     "nearest_checked_px": nearest_checked,
                      "t_mm": None if pose is None else [float(x) for x in pose.t_mm],
                      "t_true_mm": None if absent else [float(x) for x in g["t_mm"]]})
     return recs
@@ -235,6 +246,8 @@ def main(argv=None) -> int:
     ap.add_argument("--uncalibrated", action="store_true",
                     help="with --references: the parts' operating points not calibrated on their reference "
                          "photos (as the service does at POST /references: pipeline.calibrate_appearance)")
+    ap.add_argument("--per-image", action="store_true",
+                    help="after the table, each set's targets per image by what became of them")
     add_switches(ap)
     a = ap.parse_args(argv)
     from service import pipeline as _pipeline
@@ -296,9 +309,50 @@ def main(argv=None) -> int:
           "| latency p50 / p95 ms |")
     print("|---|---|---|---|---|---|---|---|---|")
     print("\n".join(rows))
+    if a.per_image:
+        for name, d in dump.items():
+            print(f"\n{Path(name).name}, first run: targets per image by what became of them\n")
+            print(per_image_table(d["records"][0]))
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     (OUT_DIR / "detection.json").write_text(json.dumps(dump, indent=1))
     return 0
+
+
+def fate(rec: dict) -> str:
+    """What became of one target query: found (right or wrong), a right pose checked and refused by the
+    verdict, only a near miss checked (within NEAR_PX), or nothing checked near it (the proposals)."""
+    if rec["found"]:
+        return FATES[0] if not rec["absent"] and rec["mspd640"] < RIGHT_PX else FATES[1]
+    if rec.get("right_checked"):
+        return FATES[2]
+    return FATES[3] if rec.get("nearest_checked_px", float("inf")) < NEAR_PX else FATES[4]
+
+
+def per_image_table(recs: list[dict]) -> str:
+    """One row per image: each target's part under its fate (a refused right pose with its score, a near
+    miss with its distance; * = under OCCLUDED_BELOW visible), and the counts per fate."""
+    by_image: dict[str, list[dict]] = {}
+    for r in recs:
+        if not r["absent"] and r["visible"] >= MIN_VISIBLE:
+            by_image.setdefault(r["image"], []).append(r)
+    lines = ["| image | targets | " + " | ".join(FATES) + " |", "|---|---" + "|---" * len(FATES) + "|"]
+    counts = Counter()
+    for image, rows in by_image.items():
+        cells: dict[str, list[str]] = {f: [] for f in FATES}
+        for r in rows:
+            f = fate(r)
+            counts[f] += 1
+            label = PART_NAMES.get(r["model"], r["model"]) + ("*" if r["visible"] < OCCLUDED_BELOW else "")
+            if f == FATES[2]:
+                label += f" {r['right_checked']['score']:.3f}"
+            elif f == FATES[3]:
+                label += f" {r['nearest_checked_px']:.0f} px"
+            cells[f].append(label)
+        lines.append(f"| {Path(image).stem} | {len(rows)} | "
+                     + " | ".join(", ".join(cells[f]) or "-" for f in FATES) + " |")
+    lines.append(f"| **all** | {sum(counts.values())} | "
+                 + " | ".join(f"**{counts[f]}**" for f in FATES) + " |")
+    return "\n".join(lines)
 
 
 def _checked_line(name: str, recs: list[dict]) -> str:

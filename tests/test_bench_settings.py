@@ -58,3 +58,25 @@ def test_each_bench_switch_sets_the_service_constant_it_names(monkeypatch):
     detection.apply_switches(ap.parse_args(argv))
     for (module, name), value in expected.items():
         assert getattr(module, name) == value, name
+
+
+def test_each_target_s_fate_follows_from_its_record():
+    sys.path.insert(0, str(ROOT))
+    from bench import detection
+
+    def rec(image, model, *, found=False, mspd=float("inf"), right=None, nearest=float("inf"), visible=1.0):
+        return {"image": f"images/{image}.png", "model": model, "absent": False, "found": found,
+                "mspd640": mspd, "visible": visible, "right_checked": right, "nearest_checked_px": nearest}
+
+    just_right, just_wrong = detection.RIGHT_PX - 0.1, detection.RIGHT_PX
+    recs = [rec("000001", "lmo_09", found=True, mspd=just_right, nearest=just_right),
+            rec("000001", "lmo_12", found=True, mspd=just_wrong, nearest=just_wrong),
+            rec("000001", "lmo_01", right={"score": 0.9712, "reason": "below_operating_point"}, nearest=3.0),
+            rec("000002", "lmo_05", nearest=detection.NEAR_PX - 1, visible=detection.OCCLUDED_BELOW - 0.01),
+            rec("000002", "lmo_11", nearest=detection.NEAR_PX),
+            rec("000002", "lmo_10", visible=detection.MIN_VISIBLE - 0.01)]  # not a target: left out
+    assert [detection.fate(r) for r in recs[:5]] == list(detection.FATES)
+    table = detection.per_image_table(recs).splitlines()
+    assert table[2] == "| 000001 | 3 | duck | holepuncher | ape 0.971 | - | - |"
+    assert table[3] == "| 000002 | 2 | - | - | - | can* 49 px | glue |"
+    assert table[4] == "| **all** | 5 | **1** | **1** | **1** | **1** | **1** |"
