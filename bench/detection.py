@@ -133,13 +133,19 @@ def summarise(recs: list[dict]) -> dict:
     targets = [r for r in recs if not r["absent"] and r["visible"] >= MIN_VISIBLE]
     ms = np.array([r["ms"] for r in recs])
     return {"queries": len(recs), "found": len(found), "right": len(right), "wrong": len(found) - len(right),
-            "recall5": sum(r["found"] and r["mspd640"] < FINE_PX for r in targets) / max(len(targets), 1),
-            "recall20": sum(r["found"] and r["mspd640"] < RIGHT_PX for r in targets) / max(len(targets), 1),
-            "precision": len(right) / len(found) if found else float("nan"),
+            "recall5": _share(sum(r["found"] and r["mspd640"] < FINE_PX for r in targets), len(targets)),
+            "recall20": _share(sum(r["found"] and r["mspd640"] < RIGHT_PX for r in targets), len(targets)),
+            "precision": _share(len(right), len(found)),
             "p50": float(np.median(ms)), "p95": float(np.percentile(ms, 95)), "targets": len(targets)}
 
 
+def _share(n: int, of: int) -> float:
+    return n / of if of else float("nan")  # an absent set has no targets: no recall, not 0 %
+
+
 def _cell(vals: list[float], fmt: str) -> str:
+    if all(v != v for v in vals):  # nan in every run: nothing found, so no precision
+        return "-"
     if len(vals) == 1 or max(vals) == min(vals):
         return format(vals[0], fmt)
     return f"{format(float(np.mean(vals)), fmt)} ({format(min(vals), fmt)}-{format(max(vals), fmt)})"
