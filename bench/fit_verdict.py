@@ -139,7 +139,7 @@ def main(argv=None) -> int:
     ap.add_argument("--exclude-printed", default="",
                     help="comma-separated synthetic set folders: leave their images with a picture of a part "
                          "printed on the floor out of the fit (a photograph of the part at its size is the "
-                         "part to any monocular evidence: README, Detection)")
+                         "part to any monocular evidence: docs/detection-history.md)")
     ap.add_argument("--save", type=Path, default=None, help="write the fitted weights to this JSON file")
     a = ap.parse_args(argv)
     fit_rows = [r for s in a.fit.split(",") for r in load(s, a.tag)]

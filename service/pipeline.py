@@ -183,7 +183,7 @@ def _read_references(bank: TemplateBank, views: list[tuple]) -> _References:
 # on its photos was 0.9675 / 0.9684 (4 other / 8 photos) where its queries' wrong answers reached 0.982 /
 # 0.9815, a logit gap of 0.55-0.61; the duck's 0.989 on 8 photos stood over its queries' 0.985. 0.7 is the
 # smallest round margin over the glue's gap, so it was chosen on these queries; bench/detection.py on
-# lmo_dev with reference choices not used to choose it is its check (README, Detection, session 18:
+# lmo_dev with reference choices not used to choose it is its check (docs/detection-history.md, session 18:
 # four more choices, right / wrong 12 / 1, 42 / 0, 11 / 0, 48 / 0; the wrong one a near miss).
 CALIBRATION_WRONG_PX = 20.0
 CALIBRATION_MARGIN = 0.7
@@ -250,7 +250,7 @@ def _turned_view(view: tuple) -> tuple | None:
 # A wrong pose at least this much inside a photo is a score the cell produces, though the verdict refuses it
 # there as "outside_image" (``verdict.MIN_IN_IMAGE``): the calibration's tail counts it. Without it the glue's
 # highest wrong pose on its photos (at a border) went uncounted, its operating point fell 0.984 -> 0.980 and
-# a query's wrong pose at 0.9816 passed (lmo_dev, 4 images offset 6; README, Detection, session 22).
+# a query's wrong pose at 0.9816 passed (lmo_dev, 4 images offset 6; docs/detection-history.md, session 22).
 CALIBRATION_MIN_IN_IMAGE = 0.5
 
 
@@ -385,7 +385,7 @@ CALIBRATED_SEARCH = TaughtSearch(scored_fits=48, colour_prior=True, order_first=
 # scores of a wider search: session 20, lmo_dev, the sweep at every photo count, right / wrong on all seven
 # reference choices 279 / 1 -> 310 / 2, the added wrong the duck 58 px off at 0.980 on a choice where it
 # was calibrated on 3 photos (their highest wrong score 0.92); from 5 photos on it added 0 wrong on every
-# choice (README, Detection, session 21). Session 18 saw the same with the glue: 3-4 photos met wrong
+# choice (docs/detection-history.md, session 21). Session 18 saw the same with the glue: 3-4 photos met wrong
 # scores up to 0.895 where its queries' reached 0.983.
 SWEEP_MIN_PHOTOS = 5
 SWEPT_SEARCH = replace(CALIBRATED_SEARCH, colour_sweep=True)

@@ -2,7 +2,7 @@
 
 An STL carries no colour, and printed or painted parts defeat the verdict's untextured shading model:
 at the true pose of a Linemod part the shading explains less of the image than at the wrong poses the
-verdict must refuse (README, Detection). A cell integrator can show the part to the camera at poses it
+verdict must refuse (docs/detection-history.md). A cell integrator can show the part to the camera at poses it
 knows (a fixture, a robot holding it, or an estimate an operator confirmed). Each such reference photo
 gives the colour of every face it shows over at least ``MIN_FACE_PIXELS`` pixels (their median: a
 CAD model's large flat faces) and of every vertex it sees (a scanned model's faces are smaller than a

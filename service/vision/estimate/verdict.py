@@ -59,8 +59,8 @@ WEIGHTS = {"bias": -3.935, "unexplained": -0.339, "region_global": 5.265, "shadi
 APPEARANCE_WEIGHTS = {"bias": -5.58, "appearance": 4.43, "appearance_known": 3.76, "region_global": 4.29}
 # Operating point (``options.min_score`` moves it).
 MIN_SCORE = 0.98
-# Measured in session 12 and not switched on (README, Detection): the refit on occluded realistic scenes
-# (``synth_scenes.py --seed 11 --look real --occlusion clutter``) + clutter2 + absent2, region_global
+# Measured in session 12 and not switched on (docs/detection-history.md): the refit on occluded realistic
+# scenes (``synth_scenes.py --seed 11 --look real --occlusion clutter``) + clutter2 + absent2, region_global
 # 4.487 + shading_r2_robust 3.595 - 3.533 at 0.97: clutter right found 0 -> 1 and wrong found 0 on the
 # detection sets, but lmo_dev's one right answer lost (0.981 -> 0.967) and, on bench/plane.py's scenes
 # without the plane, 2 wrong instances (a flat-shaded block's flipped pose, whose faces the robust fit
@@ -90,8 +90,8 @@ TYPICAL_RIGHT = {"edge_support": 0.9, "unexplained": 0.1, "colour_edge": 0.95, "
 # A pose whose outline lies more than a fifth outside the image is not checked ("outside_image"): the
 # evidence sees only its inside part, and the cut-off part is where a wrong pose on the part's own visible
 # piece would be refuted. Was 0.5 (mostly outside); 3 of lmo_dev's 312 truths lie more than a fifth outside.
-# Session 23 (README, Detection): over lmo_dev's 8 reference choices right / wrong 350 / 2 -> 351 / 1 (the
-# eggbox cut by the border, 73.6 px off at 0.984, went), with the calibration still counting border poses
+# Session 23 (docs/detection-history.md): over lmo_dev's 8 reference choices right / wrong 350 / 2 -> 351 / 1
+# (the eggbox cut by the border, 73.6 px off at 0.984, went), with the calibration still counting border poses
 # (``pipeline.CALIBRATION_MIN_IN_IMAGE``); the untaught sets unchanged.
 MIN_IN_IMAGE = 0.8
 # A pose whose outline lies within this many image pixels (mean, ``distinct_px``) of a plain shape's is not
