@@ -61,6 +61,9 @@ DATA_DIR = Path(os.environ.get("POSE_DATA_DIR", ROOT.parent / "shared" / "data")
 OUT_DIR = ROOT / "bench" / "out"
 
 MIN_VISIBLE = 0.5  # targets at least half visible are evaluated
+# Linemod-Occluded's object numbers, as the README names them
+PART_NAMES = {"lmo_01": "ape", "lmo_05": "can", "lmo_06": "cat", "lmo_08": "driller", "lmo_09": "duck",
+              "lmo_10": "eggbox", "lmo_11": "glue", "lmo_12": "holepuncher"}
 MSPD_THRESHOLDS_PX = (5.0, 20.0)  # at 640 px width (BOP)
 ADDS_FRACTION = 0.1  # ADD-S threshold: 10 % of the object diameter
 MAX_METRIC_POINTS = 1000  # model vertices for MSPD / MSSD (hull + seeded sample); ADD(-S) use all

@@ -33,6 +33,7 @@ from bench.accuracy import (  # noqa: E402
     DATA_DIR,
     MIN_VISIBLE,
     OUT_DIR,
+    PART_NAMES,
     gt_bank,
     load_model_info,
     read_colour,
@@ -48,9 +49,6 @@ FINE_PX = 5.0
 NEAR_PX = 50.0  # a checked pose this close is the right place at a wrong turn or depth (a near miss)
 # under this share visible no lmo_dev query had a right candidate checked (session 19: 0 of 53)
 OCCLUDED_BELOW = 0.7
-# Linemod-Occluded's object numbers, as the README names them
-PART_NAMES = {"lmo_01": "ape", "lmo_05": "can", "lmo_06": "cat", "lmo_08": "driller", "lmo_09": "duck",
-              "lmo_10": "eggbox", "lmo_11": "glue", "lmo_12": "holepuncher"}
 FATES = ("found right", "found wrong", "right checked, refused", "near miss", "not proposed")
 
 

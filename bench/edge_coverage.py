@@ -22,8 +22,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `python bench/edge_coverage.py`
-from bench.accuracy import DATA_DIR, gt_bank, load_bank, read_grey, read_gt  # noqa: E402
-from bench.detection import PART_NAMES  # noqa: E402
+from bench.accuracy import DATA_DIR, PART_NAMES, gt_bank, load_bank, read_grey, read_gt  # noqa: E402
 from service.vision.estimate.chamfer import DEFAULT_TAU_PX, distance_tensor, distance_tensor_from_edges  # noqa: E402
 from service.vision.estimate.edges import channel_of, detect_segments  # noqa: E402
 from service.vision.estimate.refine import border_points, verify  # noqa: E402
@@ -66,7 +65,7 @@ def main() -> None:
         banks: dict = {}
         cov: dict[tuple[str, str], list[float]] = {}
         ms: dict[str, list[float]] = {}  # per detector: an image's edges serve every part in it
-        last: tuple = (None, {})  # lmo_dev has several gt lines per image: its edges once
+        image_edges: tuple = (None, {})  # lmo_dev has several gt lines per image: its edges once
         for g in rows:
             m = g["model"]
             if m not in banks:
@@ -76,15 +75,15 @@ def main() -> None:
             intr = Intrinsics.from_K(np.array(g["K"]))
             pose = Pose(np.array(g["R"]), np.array(g["t_mm"]))
             border = border_points(banks[m], pose, intr, (grey.shape[1], grey.shape[0]))
-            if last[0] != g["image"]:
-                last = (g["image"], {})
+            if image_edges[0] != g["image"]:
+                image_edges = (g["image"], {})
             part = PART_NAMES.get(m, m) if a.per_part else "all"
             for k, make in detectors.items():
-                if k not in last[1]:
+                if k not in image_edges[1]:
                     t0 = time.perf_counter()
-                    last[1][k] = make(grey)
+                    image_edges[1][k] = make(grey)
                     ms.setdefault(k, []).append((time.perf_counter() - t0) * 1000)
-                dtt = last[1][k]
+                dtt = image_edges[1][k]
                 cov.setdefault((part, k), []).append(verify(border, pose, intr, dtt, score_px=SCORE_PX)[0])
         for (part, k), c in sorted(cov.items()):
             c = np.array(c)
