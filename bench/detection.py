@@ -315,8 +315,10 @@ def main(argv=None) -> int:
     print("\n".join(rows))
     if a.per_image:
         for name, d in dump.items():
-            print(f"\n{Path(name).name}, first run: targets per image by what became of them\n")
-            print(per_image_table(d["records"][0]))
+            table = per_image_table(d["records"][0])
+            if table:  # an absent set has no targets (its wrong answers are in the table above)
+                print(f"\n{Path(name).name}, first run: targets per image by what became of them\n")
+                print(table)
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     (OUT_DIR / "detection.json").write_text(json.dumps(dump, indent=1))
     return 0
@@ -334,11 +336,13 @@ def fate(rec: dict) -> str:
 
 def per_image_table(recs: list[dict]) -> str:
     """One row per image: each target's part under its fate (a refused right pose with its score, a near
-    miss with its distance; * = under OCCLUDED_BELOW visible), and the counts per fate."""
+    miss with its distance; * = under OCCLUDED_BELOW visible), and the counts per fate; "" without targets."""
     by_image: dict[str, list[dict]] = {}
     for r in recs:
         if not r["absent"] and r["visible"] >= MIN_VISIBLE:
             by_image.setdefault(r["image"], []).append(r)
+    if not by_image:
+        return ""
     lines = ["| image | targets | " + " | ".join(FATES) + " |", "|---|---" + "|---" * len(FATES) + "|"]
     counts = Counter()
     for image, rows in by_image.items():

@@ -80,3 +80,4 @@ def test_each_target_s_fate_follows_from_its_record():
     assert table[2] == "| 000001 | 3 | duck | holepuncher | ape 0.971 | - | - |"
     assert table[3] == "| 000002 | 2 | - | - | - | can* 49 px | glue |"
     assert table[4] == "| **all** | 5 | **1** | **1** | **1** | **1** | **1** |"
+    assert detection.per_image_table([dict(recs[0], absent=True)]) == ""  # an absent set has no targets
