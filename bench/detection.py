@@ -59,12 +59,14 @@ def set_dir_of(name: str) -> Path:
 
 def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: float | None,
             every_image: int = 1, references: int = 0, half: str = "all",
-            teach_from: str | None = None, distance_range_mm: tuple[float, float] | None = None
-            ) -> list[dict]:
+            teach_from: str | None = None, distance_range_mm: tuple[float, float] | None = None,
+            truth: bool = False) -> list[dict]:
     """``references`` > 0: each part's colours are taught from that many of the set's images
     (``bench/appearance.py``), which are then not queried; ``half``: only the even or odd half of the
     rest. ``teach_from``: another set whose images teach them (its parts' meshes the same), every image
-    of this one queried."""
+    of this one queried. ``truth``: each target's true pose is also checked as an estimate checks a
+    candidate (refined from there and judged, ``truth_checked``): whether the verdict would take the truth
+    if the search proposed it."""
     set_dir = set_dir_of(name)
     meta = read_meta(set_dir)
     gts = read_gt(set_dir)
@@ -111,14 +113,40 @@ def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: fl
             if right:
                 best = max(right, key=lambda c: c.verdict.score)
                 right_checked = {"score": best.verdict.score, "reason": best.verdict.reason}
+        truth_checked = None if absent or not truth else _truth_checked(bank, image, intr, g, info,
+                                                                       appearance.get(g["model"]),
+                                                                       distance_mm=dist,
+                                                                       distance_range_mm=distance_range_mm)
         recs.append({"image": g["image"], "model": g["model"], "absent": absent, "found": out.found,
                      "mspd640": mspd, "visible": float(g.get("visible_fraction", 0.0 if absent else 1.0)),
                      "reason": out.verdict.reason, "score": out.verdict.score, "ms": ms,
                      "evidence": out.verdict.evidence, "right_checked": right_checked,
-                     "nearest_checked_px": nearest_checked,
+                     "nearest_checked_px": nearest_checked, "truth_checked": truth_checked,
                      "t_mm": None if pose is None else [float(x) for x in pose.t_mm],
                      "t_true_mm": None if absent else [float(x) for x in g["t_mm"]]})
     return recs
+
+
+def _truth_checked(bank, image: np.ndarray, intr: Intrinsics, g: dict, info, appearance, *,
+                   distance_mm: float | None, distance_range_mm: tuple[float, float] | None) -> dict:
+    """The true pose refined and judged as ``estimate`` judges a candidate, at the part's operating point:
+    its score, reason, whether found, and where the refinement took it (MSPD)."""
+    from service import pipeline
+    from service.vision.estimate.edges import to_grey_u8
+    from service.vision.estimate.evidence import colour_frame
+    from service.vision.geometry.camera import undistort_image
+    from service.vision.geometry.frames import Pose
+
+    if appearance is not None and not appearance.used:
+        appearance = None
+    truth = Pose(np.asarray(g["R"], float), np.asarray(g["t_mm"], float))
+    rng = None if distance_mm is not None else (distance_range_mm or pipeline.DEFAULT_DISTANCE_RANGE_MM)
+    c = pipeline.check_candidate(bank, pipeline.PoseCandidate(truth, 0.0, 0.0), to_grey_u8(image),
+                                 colour_frame(undistort_image(image, intr)), intr, distance_mm=distance_mm,
+                                 distance_range_mm=rng, min_score=pipeline.operating_point(appearance),
+                                 n_channels=pipeline.search_params(1).n_channels, appearance=appearance)
+    return {"score": c.verdict.score, "reason": c.verdict.reason, "found": c.verdict.found,
+            "mspd640": _mspd640(c.refined.pose, g, info)}
 
 
 def _mspd640(pose, g: dict, info) -> float:
@@ -252,6 +280,8 @@ def main(argv=None) -> int:
                          "photos (as the service does at POST /references: pipeline.calibrate_appearance)")
     ap.add_argument("--per-image", action="store_true",
                     help="after the table, each set's targets per image by what became of them")
+    ap.add_argument("--truth", action="store_true",
+                    help="also check each target's true pose as a candidate (its score shows in --per-image)")
     add_switches(ap)
     a = ap.parse_args(argv)
     from service import pipeline as _pipeline
@@ -285,7 +315,8 @@ def main(argv=None) -> int:
     for name in a.sets.split(","):
         all_recs = [run_set(name, limit=a.limit, distance_given=a.distance_given, min_score=a.min_score,
                             every_image=a.every_image, references=a.references, half=a.half,
-                            teach_from=a.teach_from, distance_range_mm=a.distance_range)
+                            teach_from=a.teach_from, distance_range_mm=a.distance_range,
+                            truth=a.truth)
                     for _ in range(a.repeat)]
         dump[name] = {"runs": [summarise(recs) for recs in all_recs], "records": all_recs}
         for r in (r for recs in all_recs for r in recs if r["found"] and not r["mspd640"] < RIGHT_PX):
@@ -336,7 +367,9 @@ def fate(rec: dict) -> str:
 
 def per_image_table(recs: list[dict]) -> str:
     """One row per image: each target's part under its fate (a refused right pose with its score, a near
-    miss with its distance; * = under OCCLUDED_BELOW visible), and the counts per fate; "" without targets."""
+    miss with its distance; * = under OCCLUDED_BELOW visible; with ``truth_checked``, the true pose's own
+    score and whether it passes), the counts per fate, and per fate how many truths pass; "" without
+    targets."""
     by_image: dict[str, list[dict]] = {}
     for r in recs:
         if not r["absent"] and r["visible"] >= MIN_VISIBLE:
@@ -344,7 +377,7 @@ def per_image_table(recs: list[dict]) -> str:
     if not by_image:
         return ""
     lines = ["| image | targets | " + " | ".join(FATES) + " |", "|---|---" + "|---" * len(FATES) + "|"]
-    counts = Counter()
+    counts, truths = Counter(), Counter()
     for image, rows in by_image.items():
         cells: dict[str, list[str]] = {f: [] for f in FATES}
         for r in rows:
@@ -355,12 +388,23 @@ def per_image_table(recs: list[dict]) -> str:
                 label += f" {r['right_checked']['score']:.3f}"
             elif f == FATES[3]:
                 label += f" {r['nearest_checked_px']:.0f} px"
+            t = r.get("truth_checked")
+            if t and f != FATES[0]:
+                label += f" (truth {t['score']:.3f}{', passes' if _truth_passes(t) else ''})"
+                truths[f] += _truth_passes(t)
             cells[f].append(label)
         lines.append(f"| {Path(image).stem} | {len(rows)} | "
                      + " | ".join(", ".join(cells[f]) or "-" for f in FATES) + " |")
     lines.append(f"| **all** | {sum(counts.values())} | "
                  + " | ".join(f"**{counts[f]}**" for f in FATES) + " |")
+    if any(r.get("truth_checked") for rows in by_image.values() for r in rows):
+        lines += ["", "The true pose, refined from there, found right at the part's operating point: "
+                  + ", ".join(f"{f} {truths[f]} of {counts[f]}" for f in FATES[1:])]
     return "\n".join(lines)
+
+
+def _truth_passes(t: dict) -> bool:
+    return bool(t["found"]) and t["mspd640"] < RIGHT_PX
 
 
 def _checked_line(name: str, recs: list[dict]) -> str:

@@ -81,3 +81,10 @@ def test_each_target_s_fate_follows_from_its_record():
     assert table[3] == "| 000002 | 2 | - | - | - | can* 49 px | glue |"
     assert table[4] == "| **all** | 5 | **1** | **1** | **1** | **1** | **1** |"
     assert detection.per_image_table([dict(recs[0], absent=True)]) == ""  # an absent set has no targets
+
+    passes = {"score": 0.985, "found": True, "mspd640": just_right, "reason": "found"}
+    refined_away = dict(passes, mspd640=just_wrong)  # found, but the refinement left the truth
+    recs[3]["truth_checked"], recs[4]["truth_checked"] = passes, refined_away
+    table = detection.per_image_table(recs).splitlines()
+    assert table[3] == "| 000002 | 2 | - | - | - | can* 49 px (truth 0.985, passes) | glue (truth 0.985) |"
+    assert table[-1].endswith("near miss 1 of 1, not proposed 0 of 1")
