@@ -178,8 +178,7 @@ def _cell(vals: list[float], fmt: str) -> str:
 
 
 # Bench switches that set one module constant of the service for a run: option -> (module.CONSTANT, kind,
-# help). Kinds: "on/off" (a bool), "flag" (turns it on), "floats" / "strs" (a comma-separated tuple), int,
-# float.
+# help). Kinds: "on/off" (a bool), "flag" (turns it on), "floats" (a comma-separated tuple), int, float.
 # Default: the service's value.
 SWITCHES: dict[str, tuple[str, str | type, str]] = {
     "--regions": ("pipeline.REGION_PROPOSALS", int, "region proposals per frame instead of the service's"),
@@ -206,8 +205,6 @@ SWITCHES: dict[str, tuple[str, str | type, str]] = {
                     "a pose under the operating point found when another checked candidate refines to it"),
     "--polish-scales": ("pipeline.POLISH_SCALES", "floats",
                         "the taught polish's step scales, coarse to fine (e.g. 8,4,2,1)"),
-    "--polish-coarse-kinds": ("pipeline.POLISH_COARSE_KINDS", "strs",
-                              "the step kinds the polish's coarser scales move (t, r or both: t,r)"),
     "--calibration-margin": ("pipeline.CALIBRATION_MARGIN", float,
                              "logit margin over the highest wrong score"),
 }
@@ -227,8 +224,6 @@ def _add_switch(ap: argparse.ArgumentParser, option: str, target: str, kind: str
         ap.add_argument(option, choices=["on", "off"], default=None, help=text)
     elif kind == "floats":
         ap.add_argument(option, type=lambda v: tuple(float(x) for x in v.split(",")), default=None, help=text)
-    elif kind == "strs":
-        ap.add_argument(option, type=lambda v: tuple(v.split(",")), default=None, help=text)
     else:
         ap.add_argument(option, type=kind, default=None, help=text)
 

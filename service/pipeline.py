@@ -945,8 +945,6 @@ POLISH_ROUNDS = 4
 # offset 3 12 / 1 -> 16 / 0, but 10 images 58 / 0 -> 51 / 1 (the can on 000368 27 px off at 0.984; the ape's
 # and the duck's points rise to 0.993 and 0.996 and refuse 8 apes and 5 ducks).
 POLISH_SCALES: tuple[float, ...] = (1.0,)
-# The step kinds the scales over 1 apply to: the near misses above are turned, not moved ("r" alone).
-POLISH_COARSE_KINDS: tuple[str, ...] = ("t", "r")
 POLISH_MIN_GAIN = 1e-4  # a step must raise the score by this much
 NOT_POLISHED = ("outside_distance_range", "outside_image", "off_plane")
 
@@ -963,8 +961,6 @@ def polish_appearance(bank: TemplateBank, pose: Pose, frame: ColourFrame, intr: 
         for _ in range(POLISH_ROUNDS):
             moved = best
             for kind, axis, step in POLISH_STEPS:
-                if scale > 1.0 and kind not in POLISH_COARSE_KINDS:
-                    continue
                 for sign in (1.0, -1.0):
                     if not deadline.allows(EVIDENCE_MS):
                         return pose
