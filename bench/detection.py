@@ -50,6 +50,7 @@ NEAR_PX = 50.0  # a checked pose this close is the right place at a wrong turn o
 # under this share visible no lmo_dev query had a right candidate checked (session 19: 0 of 53)
 OCCLUDED_BELOW = 0.7
 FATES = ("found right", "found wrong", "right checked, refused", "near miss", "not proposed")
+FOUND_RIGHT, FOUND_WRONG, REFUSED, NEAR_MISS, NOT_PROPOSED = FATES
 
 
 def set_dir_of(name: str) -> Path:
@@ -137,8 +138,7 @@ def _truth_checked(bank, image: np.ndarray, intr: Intrinsics, g: dict, info, app
     from service.vision.geometry.camera import undistort_image
     from service.vision.geometry.frames import Pose
 
-    if appearance is not None and not appearance.used:
-        appearance = None
+    appearance = pipeline.appearance_in_use(appearance)
     truth = Pose(np.asarray(g["R"], float), np.asarray(g["t_mm"], float))
     rng = None if distance_mm is not None else (distance_range_mm or pipeline.DEFAULT_DISTANCE_RANGE_MM)
     c = pipeline.check_candidate(bank, pipeline.PoseCandidate(truth, 0.0, 0.0), to_grey_u8(image),
@@ -170,7 +170,7 @@ def _share(n: int, of: int) -> float:
 
 
 def _cell(vals: list[float], fmt: str) -> str:
-    if all(v != v for v in vals):  # nan in every run: nothing found, so no precision
+    if np.isnan(vals).all():  # in every run nothing to count (no target, or nothing found)
         return "-"
     if len(vals) == 1 or max(vals) == min(vals):
         return format(vals[0], fmt)
@@ -359,10 +359,10 @@ def fate(rec: dict) -> str:
     """What became of one target query: found (right or wrong), a right pose checked and refused by the
     verdict, only a near miss checked (within NEAR_PX), or nothing checked near it (the proposals)."""
     if rec["found"]:
-        return FATES[0] if not rec["absent"] and rec["mspd640"] < RIGHT_PX else FATES[1]
+        return FOUND_RIGHT if not rec["absent"] and rec["mspd640"] < RIGHT_PX else FOUND_WRONG
     if rec.get("right_checked"):
-        return FATES[2]
-    return FATES[3] if rec.get("nearest_checked_px", float("inf")) < NEAR_PX else FATES[4]
+        return REFUSED
+    return NEAR_MISS if rec.get("nearest_checked_px", float("inf")) < NEAR_PX else NOT_PROPOSED
 
 
 def per_image_table(recs: list[dict]) -> str:
@@ -384,12 +384,12 @@ def per_image_table(recs: list[dict]) -> str:
             f = fate(r)
             counts[f] += 1
             label = PART_NAMES.get(r["model"], r["model"]) + ("*" if r["visible"] < OCCLUDED_BELOW else "")
-            if f == FATES[2]:
+            if f == REFUSED:
                 label += f" {r['right_checked']['score']:.3f}"
-            elif f == FATES[3]:
+            elif f == NEAR_MISS:
                 label += f" {r['nearest_checked_px']:.0f} px"
             t = r.get("truth_checked")
-            if t and f != FATES[0]:
+            if t and f != FOUND_RIGHT:
                 label += f" (truth {t['score']:.3f}{', passes' if _truth_passes(t) else ''})"
                 truths[f] += _truth_passes(t)
             cells[f].append(label)

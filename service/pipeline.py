@@ -269,6 +269,12 @@ def _error_px(bank: TemplateBank, pose: Pose, truth: Pose, intr: Intrinsics, wid
     return mspd_px(pose.R, pose.t_mm, truth.R, truth.t_mm, intr.K, v, syms) * 640.0 / width
 
 
+def appearance_in_use(appearance: Appearance | None) -> Appearance | None:
+    """``appearance`` if estimates are judged on it, else None: a plain part's colours, or photos that
+    disagree, are kept and not used (``Appearance.used``)."""
+    return appearance if appearance is not None and appearance.used else None
+
+
 def operating_point(appearance: Appearance | None) -> float | None:
     """The calibrated part's operating point: ``CALIBRATION_MARGIN`` (logit) above its highest wrong
     score, and never under ``CALIBRATED_MIN_SCORE``; None (the global one) for a part not calibrated."""
@@ -632,8 +638,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
         raise ValueError("sort 'height' needs a plane")
     if plane is not None:
         distance_mm = None  # the plane fixes the depth of every placement
-    if appearance is not None and not appearance.used:
-        appearance = None  # a plain part's, or photos that disagree (``Appearance.used``)
+    appearance = appearance_in_use(appearance)
     at_service_point = min_score is None  # a request's min_score is the integrator's own operating point
     if min_score is None:
         min_score = operating_point(appearance)
