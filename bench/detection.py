@@ -140,10 +140,10 @@ def _truth_checked(bank, image: np.ndarray, intr: Intrinsics, g: dict, info, app
 
     appearance = pipeline.appearance_in_use(appearance)
     truth = Pose(np.asarray(g["R"], float), np.asarray(g["t_mm"], float))
-    rng = None if distance_mm is not None else (distance_range_mm or pipeline.DEFAULT_DISTANCE_RANGE_MM)
     c = pipeline.check_candidate(bank, pipeline.PoseCandidate(truth, 0.0, 0.0), to_grey_u8(image),
                                  colour_frame(undistort_image(image, intr)), intr, distance_mm=distance_mm,
-                                 distance_range_mm=rng, min_score=pipeline.operating_point(appearance),
+                                 distance_range_mm=pipeline.judged_range(distance_mm, distance_range_mm),
+                                 min_score=pipeline.operating_point(appearance),
                                  n_channels=pipeline.search_params(1).n_channels, appearance=appearance)
     return {"score": c.verdict.score, "reason": c.verdict.reason, "found": c.verdict.found,
             "mspd640": _mspd640(c.refined.pose, g, info)}

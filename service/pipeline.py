@@ -275,6 +275,13 @@ def appearance_in_use(appearance: Appearance | None) -> Appearance | None:
     return appearance if appearance is not None and appearance.used else None
 
 
+def judged_range(distance_mm: float | None, distance_range_mm: tuple[float, float] | None
+                 ) -> tuple[float, float] | None:
+    """The distance range a checked pose must lie in: none with a given distance (the refinement holds
+    it), else the request's range or the default one."""
+    return None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
+
+
 def operating_point(appearance: Appearance | None) -> float | None:
     """The calibrated part's operating point: ``CALIBRATION_MARGIN`` (logit) above its highest wrong
     score, and never under ``CALIBRATED_MIN_SCORE``; None (the global one) for a part not calibrated."""
@@ -671,7 +678,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
                                sweep_colours=search is not None and search.colour_sweep)
     t0 = time.perf_counter()
     t_second = 0.0
-    rng = None if distance_mm is not None else (distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)
+    rng = judged_range(distance_mm, distance_range_mm)
     kw = dict(distance_mm=distance_mm, distance_range_mm=rng, min_score=min_score, n_channels=p.n_channels,
               deadline=deadline, plane=plane, plane_tolerance_mm=plane_tolerance_mm, appearance=appearance)
     if max_instances <= 1:
