@@ -30,14 +30,14 @@ from service.vision.build.appearance import (
     teach,
 )
 from service.vision.build.mirror import MirrorPlanes, mirror_planes, twin_poses
-from service.vision.deadline import NO_DEADLINE, Deadline, RunningMean
+from service.vision.deadline import NO_DEADLINE, Deadline, RunningMean, timing_paused
 from service.vision.estimate.chamfer import distance_tensor
 from service.vision.estimate.coarse import Hypothesis, SearchParams, coarse_search, poses_of
 from service.vision.estimate.colour_prior import part_density
 from service.vision.estimate.colour_sweep import colour_sweep
 from service.vision.estimate.contour_region import region_contour_refine
 from service.vision.estimate.contrast import Contrast, ContrastParams
-from service.vision.estimate.edges import Segments, detect_segments_in_bands, to_grey_u8, undistort_segments
+from service.vision.estimate.edges import detect_segments_in_bands, to_grey_u8, undistort_segments
 from service.vision.estimate.evidence import (
     REGION_AND_SHADING,
     ColourFrame,
@@ -103,6 +103,10 @@ class EstimateOutput:
     # every candidate refined and judged, the verdict's order (found first, then by score): what the
     # teach-time calibration reads (``calibrate_appearance``)
     checked: list[Checked] = field(default_factory=list)
+    # how far the search got: the stage the deadline stopped ("search", "checks", "second pass", ...;
+    # None when it did not), and how many candidates were refined and judged
+    deadline_stopped_in: str | None = None
+    candidates_checked: int = 0
 
 
 @dataclass(frozen=True)
@@ -314,9 +318,6 @@ def _ms(t0: float) -> float:
 # 41 at the 90th percentile: started on the mean, one in ten answered ~15 ms late), and the anytime
 # search keeps that much of its deadline for the first. Starts at a paper render's (1280 x 960) on 2 cores.
 _CHECK_MS = RunningMean(35.0)
-# What the edges (grey conversion, LSD, distance tensor) take per megapixel of frame in this process: a
-# deadline that leaves less than them and one check skips the search. Starts at a paper render's.
-_EDGES_MS_PER_MP = RunningMean(12.0)
 EVIDENCE_MS = 10.0  # judging a refined pose again (its evidence only) on a 1280 x 960 frame
 # The search keeps a little more than one check (its ``high`` estimate) for the first candidate's: its
 # own last unit of work (a polish) overruns by a part of the mean it was judged against.
@@ -448,8 +449,8 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     ``roi_uv``: (N, 2) polygon, pixels: only placements whose object centre projects inside it are
     searched (level A's anchors are restricted to it), and only the edges within the part's largest
     projected radius of its bounding box are used. ``deadline`` / ``reserve_ms``: see ``coarse_search``
-    (no search at all when the edges already used the time, and no edges either when the deadline
-    leaves less than they usually take, ``_EDGES_MS_PER_MP``, and ``reserve_ms``).
+    (the edges are always detected and the search always started: a deadline never leaves a frame
+    without a proposal to check, ``Deadline.allows_first``).
 
     ``plane``: the supporting plane (camera frame): the search runs over the part's stable resting
     poses x spin about the plane's normal x position on the plane (``estimate/plane.py``) instead of
@@ -479,11 +480,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     t0 = time.perf_counter()
     grey = to_grey_u8(image)
     h, w = grey.shape
-    megapixels = h * w / 1e6
-    if not deadline.allows(_EDGES_MS_PER_MP.value * megapixels + reserve_ms):
-        # Not even the edges and one check fit: answer "deadline" now rather than late.
-        empty = np.zeros((0, 2), np.float32)
-        return [], Segments(empty, empty, np.zeros(0, np.float32), (h, w)), {"edges": 0.0, "coarse": 0.0}
+    deadline.stage = "edges"
     seg = detect_segments_in_bands(grey)
     if intr.dist is not None:
         # Straighten the edges once; everything after works in the ideal pinhole camera intr.K.
@@ -502,13 +499,13 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     # Level A's coarse grid is pooled from level B's (coarse_search): one set of distance transforms.
     dtt_b = distance_tensor(seg, n_channels=p.n_channels, scale=p.fine_scale)
     t_edges = _ms(t0)
-    _EDGES_MS_PER_MP.add(t_edges / max(megapixels, 1e-3))
     t1 = time.perf_counter()
+    deadline.stage = "search"
     if rest is not None and len(rest):
         # Level B's scans per peak cost little on the plane: every peak is polished.
         ph = plane_search(bank, rest, dtt_b, intr, (h, w), plane, p,
                           distance_range_mm=rng, anchor_mask=anchor_mask, deadline=deadline,
-                          reserve_ms=reserve_ms) if deadline.allows(reserve_ms) else []
+                          reserve_ms=reserve_ms) if deadline.allows_first(reserve_ms) else []
         cands = [_candidate(bank, Pose(x.R, x.t), x.cost, x.score) for x in ph]
     else:
         later: list[Callable[[], list[Hypothesis]]] = []
@@ -518,7 +515,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
         hyps = coarse_search(bank, dtt_b, intr, (h, w), p, distance_mm=distance_mm, distance_range_mm=rng,
                              anchor_mask=anchor_mask, deadline=deadline, reserve_ms=reserve_ms,
                              deferred=later, contrast=con, extra_peaks=n_con
-                             ) if deadline.allows(reserve_ms) else []
+                             ) if deadline.allows_first(reserve_ms) else []
 
         def to_candidates(hs: list[Hypothesis]) -> list[PoseCandidate]:
             if not hs:
@@ -678,6 +675,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
                                sweep_colours=search is not None and search.colour_sweep)
     t0 = time.perf_counter()
     t_second = 0.0
+    deadline.stage = "checks"
     rng = judged_range(distance_mm, distance_range_mm)
     kw = dict(distance_mm=distance_mm, distance_range_mm=rng, min_score=min_score, n_channels=p.n_channels,
               deadline=deadline, plane=plane, plane_tolerance_mm=plane_tolerance_mm, appearance=appearance)
@@ -689,6 +687,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
             # None of the candidates so far holds: the peaks' other templates (coarse_search), then
             # the region proposals (REGION_PROPOSALS), each checked up to N_VERIFY.
             t2 = time.perf_counter()
+            deadline.stage = "second pass"
             more = later_pass()
             if search is not None and not search.order_first:
                 more = by_unrefined_score(bank, more, frame, intr, appearance, deadline)
@@ -698,6 +697,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
             checked = sorted(checked + verify_candidates(bank, more, grey, frame, intr, **kw),
                              key=lambda c: (c.verdict.found, c.verdict.score), reverse=True)
             cands = cands + more
+            deadline.stage = "checks"
         best = checked[0] if checked else None
         if AGREEMENT and at_service_point and best is not None and not best.verdict.found:
             best = agreed_answer(bank, checked, intr.K) or best
@@ -725,7 +725,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
                                       rejected=None if found or best is None else best.refined.pose))
     timing["total"] = _ms(t_start)
     return EstimateOutput((w, h), found, coarse, refined, cands[:top_k], timing, png, verdict, instances,
-                          deadline.hit, checked)
+                          deadline.hit, checked, deadline.stopped_in, deadline.checks)
 
 
 @dataclass(frozen=True)
@@ -776,6 +776,7 @@ class _Checker:
         c = self._judged(cand, kept, unexplained, others_depth_mm)
         c = self.outlined_on_colours(self.polished(c, others_depth_mm), others_depth_mm)
         _CHECK_MS.add(_ms(t0))
+        self.deadline.checked()
         return c
 
     def _judged(self, cand: PoseCandidate, kept: RefinedPose, unexplained: float | Callable[[], float],
@@ -1101,7 +1102,7 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
     out: list[Checked] = []
     rival_from = None
     for cand in cands[:N_VERIFY]:
-        if not deadline.allows(_CHECK_MS.high):
+        if not deadline.allows_first(_CHECK_MS.high):
             break
         if rival_from is not None and unrefined_score(bank, cand.pose, frame, intr, None,
                                                       appearance) < rival_from:
@@ -1191,7 +1192,7 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
         if any(silhouette_iou(bank, cand.pose, f.refined.pose, intr, size, memo=scene.silhouettes)
                > INSTANCE_IOU for f in scene.found):
             continue
-        if not deadline.allows(_CHECK_MS.high):
+        if not deadline.allows_first(_CHECK_MS.high):
             break
         others = scene.others if scene.found else None
         c = check.twin_checked(check(cand, others), others)
@@ -1431,6 +1432,11 @@ def warm_up() -> EstimateOutput:
     """Run the whole pipeline once on a small synthetic scene (a cylinder rendered 300 mm away), so
     that a fresh process loads or compiles its numba kernels before the first real frame (~0.5 s).
     Returns the estimate of the rendered cylinder (its known answer: ``WARM_UP_POSE``)."""
+    with timing_paused():  # its durations are kernel compiles: no frame's time budget learns from them
+        return _warm_up()
+
+
+def _warm_up() -> EstimateOutput:
     from service.vision.geometry.render import render_shaded
 
     memory.keep_mapped()  # the warm-up's freed buffers stay mapped for the first real frame

@@ -14,9 +14,9 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 MB = 1024 * 1024
 LOG_LEVELS = ("critical", "error", "warning", "info", "debug")
-# A cell at a few frames a second: a cluttered frame's full search can take seconds (issue 19: clutter
-# p95 <= 500 ms at the default); a clean frame, distance known or not, ends well before it.
-DEFAULT_DEADLINE_MS = 450.0
+# No deadline unless one is asked for: the same frame then gets the same answer whatever the machine's
+# load or the process's past; a cell that needs an answer by a time sets POSE_DEADLINE_MS or the option.
+DEFAULT_DEADLINE_MS = 0.0
 
 
 class Settings(BaseSettings):
@@ -52,7 +52,8 @@ class Settings(BaseSettings):
         "X-API-Key header; unset or empty: no authentication")
     deadline_ms: float = Field(
         DEFAULT_DEADLINE_MS, ge=0, description="an estimate's time budget when its options give none, ms "
-        "(the search is anytime: it answers with the best verified result by then); 0: no deadline")
+        "(the search is anytime: it answers with the best verified result by then, and always checks its "
+        "best proposal first); 0 (the default): no deadline, the search runs to its end")
     warm_up: bool = Field(
         True, description="at start-up, run the pipeline once on a synthetic scene in the background so "
         "the first real estimate does not pay ~0.5 s of kernel loading")

@@ -1302,8 +1302,8 @@ def _level_a_in_time(bank, intr, image_shape, p, distance_mm, z_ref, scales, dea
                      reserve_ms: float) -> LevelATemplates | None:
     """The level-A templates and their ``scaled_offsets`` (made once per bank, camera, image size and
     distance: ~50-150 ms, in no unit of work the deadline checks), or None when the ``deadline``, less
-    ``reserve_ms``, comes first: they are then made in the background, waited for until then, and
-    ready for a later frame (the deadline is marked hit)."""
+    ``reserve_ms``, comes first (never before the frame's first check): they are then made in the
+    background, waited for until then, and ready for a later frame (the deadline is marked hit)."""
     key = _level_a_key(intr, image_shape, p, distance_mm, z_ref)
     tpl = _LEVEL_A.peek(bank, key)
     sc = tuple(np.asarray(scales, np.float64).tolist())
@@ -1323,10 +1323,12 @@ def _level_a_in_time(bank, intr, image_shape, p, distance_mm, z_ref, scales, dea
         fut = _MAKING.get((id(bank), key, sc))
         if fut is None:
             fut = _MAKING[(id(bank), key, sc)] = threads.background().submit(make)
+    if deadline.checks == 0:  # the first proposal is owed whatever the time (``Deadline.allows_first``)
+        return fut.result()
     try:
         return fut.result(timeout=max(deadline.left_ms() - reserve_ms, 0.0) / 1000.0)
     except concurrent.futures.TimeoutError:
-        deadline.hit = True
+        deadline.mark_hit()
         return None
 
 
