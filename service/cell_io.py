@@ -23,6 +23,7 @@ from service.schemas import (
     ModelInfo,
     Options,
     PlacedGraspJSON,
+    PoseJSON,
     parse_json_object,
     parse_json_part,
     validate_part,
@@ -102,7 +103,8 @@ def grasps_of(records: list[dict[str, Any]]) -> list[Grasp]:
 def add_cell_frames(result: EstimateResult, bank: TemplateBank, cam: CellCamera, opts: Options,
                     grasps: list[Grasp], camera_name: str | None = None) -> EstimateResult:
     """The result with ``T_base_obj`` on every pose (when the extrinsics are known) and the grasps of
-    the reported pose (the refined one, else the coarse one; none when not found)."""
+    the reported pose (the refined one, else the coarse one; none when not found), at the top level
+    and on each of ``result.instances`` for that instance's own pose."""
     T_base_cam = base_from_cam(
         None if cam.T_base_cam is None else cam.T_base_cam.matrix(),
         None if cam.T_flange_cam is None else cam.T_flange_cam.matrix(),
@@ -113,15 +115,22 @@ def add_cell_frames(result: EstimateResult, bank: TemplateBank, cam: CellCamera,
                      *(p for i in result.instances for p in (i.coarse, i.refined))]:
             if pose is not None:
                 pose.T_base_obj = FramePose.from_matrix(T_base_cam @ rigid(pose.R, pose.t_mm))
-    reported = result.refined or result.coarse
-    if result.found and reported is not None and grasps:
-        placed = place_grasps(rigid(reported.R, reported.t_mm), grasps, T_base_cam,
-                              symmetry_axis_obj=bank.symmetry_axis_obj,
-                              symmetry_point_obj=bank.symmetry_point_obj)
-        result.grasps = [PlacedGraspJSON(
+
+    def placed(reported: PoseJSON | None) -> list[PlacedGraspJSON]:
+        if reported is None or not grasps:
+            return []
+        return [PlacedGraspJSON(
             name=p.name, T_cam_grasp=FramePose.from_matrix(p.T_cam_grasp),
             T_base_grasp=None if p.T_base_grasp is None else FramePose.from_matrix(p.T_base_grasp),
-            approach_angle_deg=p.approach_angle_deg, spin_deg=p.spin_deg) for p in placed]
+            approach_angle_deg=p.approach_angle_deg, spin_deg=p.spin_deg)
+            for p in place_grasps(rigid(reported.R, reported.t_mm), grasps, T_base_cam,
+                                  symmetry_axis_obj=bank.symmetry_axis_obj,
+                                  symmetry_point_obj=bank.symmetry_point_obj)]
+
+    if result.found:
+        result.grasps = placed(result.refined or result.coarse)
+    for inst in result.instances:  # each its own answer: a cell picks the instance it can reach
+        inst.grasps = placed(inst.refined or inst.coarse)
     return result
 
 

@@ -259,6 +259,10 @@ class InstanceJSON(BaseModel):
     coarse: Coarse
     refined: Refined | None = Field(description="null when refine is false")
     verdict: VerdictJSON
+    grasps: list[PlacedGraspJSON] = Field(
+        default_factory=list, description="the model's grasps where this instance lies (its refined pose, "
+        "else its coarse one), most reachable first, like the top-level grasps of instances[0]; empty when "
+        "none are registered")
 
 
 def _verdict_json(v) -> VerdictJSON:

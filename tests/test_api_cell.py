@@ -134,6 +134,45 @@ def test_registered_camera_and_two_grasps_give_the_grasp_in_the_base_frame(clien
     assert [g["name"] for g in res["grasps"]] == expected_order
 
 
+# Two copies side by side, 650 mm away, turned differently (their silhouettes do not touch): each
+# instance's grasps must follow its own pose.
+T_CAM_OBJS = [rigid(R_from_euler_xyz_deg([120.0, 20.0, 35.0]), [-150.0, -50.0, 650.0]),
+              rigid(R_from_euler_xyz_deg([200.0, -30.0, 100.0]), [60.0, -20.0, 650.0])]
+
+
+def test_every_instance_carries_the_grasps_of_its_own_pose(client, lbracket):
+    """Known answer: each found copy's grasps are ``T_BASE_CAM @ T_cam_obj @ T_obj_grasp`` of the copy
+    it is, most reachable first for that copy; the top level keeps the first instance's."""
+    mesh = lbracket[1]
+    grey = np.full((H, W), 70, np.uint8)
+    for T in T_CAM_OBJS:
+        grey = np.maximum(grey, render_shaded(mesh.vertices, mesh.faces, Pose.from_matrix(T), K, (W, H)))
+    r = client.put("/cameras/two-parts-cam", json={**INTRINSICS, "width": W, "height": H,
+                                                   "T_base_cam": transform(T_BASE_CAM)})
+    assert r.status_code in (200, 201), r.text
+    assert client.put(f"/models/{client.model_id}/grasps", json=GRASPS).status_code == 200
+
+    r = estimate(client, png(grey), {"name": "two-parts-cam"}, {"distance_mm": 650.0, "max_instances": 2})
+    assert r.status_code == 200, r.text
+    res = r.json()
+    assert len(res["instances"]) == 2
+    assert res["instances"][0]["grasps"] == res["grasps"]
+    T_obj_grasp = {g["name"]: matrix(g["T_obj_grasp"]) for g in GRASPS}
+    copies = []
+    for inst in res["instances"]:
+        t = np.array(inst["refined"]["t_mm"])
+        copy = int(np.argmin([np.linalg.norm(t - T[:3, 3]) for T in T_CAM_OBJS]))
+        copies.append(copy)
+        T_cam_obj = T_CAM_OBJS[copy]
+        assert_pose_near(inst["refined"], T_cam_obj)
+        truth = {n: T_BASE_CAM @ T_cam_obj @ G for n, G in T_obj_grasp.items()}
+        assert [g["name"] for g in inst["grasps"]] == sorted(truth, key=lambda n: approach_down_deg(truth[n]))
+        for g in inst["grasps"]:
+            assert_pose_near(g["T_base_grasp"], truth[g["name"]])
+            assert_pose_near(g["T_cam_grasp"], T_cam_obj @ T_obj_grasp[g["name"]])
+    assert sorted(copies) == [0, 1]  # each copy found once, so the second's grasps are not the first's
+
+
 def test_eye_in_hand_camera_with_the_robot_pose(client, scene):
     r = client.put("/cameras/wrist", json={**INTRINSICS, "width": W, "height": H,
                                            "T_flange_cam": transform(T_FLANGE_CAM)})
