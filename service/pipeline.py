@@ -720,9 +720,10 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     if overlay:
         from service.vision.overlay import draw_overlay, encode_png
 
-        png = encode_png(draw_overlay(grey, bank, intr, coarse.pose if coarse else None,
+        png = encode_png(draw_overlay(image, bank, intr, coarse.pose if coarse else None,
                                       refined.pose if refined else None, found=found, score=verdict.score,
-                                      rejected=None if found or best is None else best.refined.pose))
+                                      rejected=None if found or best is None else best.refined.pose,
+                                      instances=[(i.refined or i.coarse).pose for i in instances[1:]]))
     timing["total"] = _ms(t_start)
     return EstimateOutput((w, h), found, coarse, refined, cands[:top_k], timing, png, verdict, instances,
                           deadline.hit, checked, deadline.stopped_in, deadline.checks)

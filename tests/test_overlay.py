@@ -14,6 +14,7 @@ from service.vision.geometry.render import render
 from service.vision.overlay import (
     ABSENT_BGR,
     AXES_BGR,
+    BANNER_BG_BGR,
     COARSE_BGR,
     FOUND_BGR,
     REFINED_BGR,
@@ -28,6 +29,7 @@ INTR = Intrinsics(fx=1100.0, fy=1100.0, cx=643.0, cy=477.0)
 SIZE = (1280, 960)
 REFINED = Pose.from_euler_xyz_deg((25.0, -35.0, 15.0), (40.0, -30.0, 500.0))
 COARSE = Pose.from_euler_xyz_deg((25.0, -35.0, 15.0), (52.0, -30.0, 500.0))  # 12 mm ~ 26 px to the right
+OTHER = Pose.from_euler_xyz_deg((-40.0, 10.0, 70.0), (-150.0, 60.0, 500.0))  # a second copy, ~400 px left
 
 
 @pytest.fixture(scope="module")
@@ -86,6 +88,39 @@ def test_colour_input_is_kept_and_png_round_trips(bank):
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     back = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
     np.testing.assert_array_equal(back, out)
+
+
+def test_deeper_colour_input_stays_colour(bank):
+    bgr = np.zeros((SIZE[1], SIZE[0], 3), np.uint16)
+    bgr[..., 2] = 4000  # a 12-bit camera's red
+    out = draw_overlay(bgr, bank, INTR, None, None)
+    assert out.dtype == np.uint8 and out[0, 0].tolist() == [0, 0, 255]
+
+
+def test_estimate_draws_the_overlay_on_the_colour_image(bank):
+    """The overlay a person reads is the colour frame the cell sent, not the grey the search reads."""
+    from service import pipeline
+
+    bgr = np.empty((480, 640, 3), np.uint8)
+    bgr[...] = (180, 90, 40)
+    intr = Intrinsics(550.0, 550.0, 319.5, 239.5)
+    out = pipeline.estimate(bank, bgr, intr, distance_mm=500.0, overlay=True)
+    img = cv2.imdecode(np.frombuffer(out.overlay_png, np.uint8), cv2.IMREAD_COLOR)
+    assert img.shape == (480, 640, 3)
+    assert img[-1, -1].tolist() == [180, 90, 40]  # grey would have three equal channels
+
+
+def test_other_instances_are_drawn_solid_and_every_instance_numbered(bank):
+    grey = np.full((SIZE[1], SIZE[0]), 70, np.uint8)
+    one = draw_overlay(grey, bank, INTR, None, REFINED, thickness=1, axes=False)
+    two = draw_overlay(grey, bank, INTR, None, REFINED, thickness=1, axes=False, instances=[OTHER])
+    d = _border_distance(bank, OTHER)
+    assert _dilated(_pixels(two, REFINED_BGR))[d <= 0.5].mean() > 0.9  # solid (a number box may cover some)
+    assert not _dilated(_pixels(one, REFINED_BGR))[d <= 0.5].any()
+    # one light number box per instance, none for a single instance
+    assert not _pixels(one, BANNER_BG_BGR).any()
+    n_boxes, _ = cv2.connectedComponents(_pixels(two, BANNER_BG_BGR).astype(np.uint8))
+    assert n_boxes - 1 == 2
 
 
 def test_nothing_to_draw_returns_the_image_in_bgr(bank):

@@ -1,8 +1,10 @@
 """Result overlay like the paper's Tables IV, V and VII, made to be read by a person at full frame:
 the coarse pose's silhouette border dashed (yellow), the refined pose's solid (magenta), the reported
 pose's object axes (x red, y green, z blue, as arrows from the model origin) and a banner with the
-verdict and the score, all drawn on the input image. Lines, dashes and text scale with the image
-(``line_thickness_px``), so a 4K frame gets lines as visible as a VGA one.
+verdict and the score, all drawn on the input image (in colour when it is colour). With several found
+instances each is drawn solid with its axes and numbered as in the result's ``instances`` (1 first).
+Lines, dashes and text scale with the image (``line_thickness_px``), so a 4K frame gets lines as
+visible as a VGA one.
 
 Contours are the outer border of the rasterised silhouette (``render.render`` of the bank's mesh)
 in the ideal pinhole camera; with lens distortion the contour and axis points are distorted onto the
@@ -10,6 +12,8 @@ image.
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
@@ -39,12 +43,13 @@ def line_thickness_px(image_size) -> int:
 
 
 def to_bgr(image: np.ndarray) -> np.ndarray:
-    """(H, W) grey or (H, W, 3|4) colour, any of uint8/uint16/float -> (H, W, 3) uint8 BGR copy."""
-    from service.vision.estimate.edges import to_grey_u8
+    """(H, W) grey or (H, W, 3|4) colour, any of uint8/uint16/float -> (H, W, 3) uint8 BGR copy
+    (colour stays colour: deeper images are stretched to 8 bits like the grey the search reads)."""
+    from service.vision.estimate.edges import stretch_u8, to_grey_u8
 
     img = np.asarray(image)
-    if img.ndim == 3 and img.shape[2] in (3, 4) and img.dtype == np.uint8:
-        return np.ascontiguousarray(img[..., :3]).copy()
+    if img.ndim == 3 and img.shape[2] in (3, 4):
+        return np.ascontiguousarray(stretch_u8(img[..., :3])).copy()
     return cv2.cvtColor(to_grey_u8(img), cv2.COLOR_GRAY2BGR)
 
 
@@ -84,13 +89,16 @@ def _dashed(img: np.ndarray, poly: np.ndarray, color, dash_px: int, thickness: i
 def draw_overlay(image: np.ndarray, bank: TemplateBank, intr: Intrinsics, coarse_pose: Pose | None,
                  refined_pose: Pose | None, *, dash_px: int | None = None, thickness: int | None = None,
                  found: bool | None = None, score: float | None = None, axes: bool = True,
-                 rejected: Pose | None = None) -> np.ndarray:
+                 rejected: Pose | None = None, instances: Sequence[Pose] = ()) -> np.ndarray:
     """(H, W) grey or (H, W, 3) BGR image -> (H, W, 3) uint8 BGR with the coarse border dashed
     (``COARSE_BGR``), the refined border solid (``REFINED_BGR``, drawn on top), the object axes of the
     reported pose (the refined one, else the coarse one) when ``axes``, and, when ``found`` is given,
     a banner saying FOUND or NOT FOUND with ``score``. ``thickness`` defaults to
     ``line_thickness_px`` of the image, ``dash_px`` to ``DASH_PX`` times the thickness. When nothing was
-    found, ``rejected`` (the best candidate the verdict turned down) is drawn dotted (``REJECTED_BGR``)."""
+    found, ``rejected`` (the best candidate the verdict turned down) is drawn dotted (``REJECTED_BGR``).
+    ``instances``: the other found instances' reported poses (``instances[1:]`` of the result), each
+    drawn solid with its axes; then every instance, the reported one too, is labelled with its number
+    (1 for the reported one), as the result lists them."""
     out = to_bgr(image)
     h, w = out.shape[:2]
     t = line_thickness_px((w, h)) if thickness is None else int(thickness)
@@ -107,6 +115,19 @@ def draw_overlay(image: np.ndarray, bank: TemplateBank, intr: Intrinsics, coarse
     reported = refined_pose if refined_pose is not None else coarse_pose
     if axes and reported is not None:
         draw_axes(out, reported, intr, AXIS_LENGTH_DIAMETERS * bank.diameter_mm, t)
+    outlines = []  # of every instance, in the result's order, for the numbers
+    if instances and reported is not None:
+        outlines.append(silhouette_contours(bank, reported, intr, (w, h)))
+    for pose in instances:
+        outlines.append(silhouette_contours(bank, pose, intr, (w, h)))
+        for c in outlines[-1]:
+            cv2.polylines(out, [c.reshape(-1, 1, 2)], True, REFINED_BGR, t, cv2.LINE_8)
+        if axes:
+            draw_axes(out, pose, intr, AXIS_LENGTH_DIAMETERS * bank.diameter_mm, t)
+    if len(outlines) > 1:  # one instance needs no number; drawn last, so no line hides one
+        for k, cs in enumerate(outlines, start=1):
+            if cs:
+                draw_number(out, k, np.vstack(cs), t)
     if found is not None:
         draw_banner(out, found, score, t)
     return out
@@ -153,6 +174,22 @@ def draw_banner(img: np.ndarray, found: bool, score: float | None, thickness: in
         y += th_px
         cv2.putText(img, text, (pad, y), cv2.FONT_HERSHEY_SIMPLEX, s, color, th, cv2.LINE_AA)
         y += base + pad
+
+
+def draw_number(img: np.ndarray, number: int, outline_uv: np.ndarray, thickness: int) -> None:
+    """``number`` on a light box just above the top left of ``outline_uv`` ((n, 2) pixels), in place;
+    kept inside the image so a part at the border is still numbered."""
+    scale = 0.3 * thickness
+    text = str(number)
+    (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, max(1, thickness - 1))
+    pad = 2 * thickness
+    bw, bh = tw + 2 * pad, th + base + 2 * pad
+    u0 = int(np.clip(outline_uv[:, 0].min(), 0, max(img.shape[1] - bw, 0)))
+    v0 = int(np.clip(outline_uv[:, 1].min() - bh - thickness, 0, max(img.shape[0] - bh, 0)))
+    cv2.rectangle(img, (u0, v0), (u0 + bw, v0 + bh), BANNER_BG_BGR, cv2.FILLED)
+    cv2.rectangle(img, (u0, v0), (u0 + bw, v0 + bh), REFINED_BGR, max(1, thickness // 2))
+    cv2.putText(img, text, (u0 + pad, v0 + pad + th), cv2.FONT_HERSHEY_SIMPLEX, scale, (40, 40, 40),
+                max(1, thickness - 1), cv2.LINE_AA)
 
 
 def encode_png(img: np.ndarray) -> bytes:
