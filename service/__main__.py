@@ -1,4 +1,4 @@
-"""Command line: ``python -m service serve | build | estimate`` (``--help`` on each).
+"""Command line: ``python -m service serve | build | estimate | warm-up | worker`` (``--help`` on each).
 
 ``build`` and ``estimate`` use the same template cache (``POSE_CACHE_DIR``, default
 ``templates_cache/``) and the same code paths as the HTTP API, and print the same JSON.
@@ -142,6 +142,20 @@ def _stopped(signum: int, frame: object) -> None:
     raise SystemExit(0)
 
 
+def cmd_warm_up(args: argparse.Namespace) -> int:
+    """Compile (or load) every numba kernel into NUMBA_CACHE_DIR: what a server's start-up warm-up does,
+    done ahead (the Docker image runs it when it is built, so a container is ready in seconds)."""
+    import time
+
+    from service import pipeline
+
+    _settings(args)
+    t0 = time.perf_counter()
+    out = pipeline.warm_up()
+    print(f"warm-up done in {(time.perf_counter() - t0) * 1000:.0f} ms (synthetic part found: {out.found})")
+    return 0 if out.found else 1
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     import signal
 
@@ -263,6 +277,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--overlay-out", default=None, metavar="PNG",
                    help="write the overlay (contours, axes, verdict) to this PNG file, not base64 in JSON")
     p.set_defaults(func=cmd_estimate)
+
+    p = sub.add_parser("warm-up", help="compile the kernels into NUMBA_CACHE_DIR (what start-up does); exit 1 "
+                       "if the synthetic part is not found")
+    p.set_defaults(func=cmd_warm_up)
 
     p = sub.add_parser("worker", help="take template-build jobs from the shared store's queue "
                        "(POSE_STORE=redis://...); run one or more per machine")

@@ -89,13 +89,15 @@ class UploadLimit:
         await self.app(scope, limited_receive, send)
 
 
-def _warm_up() -> None:
+def _warm_up(done: threading.Event) -> None:
     t0 = time.perf_counter()
     try:
         out = pipeline.warm_up()
     except Exception:  # a failed warm-up must not take the service down; the first estimate pays instead
         log.exception("warm-up failed")
         return
+    finally:
+        done.set()
     log.info("warm-up done in %d ms (synthetic part found: %s)", (time.perf_counter() - t0) * 1000, out.found)
 
 
@@ -114,9 +116,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.store, app.state.builder, app.state.calibrator = store, builder, calibrator
         builder.resume(store)
         calibrator.resume()  # calibrations a stop or crash ended
-        warm = threading.Thread(target=_warm_up, name="warm-up") if settings.warm_up else None
+        warm = threading.Thread(target=_warm_up, args=(app.state.warm,), name="warm-up") \
+            if settings.warm_up else None
         if warm is not None:
             warm.start()
+        else:
+            app.state.warm.set()
         try:
             yield
         finally:  # uvicorn gets here once in-flight requests are answered (graceful shutdown)
@@ -135,6 +140,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                     "(OpenCV camera frame).",
     )
     app.state.settings = settings
+    app.state.warm = threading.Event()  # set once the warm-up has compiled the kernels (GET /health: ready)
     install_handlers(app)
     # add_middleware puts each one outside the ones before: RequestContext ends up outermost
     app.add_middleware(UploadLimit, settings=settings)

@@ -207,11 +207,14 @@ def test_dockerfile_keeps_the_deployment_promises():
     deps_install = next(i for i in by_kind["RUN"] if "pip install" in i.args and "-r " in i.args)
     assert "--require-hashes -r requirements.lock" in deps_install.args, "installs exactly the lock"
     assert copies[0].line < deps_install.line < source_copy.line
-    # a non-root user from USER on, and no RUN after it needs root
+    # a non-root user from USER on, and no RUN after it needs root: only the kernels' compile, which
+    # writes NUMBA_CACHE_DIR as the user that serves
     user = by_kind["USER"][-1]
     uid = user.args.split(":")[0]
     assert uid.isdigit() and int(uid) != 0, "USER should be a numeric non-root uid"
-    assert all(i.line < user.line for i in by_kind["RUN"])
+    assert all(i.line < user.line for i in by_kind["RUN"] if i.args != WARM_UP_RUN)
+    warm = [i for i in by_kind["RUN"] if i.args == WARM_UP_RUN]
+    assert len(warm) == 1 and warm[0].line > max(user.line, source_copy.line), "kernels compiled at build"
     assert any(f"--uid {uid}" in i.args for i in by_kind["RUN"]), "USER's uid is created by useradd"
     # the template cache is a volume at the documented path, owned by that user
     volumes = json.loads(by_kind["VOLUME"][0].args)
@@ -400,9 +403,14 @@ def metric_value(text: str, family: str, sample: str, **labels: str) -> float | 
     return None
 
 
+WARM_UP_RUN = "python -m service warm-up"
+
+
 @pytest.mark.slow
 def test_image_replayed_serves_health_upload_estimate_and_metrics(tmp_path, sprayer_bytes, frame):
     image = replay(tmp_path)
+    # the build compiled the kernels into the image's numba cache (index files per cached function)
+    assert list(image.host(image.env["NUMBA_CACHE_DIR"]).rglob("*.nbi")), "no compiled kernels in the image"
     port = free_port()
     container_env = {**image.env, **compose_environment(), "POSE_HOST": "127.0.0.1", "POSE_PORT": str(port)}
     env = image.host_env(container_env)
@@ -424,6 +432,9 @@ def test_image_replayed_serves_health_upload_estimate_and_metrics(tmp_path, spra
                 assert time.monotonic() < deadline, f"no /health answer:\n{log_path.read_text()}"
                 time.sleep(0.3)
 
+            while not client.get("/health").json()["ready"]:  # the warm-up loads the image's kernels
+                assert proc.poll() is None and time.monotonic() < deadline, log_path.read_text()
+                time.sleep(0.3)
             # both health checks as written (the compose one talks to the container's own port 8000)
             health = subprocess.run(image.healthcheck, env=env, cwd=workdir, capture_output=True, timeout=30)
             assert health.returncode == 0, health.stderr

@@ -80,5 +80,14 @@ def test_this_environment_runs_the_locked_versions():
 
 def test_the_image_and_ci_install_from_the_locks():
     assert "--require-hashes -r requirements.lock" in (ROOT / "docker" / "Dockerfile").read_text()
+    readme = (ROOT / "README.md").read_text().splitlines()
+    serve = [line for line in readme if re.fullmatch(r"pip install .*&& python -m service serve", line)]
+    test = [line for line in readme if re.fullmatch(r"pip install .*&& python -m pytest -q", line)]
+    assert len(serve) == len(test) == 1, "the README's two commands, each on one line"
+    assert serve[0].startswith("pip install --require-hashes -r requirements.lock && pip install --no-deps -e .")
+    assert test[0].startswith("pip install --require-hashes -r requirements-test.lock && "
+                              "pip install --no-deps -e .")
     ci = (ROOT / ".ci" / "run").read_text()
-    assert "--require-hashes -r requirements-test.lock" in ci and "--no-deps -e ." in ci
+    # CI runs those lines as the README writes them (it reads them from README.md)
+    assert "grep -m1 -E '^pip install .*&& python -m service serve$' README.md" in ci
+    assert "grep -m1 -E '^pip install .*&& python -m pytest -q$' README.md" in ci

@@ -31,4 +31,6 @@ def health(request: Request) -> Health:  # sync: a store ping must not hold the 
     problem = store.ping()
     if problem is not None:
         raise StoreUnavailableError(problem)
-    return Health(status="ok", version=VERSION, store=store.kind)
+    ready = request.app.state.warm.is_set()
+    return Health(status="ok", version=VERSION, store=store.kind, ready=ready,
+                  state="ready" if ready else "starting")
