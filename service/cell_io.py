@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from service.bounds import check_plausible
+from service.bounds import check_apparent_size, check_plausible
 from service.cell import Grasp, base_from_cam, place_grasps, rigid
 from service.decode import image_size
 from service.errors import UnprocessableError
@@ -142,7 +142,8 @@ def estimate_result(record: dict[str, Any], bank: TemplateBank, data: bytes, cam
     too).
 
     The intrinsics and distances are held to the plausibility bounds (``service.bounds``) for the
-    decoded image's size before the search. With a ``CellCamera`` (image size, extrinsics) the image
+    decoded image's size before the search, and so is the part's apparent size at the nearest distance
+    searched (``bounds.check_apparent_size``). With a ``CellCamera`` (image size, extrinsics) the image
     size is checked too and the result gains the robot-frame poses and the placed ``grasps``.
     ``default_deadline_ms`` (the service's setting; None or 0: none) applies when ``opts`` give none.
     ``appearance``: the model's colours taught from its reference photos (``references.appearance_of``),
@@ -157,6 +158,7 @@ def estimate_result(record: dict[str, Any], bank: TemplateBank, data: bytes, cam
         if cell:
             check_image_size(cam, size, camera_name)
         check_plausible(cam, opts, size)
+        check_apparent_size(bank, cam, opts, size, units=record.get("units") or "mm")
 
     kwargs = opts.estimate_kwargs()
     if kwargs["deadline_ms"] is None:

@@ -407,3 +407,52 @@ def test_multipart_parser_errors_are_400_sentences(client, body, content_type):
 ])
 def test_bad_roi_or_instances_is_422_with_the_fix(client, image_bytes, options, words):
     assert words in assert_error(estimate(client, client.ready_id, image=image_bytes, options=options), 422)
+
+
+# --- requests that sized a buffer by the part's apparent size: 422 before the search (service/bounds.py)
+
+@pytest.mark.parametrize("options, words", [
+    ({"distance_mm": 10}, ["options.distance_mm (10 mm)", "would reach the camera", "at least 243 mm"]),
+    ({"distance_mm": 50}, ["options.distance_mm (50 mm)", "would reach the camera", "at least 243 mm"]),
+    ({"distance_range_mm": [10, 2000]}, ["options.distance_range_mm (10 mm)", "would reach the camera"]),
+    ({"plane": {"normal": [0, 0, -1], "d_mm": -10}}, ["The options field plane is at most 10 mm", "d_mm"]),
+    ({"roi": [[0, 0], [1e15, 0], [0, 1e15]]}, ["roi has a coordinate of 1e+15 px"]),
+])
+def test_a_part_nearer_than_its_size_is_422_not_500(client, image_bytes, options, words):
+    """distance_mm 10 or 50 put the 200 mm sprayer through the camera: level A's padded layout asked for
+    86 TiB (MemoryError, 500). 243 mm: its reference point 100 mm from the origin, plus 143 mm where its
+    109 mm bounding sphere appears 3840 px (4 x 960) across at the image's corner. The roi's corners were
+    cast to int32 sixteenths of a pixel."""
+    detail = assert_error(estimate(client, client.ready_id, image=image_bytes, options=options), 422)
+    for w in words:
+        assert w in detail
+
+
+def test_a_focal_length_that_makes_the_part_huge_is_422_naming_fx(client, image_bytes):
+    detail = assert_error(estimate(client, client.ready_id, image=image_bytes,
+                                   camera={**CAMERA, "fx": 1e6, "fy": 1e6}), 422)
+    assert "with fx 1e+06 px, more than the 3840 px the search allows in this 1280 x 960 image" in detail
+    assert "check fx and fy" in detail
+
+
+def test_the_same_part_at_a_plausible_distance_is_found(client, image_bytes):
+    """The twin of the 422s above: the paper render's true distance (500 mm)."""
+    r = estimate(client, client.ready_id, image=image_bytes, options={"distance_mm": 500})
+    assert r.status_code == 200, r.text
+    assert r.json()["found"] is True
+
+
+def test_a_mesh_in_mm_uploaded_as_metres_is_422_naming_the_units(client, image_bytes, sprayer_bytes):
+    """The sprayer read with units m is 200 m tall: the upload warns (202) and its estimate was a 500
+    (MemoryError); now a 422 that names the units, while the same file in mm answers (the twin)."""
+    r = client.post("/models", files={"file": ("sprayer.stl", sprayer_bytes)},
+                    data={"symmetry": "y", "units": "m"})
+    assert r.status_code == 202 and any("units=mm" in w for w in r.json()["warnings"]), r.text
+    mid = r.json()["id"]
+    assert wait_built(client, mid)["status"] == "ready"
+    for options in ({}, {"distance_mm": 500}):
+        detail = assert_error(estimate(client, mid, image=image_bytes, options=options), 422)
+        assert "would reach the camera" in detail
+        assert "upload the model again with its true units (it was read in m)" in detail
+    r = estimate(client, client.ready_id, image=image_bytes)
+    assert r.status_code == 200 and r.json()["found"] is True, r.text
