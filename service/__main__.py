@@ -278,8 +278,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="write the overlay (contours, axes, verdict) to this PNG file, not base64 in JSON")
     p.set_defaults(func=cmd_estimate)
 
-    p = sub.add_parser("warm-up", help="compile the kernels into NUMBA_CACHE_DIR (what start-up does); exit 1 "
-                       "if the synthetic part is not found")
+    p = sub.add_parser("warm-up", help="compile the kernels into NUMBA_CACHE_DIR (what start-up does); "
+                       "exit 1 if the synthetic part is not found")
     p.set_defaults(func=cmd_warm_up)
 
     p = sub.add_parser("worker", help="take template-build jobs from the shared store's queue "

@@ -107,6 +107,8 @@ class EstimateOutput:
     # None when it did not), and how many candidates were refined and judged
     deadline_stopped_in: str | None = None
     candidates_checked: int = 0
+    # sentences for the integrator when the evidence points at the request rather than the scene
+    warnings: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -1372,7 +1374,63 @@ def estimate_image(bank: TemplateBank, data: bytes, intr: Intrinsics, *, max_pix
     image = decode_image(data, max_pixels=max_pixels)
     if check is not None:
         check((image.shape[1], image.shape[0]))
-    return estimate(bank, image, intr, started_at=started_at, **options)
+    out = estimate(bank, image, intr, started_at=started_at, **options)
+    distance_mm = options.get("distance_mm")
+    if out.found or distance_mm is None or options.get("plane") is not None or out.deadline_reached:
+        return out
+    warning = misscaled_request(bank, image, intr, float(distance_mm))
+    return out if warning is None else replace(out, warnings=(*out.warnings, warning))
+
+
+# A frame not found at a given distance is searched once more, nearer and farther (up to
+# SCALE_PROBE_FACTOR times): the part found there (verified) means the request's distance or focal length
+# is off (a focal length 10 times too large reads as the part 10 times farther), and the answer says so
+# instead of a silent "not found".
+SCALE_PROBE_FACTOR = 12.0
+# Each side is searched in bands of at most this ratio of distances: over a wider range the smallest
+# (farthest) templates fit clutter better than the part fits its own size.
+SCALE_PROBE_BAND = 4.0
+# The probe keeps the part's projected diameter between these (px; image diagonals): smaller, nothing is
+# told apart; larger, the search's tables grow with the square of the part's size in pixels.
+SCALE_PROBE_MIN_PX = 40.0
+SCALE_PROBE_MAX_DIAGONALS = 1.0
+# A found depth within this factor of the requested one (give or take the part's radius, how far its own
+# size lets its origin's depth move) is the request's: the first search missed it.
+SCALE_PROBE_AGREE = 2.0
+
+
+def misscaled_request(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, distance_mm: float
+                      ) -> str | None:
+    """A sentence naming ``distance_mm`` and the focal length when the part, not found at ``distance_mm``,
+    is found (verified) at a depth far from it; else None."""
+    h, w = image.shape[:2]
+    f_diameter = max(intr.fx, intr.fy) * bank.diameter_mm
+    # nearer than its radius plus this, a point of the part projects farther out than the bound allows
+    near_px = f_diameter / (SCALE_PROBE_MAX_DIAGONALS * math.hypot(w, h))
+    nearest = max(distance_mm / SCALE_PROBE_FACTOR, 0.5 * bank.diameter_mm + near_px)
+    farthest = min(distance_mm * SCALE_PROBE_FACTOR, f_diameter / SCALE_PROBE_MIN_PX)
+    radius_mm = 0.5 * bank.diameter_mm
+    nearer = _probe_bands(nearest, distance_mm / SCALE_PROBE_AGREE - radius_mm)
+    farther = _probe_bands(distance_mm * SCALE_PROBE_AGREE + radius_mm, farthest)
+    for lo, hi in nearer + farther:
+        probe = estimate(bank, image, intr, distance_range_mm=(lo, hi), top_k=1)
+        if probe.found:
+            z_mm = float((probe.refined or probe.coarse).pose.t_mm[2])
+            return (f"The part is not found at options.distance_mm {distance_mm:g} mm but is found "
+                    f"{z_mm:.0f} mm away ({z_mm / distance_mm:.2g} times as far): check that distance_mm is "
+                    "in millimetres and that the camera's fx and fy are in pixels, calibrated at this "
+                    "image's resolution")
+    return None
+
+
+def _probe_bands(lo: float, hi: float) -> list[tuple[float, float]]:
+    """[lo, hi] cut into ranges of at most ``SCALE_PROBE_BAND`` ratio, nearest the requested distance
+    first (the likelier mistakes are the smaller ones)."""
+    if lo >= hi:
+        return []
+    n = max(int(math.ceil(math.log(hi / lo) / math.log(SCALE_PROBE_BAND))), 1)
+    edges = lo * (hi / lo) ** (np.arange(n + 1) / n)
+    return [(float(a), float(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
 
 
 def distinct_candidates(cands: list[PoseCandidate], bank: TemplateBank, K: np.ndarray, *,

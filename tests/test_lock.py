@@ -84,7 +84,8 @@ def test_the_image_and_ci_install_from_the_locks():
     serve = [line for line in readme if re.fullmatch(r"pip install .*&& python -m service serve", line)]
     test = [line for line in readme if re.fullmatch(r"pip install .*&& python -m pytest -q", line)]
     assert len(serve) == len(test) == 1, "the README's two commands, each on one line"
-    assert serve[0].startswith("pip install --require-hashes -r requirements.lock && pip install --no-deps -e .")
+    assert serve[0].startswith("pip install --require-hashes -r requirements.lock && "
+                               "pip install --no-deps -e .")
     assert test[0].startswith("pip install --require-hashes -r requirements-test.lock && "
                               "pip install --no-deps -e .")
     ci = (ROOT / ".ci" / "run").read_text()
