@@ -1,7 +1,10 @@
 """Template builds: registering an upload, and building its template bank off the event loop.
 
 An upload is decoded once (bad files fail at once with 415/422), registered under its content id
-with status ``queued``, and handed to the ``Builder`` owned by the app's lifespan. The Builder runs
+with status ``queued``, and handed to the ``Builder`` owned by the app's lifespan. A mesh file over
+``IN_PROCESS_MESH_BYTES`` is decoded in a process of its own (``check_mesh``): decoding a 100 MB
+STL peaks at ~1.4 GB, and a server process that did it itself kept most of that after the model
+was deleted (its heap keeps freed memory mapped for the estimates, ``vision.memory``). The Builder runs
 each build in a process of its own (``python -c`` ``worker_main``, at most ``build_workers`` at a time),
 so that it can end exactly that build: a DELETE kills it at once, a stop sends it SIGTERM.
 ``run_build`` opens its own ``Store`` on the shared cache dir and takes the model's build lease, so
@@ -24,6 +27,7 @@ is alive (a worker whose server was killed puts its model back to ``queued`` and
 from __future__ import annotations
 
 import collections
+import json
 import logging
 import os
 import signal
@@ -35,8 +39,15 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from service.decode import decode_mesh, fit_face_budget
-from service.errors import UnprocessableError, clause, sentence
+from service.decode import MeshFacts, decode_mesh, fit_face_budget, inspect_mesh
+from service.errors import (
+    ServiceError,
+    TooLargeError,
+    UnprocessableError,
+    UnsupportedMediaError,
+    clause,
+    sentence,
+)
 from service.logs import configure_like, json_level
 from service.settings import Settings
 from service.store import Store, model_id
@@ -51,6 +62,13 @@ MAX_BUILD_DEATHS = 3  # a build whose process keeps dying (OOM) is marked failed
 WATCH_S = 0.2  # how often a build checks that its model still exists and its service is alive
 EXIT_STOPPED = 128 + signal.SIGTERM  # a build process that put its model back to "queued" on request
 ACTIVE = ("queued", "building")  # what a stopping build may put back to "queued" (never "ready"/"failed")
+# Mesh files up to this size are decoded in the server process (peak ~14x the file: ~60 MB, which
+# its heap may keep); larger ones in a process of their own, which pays ~2 s of imports and frees
+# all it used when it exits.
+IN_PROCESS_MESH_BYTES = 4 << 20
+_MESH_CHECKS = threading.BoundedSemaphore(1)  # one mesh-checking process at a time per server process
+_ERRORS: dict[int, type[ServiceError]] = {
+    e.status_code: e for e in (TooLargeError, UnsupportedMediaError, UnprocessableError)}
 
 
 def register_upload(store: Store, settings: Settings, data: bytes, *, filename: str, name: str | None = None,
@@ -74,12 +92,15 @@ def register_upload(store: Store, settings: Settings, data: bytes, *, filename: 
     mid = model_id(data, units=units, symmetry=symmetry, templates=grid)
     existing = store.get(mid)
     if existing is None:
-        mesh = decode_mesh(data, filename, units)  # raises 415/422 now, not in the build
+        facts = check_mesh(data, filename, units, memory_mb=settings.build_memory_mb)  # 415/422 now
         record = {
             "id": mid, "name": name or filename[:200], "filename": filename, "units": units,
             "symmetry_option": symmetry, "templates": grid,
             "status": "queued", "progress": 0.0, "error": None, "n_templates": None,
-            "extents_mm": [float(x) for x in mesh.extents],
+            "extents_mm": list(facts.extents_mm),
+            # the upload's warnings say when the mesh has holes (ModelInfo.from_record)
+            "watertight": facts.watertight, "open_edges": facts.open_edges,
+            "nonmanifold_edges": facts.nonmanifold_edges,
             "symmetry": symmetry_of_option(symmetry),
             "created_at": datetime.now(UTC).isoformat(),
         }
@@ -89,6 +110,69 @@ def register_upload(store: Store, settings: Settings, data: bytes, *, filename: 
     if existing is not None and existing["status"] == "failed":
         return store.update(mid, status="queued", progress=0.0, error=None) or existing, True
     return existing or {}, False
+
+
+def check_mesh(data: bytes, filename: str, units: str = "mm", *, memory_mb: int | None = None,
+               in_process_bytes: int = IN_PROCESS_MESH_BYTES) -> MeshFacts:
+    """``decode.inspect_mesh`` of an upload (its 415/422 on bad bytes): here for a file of at most
+    ``in_process_bytes``, else in a process of its own (capped at ``memory_mb`` MiB of address space),
+    so that the server never holds a large decoded mesh and its memory returns once the process exits."""
+    if len(data) <= in_process_bytes:
+        return inspect_mesh(data, filename, units)
+    args = json.dumps({"filename": filename, "units": units, "memory_mb": int(memory_mb or 0)})
+    with _MESH_CHECKS:
+        proc = subprocess.run([sys.executable, "-c", _CHECK_CODE, args], input=data, capture_output=True,
+                              env=child_env())
+    try:
+        out = json.loads(proc.stdout.decode().strip().splitlines()[-1])
+    except (ValueError, IndexError):
+        out = None
+    if proc.returncode != 0 or not isinstance(out, dict):
+        log.error("mesh check process exited with status %s: %s", proc.returncode,
+                  proc.stderr.decode(errors="replace")[-2000:])
+        raise UnprocessableError(f"Reading the mesh in '{filename[:80]}' failed (its process exited with "
+                                 f"status {proc.returncode}: out of memory?); decimate the mesh or try again")
+    if "detail" in out:
+        raise _ERRORS.get(int(out["status"]), UnprocessableError)(out["detail"])
+    ext = [float(x) for x in out["extents_mm"]]
+    return MeshFacts((ext[0], ext[1], ext[2]), int(out["open_edges"]), int(out["nonmanifold_edges"]))
+
+
+def check_main(argv: list[str]) -> int:
+    """A mesh-checking process's entry point (``check_mesh``): the file's bytes on stdin, its name,
+    unit and memory cap as JSON in ``argv[0]``; one JSON line on stdout: the facts, or the error's
+    ``status`` and ``detail``."""
+    args = json.loads(argv[0])
+    result = os.fdopen(os.dup(1), "w")
+    os.dup2(2, 1)  # whatever a library prints goes to stderr: stdout carries the one result line
+    data = sys.stdin.buffer.read()
+    limit_memory(args["memory_mb"])
+    try:
+        facts = inspect_mesh(data, args["filename"], args["units"])
+        out: dict[str, Any] = {"extents_mm": list(facts.extents_mm), "open_edges": facts.open_edges,
+                               "nonmanifold_edges": facts.nonmanifold_edges}
+    except ServiceError as e:
+        out = {"status": e.status_code, "detail": e.detail}
+        if isinstance(e.__cause__, MemoryError):  # decode_mesh says "check the file": here it is the cap
+            out = {"status": UnprocessableError.status_code, "detail": sentence(
+                f"Reading the mesh in '{args['filename'][:80]}' needed more than {args['memory_mb']:,} MB "
+                "(POSE_BUILD_MEMORY_MB); decimate the mesh or raise the limit")}
+    result.write(json.dumps(out) + "\n")
+    result.close()
+    return 0
+
+
+_CHECK_CODE = "import sys; from service.builder import check_main; sys.exit(check_main(sys.argv[1:]))"
+
+
+def child_env() -> dict[str, str]:
+    """The environment of a process this service starts: it imports this very package, wherever it
+    was imported from here."""
+    import service
+
+    package_root = str(Path(service.__file__).resolve().parents[1])
+    paths = [package_root, *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(dict.fromkeys(paths))}
 
 
 _AXES = {"x": [1.0, 0.0, 0.0], "y": [0.0, 1.0, 0.0], "z": [0.0, 0.0, 1.0]}
@@ -294,8 +378,6 @@ class Builder:
     """
 
     def __init__(self, settings: Settings) -> None:
-        import service
-
         self.location = settings.store_location
         self.lease_s = float(settings.build_lease_s)
         self.workers = int(settings.build_workers)
@@ -307,10 +389,7 @@ class Builder:
         self._cancelled: set[str] = set()
         self._deaths: dict[str, int] = {}  # build processes that died building each model
         self._closing = False
-        # the build process imports this very package, wherever it was imported from here
-        package_root = str(Path(service.__file__).resolve().parents[1])
-        paths = [package_root, *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
-        self._env = {**os.environ, "PYTHONPATH": os.pathsep.join(dict.fromkeys(paths))}
+        self._env = child_env()
 
     def submit(self, mid: str) -> None:
         """Queue a build of ``mid`` unless this process already has one queued or running."""

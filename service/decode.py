@@ -1,7 +1,8 @@
 """Uploaded bytes -> a mesh in millimetres or a grey image; bad input raises the service's errors.
 
 Meshes: STL (binary/ASCII), OBJ, PLY, OFF, GLB, read by trimesh; scenes are merged into one mesh;
-the declared unit is converted to mm here, once. Non-watertight meshes are fine. The format is the
+the declared unit is converted to mm here, once. Non-watertight meshes are accepted; ``mesh_facts``
+counts their open edges so that the upload can warn (a hole shows in silhouettes). The format is the
 file name's extension, or, when the name has none we read, what the bytes are (``sniff_mesh``).
 A mesh must span a surface: at least ``MIN_MESH_FACES`` faces, a non-zero area, and a largest side
 of at least ``MIN_MESH_EXTENT_MM``. Builds render at most ``TEMPLATE_FACE_BUDGET`` faces: a larger
@@ -22,6 +23,7 @@ import io
 import re
 import struct
 import threading
+from dataclasses import dataclass
 from pathlib import PurePath
 
 import cv2
@@ -169,6 +171,40 @@ def _decode_mesh(data: bytes, filename: str, ext: str, units: str) -> trimesh.Tr
     mesh = trimesh.Trimesh(vertices=vertices * UNIT_TO_MM[units], faces=faces, process=True)
     check_geometry(mesh, filename, units)
     return mesh
+
+
+@dataclass(frozen=True)
+class MeshFacts:
+    """What an upload records about its mesh: ``extents_mm`` (3,) bounding-box sides, mm, object frame;
+    ``open_edges``: edges of one face only (the rims of holes); ``nonmanifold_edges``: edges joining
+    more than two faces. Counted over the distinct faces: a face given twice (a double-sided export,
+    as T-LESS's models are) closes no hole and opens none."""
+
+    extents_mm: tuple[float, float, float]
+    open_edges: int
+    nonmanifold_edges: int
+
+    @property
+    def watertight(self) -> bool:
+        """Every edge joins exactly two faces (trimesh's ``is_watertight`` on the distinct faces)."""
+        return self.open_edges == 0 and self.nonmanifold_edges == 0
+
+
+def mesh_facts(mesh: trimesh.Trimesh) -> MeshFacts:
+    """``MeshFacts`` of a decoded mesh (its duplicate vertices already merged by ``decode_mesh``)."""
+    faces = np.asarray(mesh.faces, np.int64)
+    distinct = faces[trimesh.grouping.unique_rows(np.sort(faces, axis=1))[0]]
+    edges = np.sort(distinct[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    # one int64 key per edge: vertex counts stay far below 3e9 (MAX_MESH_FACES bounds them)
+    _, uses = np.unique(edges[:, 0] * (int(edges.max()) + 1) + edges[:, 1], return_counts=True)
+    ext = [float(x) for x in mesh.extents]
+    return MeshFacts((ext[0], ext[1], ext[2]), open_edges=int(np.count_nonzero(uses == 1)),
+                     nonmanifold_edges=int(np.count_nonzero(uses > 2)))
+
+
+def inspect_mesh(data: bytes, filename: str, units: str = "mm") -> MeshFacts:
+    """``decode_mesh`` (its 415/422 on bad bytes), then what an upload records about the mesh."""
+    return mesh_facts(decode_mesh(data, filename, units))
 
 
 def check_geometry(mesh: trimesh.Trimesh, filename: str, units: str = "mm") -> None:
