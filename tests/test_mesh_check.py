@@ -10,14 +10,20 @@ import trimesh
 from service.builder import check_mesh
 from service.decode import inspect_mesh
 from service.errors import UnprocessableError, UnsupportedMediaError
-from tests.test_api_models import _cube_stl
 
 IN_A_PROCESS = {"in_process_bytes": 0}  # every file, however small, goes to the checking process
 
 
+def cube_stl(hole_fraction: float = 0.0) -> bytes:
+    """A 60 mm cube of 192 faces as binary STL; ``hole_fraction`` of its faces removed (seeded)."""
+    cube = trimesh.creation.box((60.0, 60.0, 60.0)).subdivide().subdivide()
+    keep = np.random.default_rng(7).permutation(len(cube.faces))[int(round(hole_fraction * len(cube.faces))):]
+    return trimesh.Trimesh(cube.vertices, cube.faces[np.sort(keep)]).export(file_type="stl")
+
+
 @pytest.mark.parametrize("holes", [0.3, 0.0])
 def test_a_checking_process_reports_what_decoding_here_does(holes):
-    data = _cube_stl(holes)
+    data = cube_stl(holes)
     there = check_mesh(data, "cube.stl", "cm", **IN_A_PROCESS)
     assert there == inspect_mesh(data, "cube.stl", "cm")
     assert there.extents_mm == pytest.approx((600.0, 600.0, 600.0))  # the unit reached the process
@@ -47,6 +53,6 @@ def test_a_checking_process_that_runs_out_of_memory_is_a_422_sentence():
     # 1 MiB of address space: the process cannot decode anything (numpy's or OpenBLAS's allocations
     # fail, whichever comes first); the upload gets a sentence, never a 500
     with pytest.raises(UnprocessableError) as e:
-        check_mesh(_cube_stl(), "cube.stl", memory_mb=1, **IN_A_PROCESS)
+        check_mesh(cube_stl(), "cube.stl", memory_mb=1, **IN_A_PROCESS)
     assert "'cube.stl'" in e.value.detail and "decimate the mesh" in e.value.detail
     assert e.value.detail.endswith(".") and "\n" not in e.value.detail
