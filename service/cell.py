@@ -183,3 +183,22 @@ def extent_warnings(extents_mm: Sequence[float], units: str) -> list[str]:
     side = "larger than 3 m" if size > hi else "smaller than 1 mm"
     return [f"extents {sides} mm: {hint} (read with units={units}, the part is {side}; poses of a part "
             "that size are unlikely to be found)"]
+
+
+def watertight_warnings(watertight: bool | None, open_edges: int = 0,
+                        nonmanifold_edges: int = 0) -> list[str]:
+    """Warnings (sentences) about a mesh that is not closed (``decode.MeshFacts``): a hole shows in its
+    templates' silhouettes and edges as an outline the real part does not have, so an estimate may
+    miss the part for reasons that look like the scene's. ``watertight`` None (a model recorded
+    before this was checked): nothing is said."""
+    if watertight is None or watertight:
+        return []
+    what = []
+    if open_edges:
+        what.append(f"{open_edges:,} open edge{'s' if open_edges != 1 else ''}")
+    if nonmanifold_edges:
+        what.append(f"{nonmanifold_edges:,} edge{'s' if nonmanifold_edges != 1 else ''} shared by more than "
+                    "two faces")
+    detail = f" ({', '.join(what)})" if what else ""
+    return [f"The mesh is not watertight{detail}: its silhouettes and edges may be wrong and the part may "
+            "not be found; upload a closed mesh (fill the holes in the CAD export)"]

@@ -17,7 +17,7 @@ from typing import Annotated, Any, Literal, TypeVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from service.cell import extent_warnings, nearest_rotation, rigid
+from service.cell import extent_warnings, nearest_rotation, rigid, watertight_warnings
 from service.errors import UnprocessableError, validation_sentence
 from service.pipeline import EstimateOutput, PoseCandidate, RefinedPose
 from service.vision.estimate.plane import PLANE_TOLERANCE_MM
@@ -341,7 +341,10 @@ class ModelInfo(BaseModel):
         fields = {k: record.get(k) for k in cls.model_fields if k not in ("warnings", "references")}
         return cls.model_validate({**fields, "references": int(record.get("references") or 0),
                                    "warnings": extent_warnings(record.get("extents_mm") or [],
-                                                               record.get("units") or "mm")})
+                                                               record.get("units") or "mm")
+                                   + watertight_warnings(record.get("watertight"),
+                                                         record.get("open_edges") or 0,
+                                                         record.get("nonmanifold_edges") or 0)})
 
 
 class Health(BaseModel):

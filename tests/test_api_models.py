@@ -3,6 +3,8 @@ template pictures, persistence and resumed builds across app restarts; health.""
 
 from __future__ import annotations
 
+import json
+import re
 import warnings
 
 import cv2
@@ -13,6 +15,7 @@ from service.main import create_app
 from service.settings import Settings
 from service.store import Store, model_id
 from tests.api_helpers import wait_built
+from tests.test_mesh_check import cube_stl
 
 with warnings.catch_warnings():  # starlette would like httpx2; the test extra installs httpx
     warnings.filterwarnings("ignore", message="Using `httpx` with `starlette.testclient`")
@@ -117,3 +120,40 @@ def test_models_persist_and_unfinished_builds_resume_after_restart(settings, spr
         info = c.get(f"/models/{mid}").json()
         assert info["status"] == "ready" and info["n_templates"] > 0
         assert c.get(f"/models/{mid}/templates/0.png").status_code == 200
+
+
+HOLE_FRACTION = 0.3  # the "mesh missing 30 % of its faces"
+
+
+def _watertight_warnings(warnings: list[str]) -> list[str]:
+    return [w for w in warnings if "not watertight" in w]
+
+
+def test_a_mesh_with_holes_says_so_at_upload_and_in_its_estimates(settings, frame):
+    image, camera = frame
+    with TestClient(create_app(settings)) as c:
+        infos = {}
+        for name, holes in (("holed", HOLE_FRACTION), ("closed", 0.0)):
+            r = c.post("/models", files={"file": (f"{name}.stl", cube_stl(holes))})
+            assert r.status_code == 202, r.text
+            infos[name] = r.json()
+        holed, closed = infos["holed"], infos["closed"]
+        said = _watertight_warnings(holed["warnings"])
+        assert len(said) == 1, holed["warnings"]
+        open_edges = int(re.search(r"\(([\d,]+) open edges\)", said[0]).group(1).replace(",", ""))
+        assert open_edges > 0
+        assert "fill the holes" in said[0]  # how to fix it, not only what is wrong
+        assert _watertight_warnings(closed["warnings"]) == []  # the twin without holes: nothing said
+        for info in (holed, closed):  # the build gets on with it: a warning, not a refusal
+            assert wait_built(c, info["id"])["status"] == "ready"
+            assert c.get(f"/models/{info['id']}").json()["warnings"] == info["warnings"]
+
+        def estimate_warnings(mid: str) -> list[str]:
+            r = c.post(f"/models/{mid}/estimate", files={"image": ("0001.png", image)},
+                       data={"camera": json.dumps(camera), "options": json.dumps({"distance_mm": 500})})
+            assert r.status_code == 200, r.text
+            assert r.json()["found"] is False  # a sprayer render holds no cube
+            return r.json()["warnings"]
+
+        assert _watertight_warnings(estimate_warnings(holed["id"])) == said  # the answer names the mesh
+        assert _watertight_warnings(estimate_warnings(closed["id"])) == []

@@ -8,7 +8,7 @@ import pytest
 import trimesh
 
 from service import decode
-from service.decode import decode_image, decode_mesh
+from service.decode import decode_image, decode_mesh, inspect_mesh
 from service.errors import ServiceError, TooLargeError, UnprocessableError, UnsupportedMediaError
 
 RNG_SEED = 7
@@ -68,6 +68,28 @@ def test_open_mesh_is_accepted():
     open_box = trimesh.Trimesh(box.vertices, box.faces[:-2])
     mesh = decode_mesh(_export(open_box, "stl"), "open.stl")
     assert not mesh.is_watertight and len(mesh.faces) == 10
+
+
+def test_mesh_facts_count_the_rims_of_holes_across_the_files_duplicate_vertices():
+    # STL repeats every vertex per face: the edges only meet once decode_mesh has merged them
+    closed = inspect_mesh(_export(_box(), "stl"), "box.stl")
+    assert closed.watertight and closed.open_edges == closed.nonmanifold_edges == 0
+    assert closed.extents_mm == pytest.approx((10.0, 20.0, 30.0))
+    box = _box()
+    holed = inspect_mesh(_export(trimesh.Trimesh(box.vertices, box.faces[:-2]), "stl"), "open.stl")
+    assert not holed.watertight
+    assert holed.open_edges == 4 and holed.nonmanifold_edges == 0  # one square side gone: its 4 sides open
+
+
+def test_a_double_sided_export_is_closed_and_three_faces_on_an_edge_are_not():
+    box = _box()
+    both_sides = trimesh.Trimesh(box.vertices, np.vstack([box.faces, box.faces[:, ::-1]]), process=False)
+    assert not both_sides.is_watertight  # trimesh counts each edge 4 times ...
+    assert decode.mesh_facts(both_sides).watertight  # ... but no hole opens in a silhouette (T-LESS's models)
+    fin = trimesh.Trimesh(np.vstack([box.vertices, [[0.0, 0.0, 40.0]]]),
+                          np.vstack([box.faces, [[*box.edges_unique[0], 8]]]), process=False)
+    facts = decode.mesh_facts(fin)  # a fin on one of the box's edges: 3 faces there, 2 open edges
+    assert not facts.watertight and facts.nonmanifold_edges == 1 and facts.open_edges == 2
 
 
 @pytest.mark.parametrize("filename", ["part.step", "part", "part.stl.txt"])
