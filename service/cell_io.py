@@ -95,6 +95,15 @@ def check_image_size(cam: CellCamera, image_size: tuple[int, int], name: str | N
             "unscaled frames, or register the camera again with the intrinsics of this image size")
 
 
+def snap_warnings(cam: Camera, opts: Options | None = None) -> list[str]:
+    """One warning per rotation of the request (the inline camera's extrinsics, ``options.robot_pose``)
+    that was off orthonormal enough to be snapped visibly (``cell.ROTATION_SILENT``)."""
+    poses = [("camera's T_base_cam", getattr(cam, "T_base_cam", None)),
+             ("camera's T_flange_cam", getattr(cam, "T_flange_cam", None)),
+             ("options.robot_pose", None if opts is None else opts.robot_pose)]
+    return [w for what, T in poses if T is not None and (w := T.snap_warning(what)) is not None]
+
+
 def grasps_of(records: list[dict[str, Any]]) -> list[Grasp]:
     specs = [GraspSpec.model_validate(r) for r in records]
     return [Grasp(s.name, s.T_obj_grasp.matrix(), np.asarray(s.approach_axis, float)) for s in specs]
@@ -166,7 +175,7 @@ def estimate_result(record: dict[str, Any], bank: TemplateBank, data: bytes, cam
     kwargs["appearance"] = appearance
     out = estimate_image(bank, data, cam.to_intrinsics(), max_pixels=max_pixels, check=check, **kwargs)
     result = EstimateResult.from_output(record["id"], out)
-    result.warnings = ModelInfo.from_record(record).warnings
+    result.warnings = ModelInfo.from_record(record).warnings + snap_warnings(cam, opts)
     if cell:
         result = add_cell_frames(result, bank, cam, opts, grasps or [], camera_name)
     return result

@@ -15,9 +15,17 @@ from datetime import datetime
 from typing import Annotated, Any, Literal, TypeVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
-from service.cell import extent_warnings, nearest_rotation, rigid, watertight_warnings
+from service.cell import extent_warnings, nearest_rotation, rigid, snap_warning, watertight_warnings
 from service.errors import UnprocessableError, validation_sentence
 from service.pipeline import EstimateOutput, PoseCandidate, RefinedPose
 from service.vision.estimate.plane import PLANE_TOLERANCE_MM
@@ -283,7 +291,9 @@ class EstimateResult(BaseModel):
     grasps: list[PlacedGraspJSON] = Field(
         default_factory=list, description="the model's grasps where the part was found (empty when not found "
         "or none registered), most reachable first: by approach_angle_deg")
-    warnings: list[str] = Field(default_factory=list, description="the model's upload warnings (ModelInfo)")
+    warnings: list[str] = Field(default_factory=list, description="the model's upload warnings (ModelInfo), "
+                                "and a rotation of the request (options.robot_pose, the inline camera's "
+                                "extrinsics) off orthonormal by up to 0.01, snapped to the nearest rotation")
     verdict: VerdictJSON | None = Field(None, description="why found is true or false, with its evidence")
     instances: list[InstanceJSON] = Field(
         default_factory=list, description="the found instances (at most options.max_instances), distinct, "
@@ -436,15 +446,30 @@ CAMERA_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
 class Transform(_Request):
     """A rigid transform ``T_<to>_<from>`` as a client sends it: ``{"R": 3x3 row-major, "t_mm": [x, y, z]}``.
 
-    R must be a rotation within ``service.cell.ROTATION_ATOL`` and is snapped to the nearest one."""
+    R must be a rotation within ``service.cell.ROTATION_ATOL`` and is snapped to the nearest one;
+    ``snap_warning`` says so when the R sent was off by more than ``ROTATION_SILENT``."""
 
-    R: list[Vec3] = Field(description="3x3 rotation, row-major", min_length=3, max_length=3)
+    R: list[Vec3] = Field(description="3x3 rotation, row-major (off orthonormal by up to 0.01, max |R R^T - "
+                          "I|: snapped to the nearest rotation)", min_length=3, max_length=3)
     t_mm: Vec3 = Field(description="translation, mm")
+    _R_sent: list[list[float]] | None = PrivateAttr(None)  # R as sent, when the snap changed it
 
     @field_validator("R")
     @classmethod
     def _rotation(cls, v: list[list[float]]) -> list[list[float]]:
-        return nearest_rotation(v).tolist()
+        nearest_rotation(v)  # ValueError beyond ROTATION_ATOL, or a reflection
+        return v
+
+    @model_validator(mode="after")
+    def _snap(self) -> Transform:
+        snapped = nearest_rotation(self.R).tolist()
+        if snapped != self.R:
+            self._R_sent, self.R = self.R, snapped
+        return self
+
+    def snap_warning(self, what: str) -> str | None:
+        """A warning that ``what`` (e.g. "options.robot_pose") had its R snapped, else None."""
+        return None if self._R_sent is None else snap_warning(what, self._R_sent, self.R)
 
     def matrix(self) -> np.ndarray:
         """(4, 4) float64 homogeneous transform, mm."""
@@ -619,6 +644,10 @@ class ReferenceAdded(BaseModel):
     calibration_progress: float | None = Field(
         None, description="0..1, the share of the stored photos searched by the running calibration (1 when "
                           "calibrated; null when none is due)")
+    warnings: list[str] = Field(
+        default_factory=list, description="what the post was accepted with but should fix: a pose's (or the "
+        "inline camera's extrinsics') R off orthonormal by up to 0.01 (max |R R^T - I|), snapped to the "
+        "nearest rotation; empty when nothing")
 
 
 class References(BaseModel):

@@ -142,3 +142,37 @@ def test_extent_warnings_suggest_the_unit_that_makes_a_typical_part(extents_mm, 
     else:
         assert len(w) == 1 and f"did you mean {suggestion}?" in w[0]
         assert w[0].startswith("extents ")
+
+
+# Linemod-Occluded's published ground truth (lmo_dev/gt.jsonl, images/000047.png, lmo_08, the driller):
+# max |R R^T - I| = 0.0020, a 422 while rotations were held to 1e-3.
+LMO_R = [[0.77882393, 0.62415451, 0.07664882],
+         [0.46645237, -0.49163726, -0.73663738],
+         [-0.42164912, 0.60878461, -0.67337539]]
+
+
+def test_a_published_ground_truth_off_orthonormal_is_snapped_with_a_warning():
+    from scipy.spatial.transform import Rotation
+
+    from service.cell import ROTATION_ATOL, axes_moved_deg, rotation_error, snap_warning
+
+    R = np.asarray(LMO_R)
+    err = rotation_error(R)
+    assert 1e-3 < err < ROTATION_ATOL
+    snapped = nearest_rotation(R)
+    np.testing.assert_allclose(snapped @ snapped.T, np.eye(3), atol=1e-9)
+    assert np.linalg.det(snapped) == pytest.approx(1.0, abs=1e-9)
+    # the known answer: the closest rotation in the Frobenius norm, as scipy's from_matrix finds it
+    np.testing.assert_allclose(snapped, Rotation.from_matrix(R).as_matrix(), atol=1e-9)
+    # R ~ Q (I + S), S symmetric, |S| ~ err / 2: no axis turns by more than ~err rad
+    moved = axes_moved_deg(R, snapped)
+    assert 0.0 < moved < np.degrees(err)
+    warning = snap_warning("pose", R, snapped)
+    assert warning.startswith("pose's R was off orthonormal by 0.002 (max |R R^T - I|, accepted up to 0.01)")
+    assert snap_warning("pose", snapped, snapped) is None
+
+
+def test_beyond_the_tolerance_a_rotation_is_still_refused():
+    R = np.asarray(LMO_R) @ np.diag([1.0, 1.0, 1.01])  # max |R R^T - I| = 0.0128
+    with pytest.raises(ValueError, match=r"differs from the identity by up to 0.01\d+; allowed 0.01"):
+        nearest_rotation(R)

@@ -11,7 +11,7 @@ from starlette.concurrency import run_in_threadpool
 
 from service.api import error_responses
 from service.api.deps import CalibratorDep, ModelRecord, ReadyModel, SettingsDep, StoreDep, read_upload
-from service.cell_io import resolve_camera
+from service.cell_io import resolve_camera, snap_warnings
 from service.pipeline import operating_point
 from service.references import (
     MAX_REFERENCES,
@@ -68,7 +68,8 @@ async def post_reference(
     response.headers["Location"] = f"/models/{model.id}/references"
     return ReferenceAdded(model_id=model.id, index=out["index"], references=record["references"],
                           max_references=MAX_REFERENCES, known_fraction=appearance.known_fraction,
-                          faces_taught_by_this_view=out["faces"], **_judged(record, appearance))
+                          faces_taught_by_this_view=out["faces"], **_judged(record, appearance),
+                          warnings=[w for w in [T_cam_obj.snap_warning("pose")] if w] + snap_warnings(cam))
 
 
 @router.get("/models/{model_id}/references", response_model=References, responses=error_responses(404, 422))
