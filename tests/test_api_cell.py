@@ -136,23 +136,29 @@ def test_registered_camera_and_two_grasps_give_the_grasp_in_the_base_frame(clien
 
 # Two copies side by side, 650 mm away, turned differently (their silhouettes do not touch): each
 # instance's grasps must follow its own pose.
-T_CAM_OBJS = [rigid(R_from_euler_xyz_deg([120.0, 20.0, 35.0]), [-150.0, -50.0, 650.0]),
-              rigid(R_from_euler_xyz_deg([200.0, -30.0, 100.0]), [60.0, -20.0, 650.0])]
+COPIES_DISTANCE_MM = 650.0
+T_CAM_OBJS = [rigid(R_from_euler_xyz_deg([120.0, 20.0, 35.0]), [-150.0, -50.0, COPIES_DISTANCE_MM]),
+              rigid(R_from_euler_xyz_deg([200.0, -30.0, 100.0]), [60.0, -20.0, COPIES_DISTANCE_MM])]
+
+
+def render_copies(mesh: trimesh.Trimesh) -> bytes:
+    """PNG bytes of the L-bracket at each of ``T_CAM_OBJS`` (shaded, on a grey background)."""
+    grey = np.full((H, W), 70, np.uint8)
+    for T in T_CAM_OBJS:  # the parts are brighter than the floor and do not overlap
+        grey = np.maximum(grey, render_shaded(mesh.vertices, mesh.faces, Pose.from_matrix(T), K, (W, H)))
+    return png(grey)
 
 
 def test_every_instance_carries_the_grasps_of_its_own_pose(client, lbracket):
     """Known answer: each found copy's grasps are ``T_BASE_CAM @ T_cam_obj @ T_obj_grasp`` of the copy
     it is, most reachable first for that copy; the top level keeps the first instance's."""
-    mesh = lbracket[1]
-    grey = np.full((H, W), 70, np.uint8)
-    for T in T_CAM_OBJS:
-        grey = np.maximum(grey, render_shaded(mesh.vertices, mesh.faces, Pose.from_matrix(T), K, (W, H)))
     r = client.put("/cameras/two-parts-cam", json={**INTRINSICS, "width": W, "height": H,
                                                    "T_base_cam": transform(T_BASE_CAM)})
     assert r.status_code in (200, 201), r.text
     assert client.put(f"/models/{client.model_id}/grasps", json=GRASPS).status_code == 200
 
-    r = estimate(client, png(grey), {"name": "two-parts-cam"}, {"distance_mm": 650.0, "max_instances": 2})
+    r = estimate(client, render_copies(lbracket[1]), {"name": "two-parts-cam"},
+                 {"distance_mm": COPIES_DISTANCE_MM, "max_instances": 2})
     assert r.status_code == 200, r.text
     res = r.json()
     assert len(res["instances"]) == 2
