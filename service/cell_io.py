@@ -175,7 +175,7 @@ def estimate_result(record: dict[str, Any], bank: TemplateBank, data: bytes, cam
     kwargs["appearance"] = appearance
     out = estimate_image(bank, data, cam.to_intrinsics(), max_pixels=max_pixels, check=check, **kwargs)
     result = EstimateResult.from_output(record["id"], out)
-    result.warnings = ModelInfo.from_record(record).warnings + snap_warnings(cam, opts)
+    result.warnings = ModelInfo.from_record(record).warnings + snap_warnings(cam, opts) + result.warnings
     if cell:
         result = add_cell_frames(result, bank, cam, opts, grasps or [], camera_name)
     return result

@@ -109,10 +109,11 @@ class Options(_Request):
                                "found instances in instances (each verified on its own)")
     deadline_ms: float | None = Field(
         None, gt=0, le=MAX_DEADLINE_MS, description="time budget of this estimate, ms, counted from when the "
-        "service starts decoding the image (default: the service's POSE_DEADLINE_MS): the search is anytime, "
-        "it stops starting new work when the budget no longer leaves time to verify a candidate and answers "
-        "with the best verified result so far (deadline_reached true; verdict.reason deadline when nothing "
-        "was found)")
+        "service starts decoding the image (default: the service's POSE_DEADLINE_MS, unset: none): the "
+        "search is anytime, it stops starting new work when the budget no longer leaves time to verify a "
+        "candidate and answers with the best verified result so far (deadline_reached true, "
+        "deadline_stopped_in and candidates_checked say how far it got; verdict.reason deadline when nothing "
+        "was found). The best proposal is always checked, so an answer may come later than the budget")
     sort: Literal["score", "distance", "height"] = Field(
         "score", description="order of instances: score (verification score, highest first), distance "
         "(the part's centre nearest the camera first) or height (the part's centre highest above the "
@@ -302,6 +303,13 @@ class EstimateResult(BaseModel):
     deadline_reached: bool = Field(
         False, description="the search stopped early at the deadline (options.deadline_ms or the service's): "
         "the answer is the best verified result found by then")
+    deadline_stopped_in: Literal["edges", "search", "checks", "second pass"] | None = Field(
+        None, description="the stage the deadline stopped: search (the coarse search was cut short), checks "
+        "(fewer candidates were refined and verified than the search proposed), second pass (the fallback "
+        "proposals after the first ones failed); null when it did not")
+    candidates_checked: int = Field(
+        0, ge=0, description="candidates refined and verified for this answer (at least 1 when the search "
+        "proposed any, deadline or not)")
 
     @classmethod
     def from_output(cls, model_id: str, out: EstimateOutput) -> EstimateResult:
@@ -318,6 +326,9 @@ class EstimateResult(BaseModel):
                                     refined=None if i.refined is None else Refined.from_refined(i.refined),
                                     verdict=_verdict_json(i.verdict)) for i in out.instances],
             deadline_reached=bool(out.deadline_reached),
+            deadline_stopped_in=out.deadline_stopped_in,
+            candidates_checked=int(out.candidates_checked),
+            warnings=list(out.warnings),
         )
 
 
@@ -360,6 +371,11 @@ class ModelInfo(BaseModel):
 class Health(BaseModel):
     status: Literal["ok"]
     version: str
+    ready: bool = Field(
+        True, description="false while the process compiles or loads its kernels at start-up (state "
+        "starting): estimates are answered meanwhile, each paying for the kernels it needs; a probe that "
+        "routes frames waits for true")
+    state: Literal["starting", "ready"] = Field("ready", description="starting (the warm-up runs) or ready")
     store: Literal["disk", "redis"] = Field(
         description="the store this replica uses, and it answers (else 503): disk = the diskcache in "
         "POSE_CACHE_DIR, redis = POSE_STORE")
