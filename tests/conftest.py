@@ -28,11 +28,39 @@ def numba_kernels():
     pipeline.warm_up()
 
 
+NO_DATA = "development data not found"
+# CI sets it: a run where the data's tests skipped did not test what it says it did
+REQUIRE_DATA = os.environ.get("POSE_REQUIRE_DATA", "").lower() in ("1", "true", "yes")
+
+
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
     if not DATA_DIR.is_dir():
-        pytest.skip(f"development data not found at {DATA_DIR} (set POSE_DATA_DIR)")
+        pytest.skip(f"{NO_DATA} at {DATA_DIR} (set POSE_DATA_DIR)")
     return DATA_DIR
+
+
+def _skipped_for_data(terminalreporter) -> int:
+    return sum(NO_DATA in str(r.longrepr) for r in terminalreporter.stats.get("skipped", []))
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """One visible line when tests skipped for want of ../shared/data; with POSE_REQUIRE_DATA the run
+    fails."""
+    n = _skipped_for_data(terminalreporter)
+    if not n:
+        return
+    terminalreporter.write_line(f"{n} tests skipped: {NO_DATA} at {DATA_DIR} (set POSE_DATA_DIR)",
+                                red=REQUIRE_DATA, yellow=not REQUIRE_DATA, bold=True)
+    if REQUIRE_DATA:
+        terminalreporter.write_line("POSE_REQUIRE_DATA is set: the run fails", red=True, bold=True)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_sessionfinish(session, exitstatus):
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    if REQUIRE_DATA and reporter is not None and _skipped_for_data(reporter):
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
 
 
 @pytest.fixture(scope="session")

@@ -38,11 +38,24 @@ def test_clutter_scene_is_either_right_or_not_found(sprayer_bank, data_dir, imag
         assert axis_err <= FOUND_POSE_AXIS_DEG
     else:
         assert out.coarse is None and out.refined is None
+        # refused, not unseen: a candidate was checked and the verdict gave its reason
+        assert out.verdict.reason != "no_candidate" and out.candidates
     assert (out.refined is not None) == (refine and out.found)
     assert out.verdict.found == out.found and out.verdict.reason
     if out.verdict.reason != "no_candidate":  # a candidate was refined and its evidence measured
         assert set(verdict.FEATURES) - {*verdict.VISIBLE_FEATURES, *verdict.TAUGHT_FEATURES} <= set(
             out.verdict.evidence)
+
+
+def test_the_same_bank_finds_the_clean_render_and_it_is_right(sprayer_bank, data_dir, paper_gt):
+    """The positive twin of the clutter test: the verdict that refuses the clutter renders' wrong poses
+    takes the paper render's right one."""
+    img = cv2.imread(str(data_dir / "paper" / paper_gt["image"]), cv2.IMREAD_GRAYSCALE)
+    out = pipeline.estimate(sprayer_bank, img, Intrinsics.from_K(np.array(paper_gt["K"])))
+    assert out.found and out.verdict.reason == "found"
+    R, t = np.array(paper_gt["R"]), np.array(paper_gt["t_mm"])
+    axis_err = np.degrees(np.arccos(np.clip(out.refined.pose.R[:, 1] @ R[:, 1], -1, 1)))
+    assert np.linalg.norm(out.refined.pose.t_mm - t) <= FOUND_POSE_T_MM and axis_err <= FOUND_POSE_AXIS_DEG
 
 
 @pytest.fixture(scope="module")
@@ -65,6 +78,7 @@ def test_silhouette_fitted_to_checker_squares_is_not_found(lbracket_bank, data_d
         assert np.linalg.norm(out.refined.pose.t_mm - np.array(g["t_mm"])) <= FOUND_POSE_T_MM
     else:
         assert out.coarse is None and out.refined is None
+        assert out.verdict.reason != "no_candidate" and out.candidates  # checked and refused
 
 
 def test_verdict_reads_the_full_resolution_score_not_the_candidates(sprayer_bank, data_dir, paper_gt):
