@@ -16,7 +16,7 @@ clients   two threads estimating at once in one process (as uvicorn's threadpool
           frames per second and latency.
 
 Latencies are ``timing_ms`` (``estimate``'s own clock, decoding excluded) on this machine: run it
-on a quiet one (``nproc`` cores; the README's table is 2 cores).
+on a quiet one (``nproc`` cores; docs/benchmarks.md's table is 2 cores).
 """
 
 from __future__ import annotations
