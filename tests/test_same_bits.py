@@ -1,5 +1,5 @@
 """Faster paths that must give their reference's answer bit for bit: the coarse search's compiled
-read-out (``chamfer.sample_mean`` against ``sample`` and numpy's mean), ``coarse.evaluate``'s one-matmul
+read-out (``chamfer.sample_mean`` against ``sample`` and numpy's mean), ``level_b.evaluate``'s one-matmul
 path against its numpy one, and the evidence's front-face raster against the whole mesh's."""
 
 from __future__ import annotations
@@ -39,9 +39,10 @@ def test_sample_mean_is_samples_mean_bit_for_bit(P):
 
 
 def test_fast_evaluate_equals_the_numpy_evaluate(l_block_bank):
-    from service.vision.estimate import coarse
+    from service.vision.estimate import level_b
     from service.vision.geometry.camera import Intrinsics
     from service.vision.geometry.frames import R_from_rotvec
+    from service.vision.reference.evaluate import evaluate_numpy
 
     bank = l_block_bank
     rng = np.random.default_rng(5)
@@ -51,17 +52,11 @@ def test_fast_evaluate_equals_the_numpy_evaluate(l_block_bank):
     views = rng.integers(0, bank.n_templates, M)
     Rs = np.stack([R_from_rotvec(rng.normal(size=3)) for _ in range(M)])
     ts = np.column_stack([rng.uniform(-80, 80, M), rng.uniform(-60, 60, M), rng.uniform(350, 700, M)])
-    was = coarse.FAST_EVALUATE
-    try:
-        for n_points in (80, 160):
-            out = {}
-            for fast in (False, True):
-                coarse.FAST_EVALUATE = fast
-                out[fast] = coarse.evaluate(bank, views, Rs, ts, K, dtt, n_points, 3.0, 8.0)
-            for a, b in zip(out[False], out[True], strict=True):
-                assert np.array_equal(a, b)
-    finally:
-        coarse.FAST_EVALUATE = was
+    for n_points in (80, 160):
+        fast = level_b.evaluate(bank, views, Rs, ts, K, dtt, n_points, 3.0, 8.0)
+        slow = evaluate_numpy(bank, views, Rs, ts, K, dtt, n_points, 3.0, 8.0)
+        for a, b in zip(slow, fast, strict=True):
+            assert np.array_equal(a, b)
 
 
 def test_front_face_raster_equals_the_whole_mesh_raster(sprayer_mesh):
@@ -71,29 +66,25 @@ def test_front_face_raster_equals_the_whole_mesh_raster(sprayer_mesh):
 
     bank = type("B", (), {"vertices_mm": np.asarray(sprayer_mesh.vertices, float),
                           "faces": np.asarray(sprayer_mesh.faces)})
+    from service.vision.geometry.render import rasterise_roi
     from service.vision.geometry.silhouette import mesh_topology
 
     assert mesh_topology(bank.vertices_mm, bank.faces).closed  # else only the whole mesh is rasterised
     intr = Intrinsics(1100.0, 1100.0, 639.5, 479.5)
     rng = np.random.default_rng(11)
-    was = ev.FRONT_FACES_ONLY
-    try:
-        for _ in range(6):
-            pose = Pose(R_from_rotvec(rng.normal(size=3)), np.array([*rng.uniform(-40, 40, 2), 450.0]))
-            out = {}
-            for front in (False, True):
-                ev.FRONT_FACES_ONLY = front
-                out[front] = ev.face_ids_roi(bank, pose, intr, (1280, 960), ev.BAND_MAX_PX + 2)
-            assert out[True][2] == out[False][2]
-            assert np.array_equal(out[True][0], out[False][0])
-            assert np.array_equal(out[True][1], out[False][1])
-            assert (out[True][0] >= 0).sum() > 1000
-    finally:
-        ev.FRONT_FACES_ONLY = was
+    for _ in range(6):
+        pose = Pose(R_from_rotvec(rng.normal(size=3)), np.array([*rng.uniform(-40, 40, 2), 450.0]))
+        fid, invz, origin = ev.face_ids_roi(bank, pose, intr, (1280, 960), ev.BAND_MAX_PX + 2)
+        invz_all, fid_all, origin_all = rasterise_roi(bank.vertices_mm, bank.faces, pose, intr, (1280, 960),
+                                                      margin_px=ev.BAND_MAX_PX + 2, inverse_depth=True)
+        assert origin == origin_all
+        assert np.array_equal(fid, fid_all)
+        assert np.array_equal(invz, invz_all)
+        assert (fid >= 0).sum() > 1000
 
 
 def test_block_ids_are_numpys_unique_rows():
-    from service.vision.estimate.coarse import _block_ids
+    from service.vision.estimate.level_a import _block_ids
 
     rng = np.random.default_rng(3)
     for n in (1, 2, 17, 400, 3000):
@@ -105,7 +96,7 @@ def test_block_ids_are_numpys_unique_rows():
 
 
 def test_window_grid_is_nearest_first_with_row_order_ties():
-    from service.vision.estimate.coarse import _window_grid
+    from service.vision.estimate.level_b import _window_grid
 
     gu, gv = _window_grid(4, 2)
     # brute force: every (du, dv) on the stride grid, sorted by squared distance, ties in row order

@@ -32,8 +32,8 @@ import cv2
 import numpy as np
 
 from service.vision.build.templates import TemplateBank
-from service.vision.estimate.coarse import Hypothesis
 from service.vision.estimate.regions import MASK_PX, silhouettes
+from service.vision.estimate.search import Hypothesis
 from service.vision.memo import Memo
 
 GRID = 16  # silhouette grid per placement (MASK_PX / 4)
