@@ -1,0 +1,79 @@
+"""A supporting plane in the camera frame and the geometry of a part resting on it: how high its lowest
+point and its reference point lie, the resting frame, and where a viewing ray puts a resting part.
+
+Frames: camera (OpenCV), mm. The plane: points p with ``n . p = d_mm``, ``n`` unit, towards the camera.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose
+
+
+class Part(Protocol):
+    """What the plane's geometry reads of a part (a ``TemplateBank`` is one): its mesh's vertices (V, 3)
+    and its reference point ``centre_obj`` (3,), mm, object frame."""
+
+    vertices_mm: np.ndarray
+    centre_obj: np.ndarray
+
+MIN_RAY_COS = 0.05  # rays meeting the plane at less than ~3 deg are not searched (the far horizon)
+
+
+@dataclass(frozen=True)
+class Plane:
+    """A plane in the camera frame: points p (mm) with ``normal . p = d_mm``; ``normal`` (3,) unit,
+    pointing out of the surface towards the camera (``d_mm < 0`` for a surface in front of it)."""
+
+    normal: np.ndarray
+    d_mm: float
+
+    def height_mm(self, p_cam: np.ndarray) -> np.ndarray:
+        """(N, 3) camera-frame points -> (N,) signed heights above the plane, mm."""
+        return np.asarray(p_cam, float) @ self.normal - self.d_mm
+
+
+def rest_gap_mm(bank: Part, pose: Pose, plane: Plane) -> float:
+    """Height of the posed part's lowest point above the plane, mm: 0 resting on it, > 0 floating,
+    < 0 going through it."""
+    return float(plane.height_mm(pose.apply(np.asarray(bank.vertices_mm, float))).min())
+
+
+def centre_height_mm(bank: Part, pose: Pose, plane: Plane) -> float:
+    """Height of the part's reference point ``centre_obj`` above the plane, mm (``sort: height``)."""
+    return float(plane.height_mm(pose.apply(np.asarray(bank.centre_obj, float)[None]))[0])
+
+
+def R_cam_rest(plane: Plane) -> np.ndarray:
+    """A rotation whose third column is the plane's normal (the resting frame's +z), camera frame."""
+    n = np.asarray(plane.normal, float)
+    e = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = e - (e @ n) * n
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(n, x), n])
+
+
+def rest_heights_mm(bank: Part, R_rest_obj: np.ndarray) -> np.ndarray:
+    """(S,) height of ``centre_obj`` above the plane for each resting rotation (its lowest vertex at 0)."""
+    V = np.asarray(bank.vertices_mm, float)
+    up = np.asarray(R_rest_obj, float)[:, 2, :]  # (S, 3) the resting frame's +z in the object frame
+    return up @ np.asarray(bank.centre_obj, float) - (V @ up.T).min(axis=0)
+
+
+def placements(R: np.ndarray, h_mm: np.ndarray, uv: np.ndarray, bank: Part, intr: Intrinsics,
+               plane: Plane) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 3, 3) rotations with centre heights (M,) placed at pixels uv (M, 2) -> ((M, 3) t_cam_obj, (M,)
+    bool: the ray meets the plane in front of the camera). The reference point ``centre_obj`` lies on
+    the ray through uv at height ``h_mm`` above the plane."""
+    r = np.stack([(uv[:, 0] - intr.cx) / intr.fx, (uv[:, 1] - intr.cy) / intr.fy, np.ones(len(uv))], 1)
+    nr = r @ plane.normal
+    ok = nr < -MIN_RAY_COS * np.linalg.norm(r, axis=1)
+    lam = (plane.d_mm + h_mm) / np.where(ok, nr, -1.0)
+    ok &= lam > 0
+    c_cam = lam[:, None] * r
+    return c_cam - R @ np.asarray(bank.centre_obj, float), ok
