@@ -12,7 +12,6 @@ import pytest
 from service.vision.estimate.chamfer import sample, sample_with_grad, segment_distance_tensor
 from service.vision.estimate.edges import Segments, detect_segments
 from service.vision.estimate.refine import (
-    PoseParams,
     _project_jac,
     border_points,
     dt_residuals,
@@ -24,6 +23,7 @@ from service.vision.estimate.refine import (
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, R_from_rotvec, canonical_spin, rotation_angle_deg
 from service.vision.geometry.render import render, render_shaded
+from service.vision.geometry.rotations import PoseParams
 from service.vision.geometry.silhouette import Border
 from tests.lens import distort_image
 from tests.tolerances import (

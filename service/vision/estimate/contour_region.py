@@ -23,6 +23,7 @@ from service.vision.estimate.colour_prior import density, lab_bins
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
 from service.vision.geometry.render import rasterise_roi
+from service.vision.geometry.rotations import PoseParams
 
 REACH_PX = 8.0  # a border point's step is looked for this far each way along its normal
 BAND_PX = 10  # width of the inside and outside bands whose colours are compared
@@ -52,7 +53,7 @@ def region_contour_refine(bank, pose: Pose, image_bgr: np.ndarray, intr: Intrins
         L = _inside_log_odds(image_bgr[v0:v0 + h, u0:u0 + w], mask)
         if L is None:
             return pose
-        params = rf.PoseParams(pose, bank.centre_obj, bank.symmetry_axis_obj, distance_mm)
+        params = PoseParams(pose, bank.centre_obj, bank.symmetry_axis_obj, distance_mm)
         uv, theta, _, _ = rf.project_border(params, np.zeros(params.n), border, ideal, with_jac=False)
         origin = np.array([u0, v0], float)
         normal, target, good = steps_along_normals(L, mask, uv - origin, theta)
@@ -64,7 +65,7 @@ def region_contour_refine(bank, pose: Pose, image_bgr: np.ndarray, intr: Intrins
     return pose
 
 
-def _solved(params: rf.PoseParams, border, intr: Intrinsics, match: rf.LineMatch) -> Pose:
+def _solved(params: PoseParams, border, intr: Intrinsics, match: rf.LineMatch) -> Pose:
     res = rf._solve(lambda x: rf.line_residuals(params, x, border, intr, match), params, "soft_l1",
                     F_SCALE_PX, MAX_ITER, rf.LINE_TOL)
     return params.pose(res.x)

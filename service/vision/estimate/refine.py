@@ -48,6 +48,7 @@ from service.vision.estimate.interior import unexplained_edge_ratio
 from service.vision.estimate.lsq import LsqResult, least_squares
 from service.vision.geometry.camera import Intrinsics, project_distorted
 from service.vision.geometry.frames import Pose, canonical_spin, rotation_angle_deg
+from service.vision.geometry.rotations import PoseParams
 from service.vision.geometry.silhouette import Border, border_with_tangents
 
 ROI_MARGIN_PX = 30  # edges are detected in the bbox of the projected model plus this margin
@@ -104,108 +105,6 @@ def border_points(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, 
     supersample = BORDER_SUPERSAMPLE if supersample is None else supersample
     return border_with_tangents(bank.vertices_mm, bank.faces, pose, intr, image_size, spacing_px=spacing_px,
                                 supersample=supersample)
-
-
-# --- pose parametrisation -----------------------------------------------------------------------
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(3,) -> (3, 3) cross-product matrix."""
-    x, y, z = (float(c) for c in v)
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-
-
-_I3 = np.eye(3)
-
-
-def _exp_so3(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation exp([w]x) and the left Jacobian J_l(w) (d exp(w) v = -[exp(w) v]x J_l dw)."""
-    th = float(np.linalg.norm(w))
-    W = _skew(w)
-    WW = W @ W
-    if th < 1e-8:
-        return _I3 + W + 0.5 * WW, _I3 + 0.5 * W + WW / 6.0
-    a = math.sin(th) / th
-    b = (1 - math.cos(th)) / th ** 2
-    c = (th - math.sin(th)) / th ** 3
-    return _I3 + a * W + b * WW, _I3 + b * W + c * WW
-
-
-class PoseParams:
-    """x -> pose about the start pose: R = exp([B x_r]) R0, centre c moves by the translation.
-
-    ``B`` is (3, 3) (free rotation) or (3, 2) (perpendicular to a symmetry axis, camera frame).
-    Translation parameters are the centre's camera-frame shift in mm: (dx, dy, dz), or (dx, dy)
-    with the object origin's camera z held at ``distance_mm``.
-    """
-
-    def __init__(self, pose0: Pose, centre_obj: np.ndarray, axis_obj: np.ndarray | None = None,
-                 distance_mm: float | None = None):
-        self.R0 = np.asarray(pose0.R, float)
-        self.t0 = np.asarray(pose0.t_mm, float)
-        self.c = np.asarray(centre_obj, float)
-        self.c0 = self.R0 @ self.c + self.t0
-        if axis_obj is None:
-            self.B = np.eye(3)
-        else:
-            a = self.R0 @ (np.asarray(axis_obj, float) / np.linalg.norm(axis_obj))
-            e = np.eye(3)[int(np.argmin(np.abs(a)))]
-            b1 = np.cross(a, e)
-            b1 /= np.linalg.norm(b1)
-            self.B = np.stack([b1, np.cross(a, b1)], 1)
-        self.nr = self.B.shape[1]
-        self.distance_mm = distance_mm
-        self.n = self.nr + (2 if distance_mm is not None else 3)
-
-    def pose(self, x: np.ndarray) -> Pose:
-        return self._pose_jac(x)[0]
-
-    def _pose_jac(self, x: np.ndarray):
-        """Pose at x; and, for the Jacobian, ``dR`` pieces: J_l @ B and the centre shift."""
-        x = np.asarray(x, float)
-        w = self.B @ x[:self.nr]
-        E, Jl = _exp_so3(w)
-        R = E @ self.R0
-        JB = Jl @ self.B  # (3, nr)
-        c_cam = self.c0.copy()
-        c_cam[0] += x[self.nr]
-        c_cam[1] += x[self.nr + 1]
-        Rc = R @ self.c
-        dz_dr = np.zeros(self.nr)
-        if self.distance_mm is None:
-            c_cam[2] += x[self.nr + 2]
-        else:
-            c_cam[2] = self.distance_mm + Rc[2]
-            dz_dr = (-_skew(Rc) @ JB)[2]
-        t = c_cam - Rc
-        return Pose(R, t), JB, dz_dr
-
-    def points(self, x: np.ndarray, p_obj: np.ndarray, with_jac: bool):
-        """Camera-frame points (M, 3) and, with ``with_jac``, d p_cam / d x (M, 3, n), else None."""
-        if with_jac:
-            return self.points_and_jac(x, p_obj)
-        pose = self.pose(x)
-        return p_obj @ pose.R.T + pose.t_mm, None
-
-    def points_and_jac(self, x: np.ndarray, p_obj: np.ndarray):
-        """Camera-frame points (M, 3) and d p_cam / d x (M, 3, n)."""
-        pose, JB, dz_dr = self._pose_jac(x)
-        q = (p_obj - self.c) @ pose.R.T  # R (p - c)
-        pc = q + (pose.R @ self.c + pose.t_mm)
-        J = np.zeros((len(p_obj), 3, self.n))
-        # d(exp(w) v)/dw = -[v]x J_l: column k is (J_l B)[:, k] x q, written out (np.cross's axis
-        # shuffling cost more than the products, ~3 ms a frame).
-        a0, a1, a2 = JB[0][None, :], JB[1][None, :], JB[2][None, :]
-        q0, q1, q2 = q[:, 0:1], q[:, 1:2], q[:, 2:3]
-        J[:, 0, :self.nr] = a1 * q2 - a2 * q1
-        J[:, 1, :self.nr] = a2 * q0 - a0 * q2
-        J[:, 2, :self.nr] = a0 * q1 - a1 * q0
-        J[:, 2, :self.nr] += dz_dr
-        J[:, 0, self.nr] = 1.0
-        J[:, 1, self.nr + 1] = 1.0
-        if self.distance_mm is None:
-            J[:, 2, self.nr + 2] = 1.0
-        return pc, J
 
 
 def _project_jac(pc: np.ndarray, intr: Intrinsics, Jp: np.ndarray | None = None):
