@@ -2,14 +2,11 @@
 
 On a textured floor the chamfer cost of texture is lower than that of a partly hidden true outline, so
 ranking by chamfer cost loses the part; a person finds a single-coloured part by its region instead.
-Here the image (at ``WORK_WIDTH`` px wide) is smoothed by mean shift, split into pixel-connected
-regions of near-equal colour, and those are merged hierarchically, weakest shared boundary first (the
-mean Lab contrast across the boundary: a smoothly shaded part's bands merge before the part meets its
-floor), every merge being a candidate region, as in selective search. A candidate whose area fits the
-part's projected area over the distance range is compared with every template's silhouette
+Every node of the image's region hierarchy (``segmentation``) is a candidate region. A candidate whose
+area fits the part's projected area over the distance range is compared with every template's silhouette
 (``Silhouettes``, rasterised once per bank): shape descriptors first (elongation, solidity), then the
 intersection over union of the best templates placed on the region (depth from the area ratio,
-in-plane angle from the principal axes), giving ``coarse.Hypothesis`` proposals ranked by IoU.
+in-plane angle from the principal axes), giving ``search.Hypothesis`` proposals ranked by IoU.
 ``refine_on_boundary`` then runs level B and the polish on the region's own boundary only (a clean
 edge map: the floor's texture inside it does not count).
 """
@@ -20,20 +17,20 @@ import heapq
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numba as nb
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from service.vision.bank import TemplateBank, view_neighbours
 from service.vision.deadline import NO_DEADLINE, Deadline, RunningMean
 from service.vision.estimate.chamfer import distance_tensor, quantised
-from service.vision.estimate.coarse import Hypothesis, SearchParams, local_scan, polish
 from service.vision.estimate.colour_prior import likelihood
 from service.vision.estimate.edges import Segments
+from service.vision.estimate.level_b import local_scan, polish
+from service.vision.estimate.search import Hypothesis, SearchParams
+from service.vision.estimate.segmentation import WORK_WIDTH, Regions, node_means, region_mask, segment, shrink
 from service.vision.estimate.shapes import (
     CANON_PX,
     ROUND_ELONG,
@@ -48,11 +45,6 @@ from service.vision.geometry.frames import Pose, Rz
 from service.vision.geometry.render import rasterise_roi
 from service.vision.memo import Memo
 
-WORK_WIDTH = 320  # px: the segmentation's image width (1/4 of 1280, 1/2 of 640)
-MS_SP, MS_SR = 5, 12  # mean shift's spatial and colour radii (working px, Lab-ish units of BGR)
-LINK_DE = 4.0  # neighbouring pixels closer than this (Lab, after mean shift) start in one region
-MAX_MERGE_DE = 45.0  # regions are not merged across a boundary contrast above this
-SPECK_PX = 16.0  # working px: a region this small merges at a contrast discounted by its size
 MASK_PX = 64  # template silhouettes are rasterised on MASK_PX x MASK_PX
 AREA_SLACK = (0.35, 1.3)  # a region may hold this fraction of the smallest .. largest projected area
 PER_REGION = 3  # proposals kept per region (distinct poses): silhouettes are ambiguous
@@ -65,27 +57,8 @@ DISTANCE_SLACK = 1.25  # a given distance: the part's reference point lies withi
 # cylinder's or box's region is fitted by a revolved part's side view at IoU ~0.9 too, but a cylinder
 # fits it better. Regions whose best part IoU is under best generic IoU + LOOKALIKE_MARGIN propose nothing.
 LOOKALIKE_GATE = True
-LOOKALIKE_MARGIN = 0.0  # IoU; 0.0, 0.01, 0.02, 0.03 measured (session 13)
-# Whether a dropped region's place among the ``n_out`` proposals goes to the next region (True) or the
-# gate only removes proposals from the ungated list (False: never a proposal the gate-off run lacks).
-# Refill proposed more truths on lmo_dev (68 -> 77 queries) but also a wrong L-bracket that the
-# occlusion verdict accepted on clutter2 (wrong found 0 -> 1); removing only adds no wrong found.
-LOOKALIKE_REFILL = False
-# A taught part's segmentation: the boundary contrast between two initial regions is scaled by
-# 1 - GUIDED_MERGE x the lower of their mean colour likelihoods (``segment``); 0: off. Off: on lmo_dev (4
-# reference images) it makes a region of the can's visible pixels (IoU >= 0.6) on 9 of 21 images instead
-# of 7, but the new regions' proposals are also found wrong: right / wrong 56 / 0 -> 61 / 1 at 0.8 (the can
-# 27 deg off at 0.985), 57 / 2 at 0.5 (the glue 280 px off at 0.982).
-GUIDED_MERGE = 0.0
+LOOKALIKE_MARGIN = 0.0  # IoU (docs/detection-history.md, session 13)
 GATE_CHUNK = 16  # regions gated per matrix product (the next ones to reach the front)
-# A region's outline (``boundary_segments``) through its edge (``_edge_lines``) rather than through its
-# boundary pixels' centres (``_chords``), which make it a pixel small all round. Right, but off: the refined
-# proposals' depth improves (lmo_dev, 19 proposals near the truth: x 1.048 -> x 1.021 the truth's; a flat part
-# on a checker floor x 1.023 -> x 1.000), the found answers' less (x 1.030 -> x 1.022), and which candidates
-# pass the operating point churns: with ``RIVALS``, right / wrong 64 / 0 -> 62 / 0 (6 reference images),
-# 53 / 0 -> 53 / 0 (4), 55 / 0 -> 59 / 2 (10: the can 21 px off at 0.9835, the egg box 70 px off at
-# 0.9818). The cat's truths at 1134 and 1198 mm are found with it (inside the default range).
-OUTLINE_ON_EDGE = False
 
 
 @dataclass(frozen=True)
@@ -167,135 +140,6 @@ def _solidity(mask: np.ndarray, area: float) -> float:
 # --- segmentation ----------------------------------------------------------------------------------
 
 
-@dataclass
-class Regions:
-    labels: np.ndarray  # (h, w) int32 initial region of each working pixel
-    scale: float  # working px per full-resolution px
-    children: np.ndarray  # (C, 2) per node: the two nodes it merged ((-1, -1): an initial region)
-    area: np.ndarray  # (C,) working px per node
-    bbox: np.ndarray  # (C, 4) x0, y0, x1, y1 (exclusive) working px per node
-    born: np.ndarray  # (C,) the boundary contrast at which the node formed (0: initial)
-    died: np.ndarray  # (C,) ... at which it merged into a larger one (inf: never), specks aside: its
-    # contrast to every neighbour when it stopped growing
-    moments: np.ndarray  # (C, 6) m00, m10, m01, m20, m11, m02 (working px)
-
-    _leaf: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
-
-    def leaf_ranges(self) -> tuple[np.ndarray, np.ndarray]:
-        """(every working pixel's initial region's position in a leaf order where each node's initial
-        regions are contiguous (h, w) int32, each node's [first, last + 1) positions (C, 2)): a node's
-        mask is a range test, made once per hierarchy."""
-        if self._leaf is None:
-            n0 = int(np.count_nonzero(self.children[:, 0] < 0))
-            span = _leaf_spans(self.children, n0)
-            self._leaf = (span[:n0, 0].astype(np.int32)[self.labels], span)
-        return self._leaf
-
-    def members(self, c: int) -> list[int]:
-        out, stack = [], [c]
-        while stack:
-            n = stack.pop()
-            a, b = self.children[n]
-            if a < 0:
-                out.append(int(n))
-            else:
-                stack += [int(a), int(b)]
-        return out
-
-
-def shrink(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> tuple[float, np.ndarray]:
-    """(working px per full-resolution px, the image shrunk to ``work_width``; never enlarged)."""
-    H, W = image_bgr.shape[:2]
-    sc = min(work_width / W, 1.0)
-    w, h = max(int(round(W * sc)), 1), max(int(round(H * sc)), 1)
-    return sc, cv2.resize(image_bgr, (w, h), interpolation=cv2.INTER_AREA) if sc < 1 else image_bgr.copy()
-
-
-def smooth(image_bgr: np.ndarray, work_width: int = WORK_WIDTH) -> tuple[float, np.ndarray]:
-    """(working px per full-resolution px, the image shrunk to ``work_width`` and mean-shift smoothed, as
-    float32 Lab: L 0..100, a and b centred on 0)."""
-    sc, small = shrink(image_bgr, work_width)
-    ms = cv2.pyrMeanShiftFiltering(small, MS_SP, MS_SR)
-    lab = cv2.cvtColor(ms, cv2.COLOR_BGR2LAB).astype(np.float32)
-    lab[..., 0] *= 100.0 / 255.0
-    lab[..., 1:] -= 128.0
-    return sc, lab
-
-
-def initial_regions(lab: np.ndarray) -> tuple[np.ndarray, int, np.ndarray, np.ndarray]:
-    """(labels (h, w) int32, their number, the Lab contrast of horizontal (h, w-1) and vertical (h-1, w)
-    neighbours): pixel-connected regions of neighbours closer than ``LINK_DE``."""
-    h, w = lab.shape[:2]
-    idx = np.arange(h * w).reshape(h, w)
-    dh = np.linalg.norm(lab[:, 1:] - lab[:, :-1], axis=2)
-    dv = np.linalg.norm(lab[1:] - lab[:-1], axis=2)
-    a = np.concatenate([idx[:, 1:][dh < LINK_DE], idx[1:][dv < LINK_DE]])
-    b = np.concatenate([idx[:, :-1][dh < LINK_DE], idx[:-1][dv < LINK_DE]])
-    g = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(h * w, h * w))
-    n0, lab_id = connected_components(g, directed=False)
-    return lab_id.reshape(h, w).astype(np.int32), int(n0), dh, dv
-
-
-@dataclass
-class RegionStats:
-    pair: np.ndarray  # (E, 2) int64 neighbouring initial regions i < j, sorted
-    s_de: np.ndarray  # (E,) sum of the Lab contrast over their boundary's pixel pairs
-    c_de: np.ndarray  # (E,) number of those pixel pairs (float)
-    area: np.ndarray  # (n0,) working px (float)
-    bbox: np.ndarray  # (n0, 4) x0, y0, x1, y1 (exclusive)
-    moments: np.ndarray  # (n0, 6) m00, m10, m01, m20, m11, m02
-
-
-def region_stats(labels: np.ndarray, n0: int, dh: np.ndarray, dv: np.ndarray) -> RegionStats:
-    """The initial regions' boundary contrasts, areas, boxes and raw moments."""
-    h, w = labels.shape
-    la = np.concatenate([labels[:, 1:].ravel(), labels[1:].ravel()])
-    lb = np.concatenate([labels[:, :-1].ravel(), labels[:-1].ravel()])
-    de = np.concatenate([dh.ravel(), dv.ravel()])
-    cut = la != lb
-    la, lb, de = la[cut], lb[cut], de[cut]
-    lo, hi = np.minimum(la, lb), np.maximum(la, lb)
-    key = lo.astype(np.int64) * n0 + hi
-    uk, inv = np.unique(key, return_inverse=True)
-    s_de = np.bincount(inv, de)
-    c_de = np.bincount(inv).astype(float)
-    area0 = np.bincount(labels.ravel(), minlength=n0).astype(float)
-    idx = np.arange(h * w)
-    ys, xs = np.divmod(idx, w)
-    lr = labels.ravel()
-    x0 = np.full(n0, w)
-    y0 = np.full(n0, h)
-    x1 = np.zeros(n0, int)
-    y1 = np.zeros(n0, int)
-    np.minimum.at(x0, lr, xs)
-    np.minimum.at(y0, lr, ys)
-    np.maximum.at(x1, lr, xs + 1)
-    np.maximum.at(y1, lr, ys + 1)
-    # raw moments (additive over merges): every node's second moments come for free
-    xs_f, ys_f = xs.astype(float), ys.astype(float)
-    mom0 = np.stack([np.bincount(lr, wts, minlength=n0) for wts in
-                     (np.ones_like(xs_f), xs_f, ys_f, xs_f * xs_f, xs_f * ys_f, ys_f * ys_f)], 1)
-    pair = np.stack([uk // n0, uk % n0], 1)
-    return RegionStats(pair, s_de, c_de, area0, np.stack([x0, y0, x1, y1], 1), mom0)
-
-
-def segment(image_bgr: np.ndarray, work_width: int = WORK_WIDTH,
-            guide: np.ndarray | None = None) -> Regions:
-    """Initial regions (mean shift, then pixel-connected components of near-equal colour) and every
-    region of their hierarchical merging by weakest mean boundary contrast (``MAX_MERGE_DE`` at most).
-
-    ``guide``: a taught part's colour likelihood per working pixel (``working_likelihood``): the boundary
-    between two part-coloured regions counts less (``GUIDED_MERGE``), so a part painted in several
-    colours (a can's label) merges into one region before it meets its surroundings."""
-    sc, lab = smooth(image_bgr, work_width)
-    labels, n0, dh, dv = initial_regions(lab)
-    st = region_stats(labels, n0, dh, dv)
-    if guide is not None and GUIDED_MERGE:
-        p0 = np.bincount(labels.ravel(), guide.ravel().astype(float), minlength=n0) / np.maximum(st.area, 1.0)
-        st.s_de = st.s_de * (1.0 - GUIDED_MERGE * np.minimum(p0[st.pair[:, 0]], p0[st.pair[:, 1]]))
-    return merge(labels, sc, st)
-
-
 def bgr_u8(image: np.ndarray) -> np.ndarray:
     """A frame as 8-bit BGR (grey repeated, an alpha channel dropped, other depths stretched to 0..255)."""
     if image.ndim == 2:
@@ -319,269 +163,6 @@ def working_likelihood(image_bgr: np.ndarray, part_colours: np.ndarray, work_wid
     return likelihood(shrink(image_bgr, work_width)[1], part_colours)
 
 
-def merge(labels: np.ndarray, sc: float, st: RegionStats) -> Regions:
-    """Hierarchical merging of the initial regions, weakest mean boundary contrast first: every merge is
-    a node (children, area, bbox, the contrast at which it formed and at which it was merged away,
-    moments). The numba kernel ``_merge_kernel`` pops the same (contrast, i, j) heap entries in the same
-    order as the Python reference (``vision/reference/regions.merge_py``), so the hierarchy is identical."""
-    n0 = len(st.area)
-    children, area, bbox, born, died, mom = _merge_kernel(
-        n0, np.ascontiguousarray(st.pair, np.int64), np.ascontiguousarray(st.s_de, np.float64),
-        np.ascontiguousarray(st.c_de, np.float64), np.ascontiguousarray(st.area, np.float64),
-        np.ascontiguousarray(st.bbox, np.int64), np.ascontiguousarray(st.moments, np.float64),
-        float(SPECK_PX), float(MAX_MERGE_DE))
-    return Regions(labels, sc, children, area, bbox, born, died, mom)
-
-
-@nb.njit(inline="always")
-def _less(hd, hi, hj, a, b):
-    """Heap entry a before b: (contrast, i, j) compared as Python compares tuples."""
-    if hd[a] != hd[b]:
-        return hd[a] < hd[b]
-    if hi[a] != hi[b]:
-        return hi[a] < hi[b]
-    return hj[a] < hj[b]
-
-
-@nb.njit(inline="always")
-def _swap(hd, hi, hj, a, b):
-    hd[a], hd[b] = hd[b], hd[a]
-    hi[a], hi[b] = hi[b], hi[a]
-    hj[a], hj[b] = hj[b], hj[a]
-
-
-@nb.njit
-def _sift_up(hd, hi, hj, k):
-    while k > 0:
-        p = (k - 1) >> 1
-        if _less(hd, hi, hj, k, p):
-            _swap(hd, hi, hj, k, p)
-            k = p
-        else:
-            break
-
-
-@nb.njit
-def _sift_down(hd, hi, hj, k, n):
-    while True:
-        c = 2 * k + 1
-        if c >= n:
-            break
-        if c + 1 < n and _less(hd, hi, hj, c + 1, c):
-            c += 1
-        if _less(hd, hi, hj, c, k):
-            _swap(hd, hi, hj, c, k)
-            k = c
-        else:
-            break
-
-
-@nb.njit
-def _table(n):
-    """An empty open-addressing table (keys, values) for ``n`` keys: 8 slots per key, a power of two;
-    key -1: empty, -2: deleted."""
-    cap = 16
-    while cap < 8 * n:
-        cap *= 2
-    return np.full(cap, -1, np.int64), np.zeros(cap, np.int64)
-
-
-@nb.njit(inline="always")
-def _slot(key, mask):
-    h = key * 0x9E3779B97F4A7C15  # Fibonacci hashing (wraps): neighbouring pair keys spread
-    return (h ^ (h >> 29)) & mask
-
-
-@nb.njit
-def _find(hk, key):
-    mask = hk.shape[0] - 1
-    i = _slot(key, mask)
-    while hk[i] != -1:
-        if hk[i] == key:
-            return i
-        i = (i + 1) & mask
-    return -1
-
-
-@nb.njit
-def _get(hk, hv, key):
-    i = _find(hk, key)
-    return hv[i] if i >= 0 else -1
-
-
-@nb.njit
-def _put(hk, hv, key, value):
-    """Insert ``key`` (not present) into the first empty or deleted slot of its probe sequence."""
-    mask = hk.shape[0] - 1
-    i = _slot(key, mask)
-    while hk[i] >= 0:
-        i = (i + 1) & mask
-    hk[i] = key
-    hv[i] = value
-
-
-@nb.njit
-def _drop(hk, hv, key):
-    hk[_find(hk, key)] = -2
-
-
-@nb.njit
-def _rehash(hk, hv):
-    n = 0
-    for q in range(hk.shape[0]):
-        n += hk[q] >= 0
-    k2, v2 = _table(n)
-    for q in range(hk.shape[0]):
-        if hk[q] >= 0:
-            _put(k2, v2, hk[q], hv[q])
-    return k2, v2
-
-
-@nb.njit
-def _pair_key(i, j, n0):
-    return min(i, j) * n0 + max(i, j)
-
-
-@nb.njit(cache=True)
-def _merge_kernel(n0, pair, s_de, c_de, area0, bbox0, mom0, speck_px, max_de):
-    """Union of neighbouring regions, weakest (speck-discounted) mean boundary contrast first, exactly as
-    ``merge_py``: a live region is held by a representative id; each neighbouring pair has one edge (sum
-    and count of its pixel pairs' contrast) in a hash table by pair and in both representatives' linked lists
-    (a slot per side); merging, the side with fewer neighbours hands its edges to the other (an edge to a
-    common neighbour is added into the existing one). Heap entries are (contrast, i < j), stale ones
-    skipped or pushed again as in the reference."""
-    E = pair.shape[0]
-    C = max(2 * n0 - 1, 1)
-    children = np.full((C, 2), -1, np.int64)
-    area = np.zeros(C)
-    bbox = np.zeros((C, 4), np.int64)
-    born = np.zeros(C)
-    died = np.full(C, np.inf)
-    mom = np.zeros((C, 6))
-    area[:n0] = area0
-    bbox[:n0] = bbox0
-    mom[:n0] = mom0
-    node_of = np.arange(n0)
-    deg = np.zeros(n0, np.int64)
-    ends = pair.copy()  # (E, 2): the edge's current representatives
-    es = s_de.copy()
-    ec = c_de.copy()
-    alive = np.ones(E, np.bool_)
-    head = np.full(n0, -1, np.int64)
-    nxt = np.full(2 * E, -1, np.int64)  # slot 2 e + side: the next slot in ends[e, side]'s list
-    hk, hv = _table(E)  # pair key -> its edge (an open-addressing table: numba's typed dict was 3x slower)
-    n_used = 0
-    cap = max(2 * E, 16)
-    hd = np.empty(cap)
-    hi = np.empty(cap, np.int64)
-    hj = np.empty(cap, np.int64)
-    n_heap = 0
-    for e in range(E):
-        i, j = pair[e, 0], pair[e, 1]
-        _put(hk, hv, i * n0 + j, e)
-        n_used += 1
-        for side in range(2):
-            x = pair[e, side]
-            nxt[2 * e + side] = head[x]
-            head[x] = 2 * e + side
-            deg[x] += 1
-        hd[n_heap] = es[e] / ec[e] * min(1.0, min(area0[i], area0[j]) / speck_px)
-        hi[n_heap] = i
-        hj[n_heap] = j
-        n_heap += 1
-    for k in range(n_heap // 2 - 1, -1, -1):
-        _sift_down(hd, hi, hj, k, n_heap)
-    n_nodes = n0
-    while n_heap > 0:
-        d, i, j = hd[0], hi[0], hj[0]
-        n_heap -= 1
-        if n_heap > 0:
-            hd[0], hi[0], hj[0] = hd[n_heap], hi[n_heap], hj[n_heap]
-            _sift_down(hd, hi, hj, 0, n_heap)
-        if d > max_de:
-            break
-        e = _get(hk, hv, i * n0 + j)
-        if e < 0:
-            continue
-        now = es[e] / ec[e] * min(1.0, min(area[node_of[i]], area[node_of[j]]) / speck_px)
-        if now > d + 1e-9:  # a side grew past a speck since: its turn comes later
-            if n_heap == cap:
-                cap *= 2
-                hd2, hi2, hj2 = np.empty(cap), np.empty(cap, np.int64), np.empty(cap, np.int64)
-                hd2[:n_heap], hi2[:n_heap], hj2[:n_heap] = hd[:n_heap], hi[:n_heap], hj[:n_heap]
-                hd, hi, hj = hd2, hi2, hj2
-            hd[n_heap], hi[n_heap], hj[n_heap] = now, i, j
-            n_heap += 1
-            _sift_up(hd, hi, hj, n_heap - 1)
-            continue
-        if now < d - 1e-9:  # a fresher entry of the pair was pushed when its contrast changed
-            continue
-        if deg[i] >= deg[j]:
-            big, small = i, j
-        else:
-            big, small = j, i
-        ni, nj = node_of[i], node_of[j]
-        k = n_nodes
-        n_nodes += 1
-        children[k, 0], children[k, 1] = ni, nj
-        area[k] = area[ni] + area[nj]
-        bbox[k, 0] = min(bbox[ni, 0], bbox[nj, 0])
-        bbox[k, 1] = min(bbox[ni, 1], bbox[nj, 1])
-        bbox[k, 2] = max(bbox[ni, 2], bbox[nj, 2])
-        bbox[k, 3] = max(bbox[ni, 3], bbox[nj, 3])
-        born[k] = d
-        for q in range(6):
-            mom[k, q] = mom[ni, q] + mom[nj, q]
-        died[ni] = d
-        died[nj] = d
-        node_of[big] = k
-        _drop(hk, hv, i * n0 + j)
-        alive[e] = False
-        deg[big] -= 1
-        slot = head[small]
-        while slot >= 0:
-            nslot = nxt[slot]
-            e2, side = slot >> 1, slot & 1
-            if alive[e2]:
-                m = ends[e2, 1 - side]
-                _drop(hk, hv, _pair_key(small, m, n0))
-                kb = _pair_key(big, m, n0)
-                f = _get(hk, hv, kb)
-                if f >= 0:  # a common neighbour: its edge to big takes small's boundary
-                    es[f] += es[e2]
-                    ec[f] += ec[e2]
-                    alive[e2] = False
-                    deg[m] -= 1
-                else:  # small's edge becomes big's
-                    f = e2
-                    ends[e2, side] = big
-                    if 4 * (n_used + 1) > 3 * hk.shape[0]:  # few free slots left: the live keys anew
-                        hk, hv = _rehash(hk, hv)
-                        n_used = 0
-                        for q in range(hk.shape[0]):
-                            n_used += hk[q] >= 0
-                    _put(hk, hv, kb, e2)
-                    n_used += 1
-                    nxt[slot] = head[big]
-                    head[big] = slot
-                    deg[big] += 1
-                if n_heap == cap:
-                    cap *= 2
-                    hd2, hi2, hj2 = np.empty(cap), np.empty(cap, np.int64), np.empty(cap, np.int64)
-                    hd2[:n_heap], hi2[:n_heap], hj2[:n_heap] = hd[:n_heap], hi[:n_heap], hj[:n_heap]
-                    hd, hi, hj = hd2, hi2, hj2
-                hd[n_heap] = es[f] / ec[f] * min(1.0, min(area[k], area[node_of[m]]) / speck_px)
-                hi[n_heap] = min(big, m)
-                hj[n_heap] = max(big, m)
-                n_heap += 1
-                _sift_up(hd, hi, hj, n_heap - 1)
-            slot = nslot
-        head[small] = -1
-        deg[small] = 0
-    return (children[:n_nodes].copy(), area[:n_nodes].copy(), bbox[:n_nodes].copy(), born[:n_nodes].copy(),
-            died[:n_nodes].copy(), mom[:n_nodes].copy())
-
-
 # --- proposals -------------------------------------------------------------------------------------
 
 
@@ -603,42 +184,6 @@ def projected_area_range(bank: TemplateBank, sil: Silhouettes, K: np.ndarray,
     lo = float(sil.area_n[ok].min()) * f2 * (z_ref / distance_range_mm[1]) ** 2
     hi = float(sil.area_n[ok].max()) * f2 * (z_ref / distance_range_mm[0]) ** 2
     return lo, hi
-
-
-def region_mask(reg: Regions, c: int) -> np.ndarray:
-    """(bbox-sized uint8 0/1) the pixels of node ``c``'s initial regions within its box."""
-    x0, y0, x1, y1 = reg.bbox[c]
-    pos, span = reg.leaf_ranges()
-    win = pos[y0:y1, x0:x1]
-    return ((win >= span[c, 0]) & (win < span[c, 1])).view(np.uint8)
-
-
-@nb.njit(cache=True)
-def _leaf_spans(children, n0):
-    """(C, 2) each node's [first, last + 1) in a leaf order where every node's leaves are contiguous:
-    sizes bottom-up (a node's children come before it), then the roots one after another and each
-    node's first child's leaves before its second's, top-down."""
-    C = children.shape[0]
-    size = np.ones(C, np.int64)
-    has_parent = np.zeros(C, np.bool_)
-    for k in range(C):
-        a, b = children[k, 0], children[k, 1]
-        if a >= 0:
-            size[k] = size[a] + size[b]
-            has_parent[a] = True
-            has_parent[b] = True
-    span = np.zeros((C, 2), np.int64)
-    nxt = 0
-    for k in range(C - 1, -1, -1):
-        if not has_parent[k]:
-            span[k, 0] = nxt
-            nxt += size[k]
-        span[k, 1] = span[k, 0] + size[k]
-        a, b = children[k, 0], children[k, 1]
-        if a >= 0:
-            span[a, 0] = span[k, 0]
-            span[b, 0] = span[k, 0] + size[a]
-    return span
 
 
 _CANON = Memo(8)
@@ -668,24 +213,6 @@ class CandidateStages:
     framed: np.ndarray  # ... not spanning most of the image (floor), and not a speck
     shaped: np.ndarray  # ... elongation and compactness within SHAPE_GATE of some template's
     ranked: np.ndarray  # ... the N_REGIONS that stand out most from their surroundings, in that order
-
-
-def node_means(reg: Regions, values: np.ndarray) -> np.ndarray:
-    """(C,) the mean of ``values`` (working px, (h, w)) over each node's pixels."""
-    n0 = int(np.count_nonzero(reg.children[:, 0] < 0))
-    sums = np.zeros(len(reg.area))
-    sums[:n0] = np.bincount(reg.labels.ravel(), np.asarray(values, float).ravel(), minlength=n0)[:n0]
-    return _tree_sums(reg.children, sums) / np.maximum(reg.area, 1e-9)
-
-
-@nb.njit(cache=True)
-def _tree_sums(children, sums):
-    # a node is made after its children (merge appends): one pass bottom-up
-    for k in range(children.shape[0]):
-        a, b = children[k, 0], children[k, 1]
-        if a >= 0:
-            sums[k] = sums[a] + sums[b]
-    return sums
 
 
 def candidate_stages(sil: Silhouettes, reg: Regions, K: np.ndarray, bank: TemplateBank,
@@ -820,14 +347,11 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
     def advance(g: int) -> RegionProposal | None:
         c, ang_r, turns, c_full, _, r0 = info[g]
         mine = survivors[g]
-        if generic is not None and not mine and nxt[g] == 0 and fits[g]:
-            # the look-alike gate, once per region when its first fit reaches the front: the region's
-            # turns against the generic family (a region that never gets there costs nothing)
-            if math.isnan(gap[g]):
-                gate(g)
-            if LOOKALIKE_REFILL and gap[g] < LOOKALIKE_MARGIN:
-                nxt[g] = len(fits[g])
-                return None
+        # the look-alike gate, once per region when its first fit reaches the front: the region's turns
+        # against the generic family (a region that never gets there costs nothing); a region it drops
+        # only leaves the ungated list (``kept`` below), its place not refilled
+        if generic is not None and not mine and nxt[g] == 0 and fits[g] and math.isnan(gap[g]):
+            gate(g)
         while nxt[g] < len(fits[g]) and len(mine) < per_region:
             iou_v, t, tn, z, kz = fits[g][nxt[g]]
             nxt[g] += 1
@@ -852,7 +376,7 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
     while front and len(kept) < n_keep:
         _, g, pos = heapq.heappop(front)
         r = survivors[g][pos] if pos < len(survivors[g]) else advance(g)
-        if r is None:  # a look-alike region: none of its fits
+        if r is None:
             continue
         following = advance(g)
         if following is not None:
@@ -864,7 +388,7 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
             continue
         kept_uv[len(kept)] = r.hyp.uv
         kept.append(r)
-    if generic is not None and not LOOKALIKE_REFILL:
+    if generic is not None:
         kept = [r for r in kept if r.lookalike_gap >= LOOKALIKE_MARGIN]
     return kept, reg
 
@@ -916,13 +440,14 @@ def _same(a: Hypothesis, b: Hypothesis, bank: TemplateBank) -> bool:
 
 
 def boundary_segments(reg: Regions, c: int, image_shape: tuple[int, int]) -> Segments:
-    """The candidate region's outline as segments in full-resolution pixels."""
+    """The candidate region's outline as segments in full-resolution pixels, through its boundary pixels'
+    centres."""
     m = region_mask(reg, c)
     x0, y0 = reg.bbox[c, :2]
     cs, _ = cv2.findContours(np.pad(m, 1), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
     uv0, uv1 = [], []
     for cnt in cs:
-        ab = _edge_lines(cnt.reshape(-1, 2)) if OUTLINE_ON_EDGE else _chords(cnt.reshape(-1, 2))
+        ab = _chords(cnt.reshape(-1, 2))
         if ab is None:
             continue
         a, b = ab
@@ -948,48 +473,6 @@ def _polygon(contour: np.ndarray) -> np.ndarray:
     """The vertices (M, 2) int of a contour's polygon (``approxPolyDP``, within 0.7 px), a subset of its
     points in its order."""
     return cv2.approxPolyDP(contour.reshape(-1, 1, 2), 0.7, True).reshape(-1, 2)
-
-
-def _edge_lines(contour: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """A region's contour (n, 2) int, the centres of its boundary pixels in order, as the segments
-    (M, 2) -> (M, 2) float32 of its polygon (``_polygon``) moved onto the region's edge.
-
-    Two biases are taken out, each making the outline smaller all round: a chord between two vertices
-    cuts inside the pixels it stands for on a convex arc, so each segment is moved to their mean offset
-    from it; and boundary pixels' centres lie inside the edge, by half a pixel across an edge along x or
-    y and by 0.5 x the larger normal component on average over a straight edge at any angle.
-    ``findContours`` runs outer and hole contours alike with the region on the side of (dy, -dx)."""
-    poly = _polygon(contour)
-    if len(poly) < 2:
-        return None
-    a = poly.astype(np.float64)
-    b = np.roll(a, -1, axis=0)
-    d = b - a
-    n = np.stack([-d[:, 1], d[:, 0]], 1) / np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)[:, None]
-    mean = np.zeros(len(poly))
-    found = _vertex_places(contour, poly)
-    if found is not None:  # (a contour through a pixel twice may not be matched: chords left alone)
-        c, at = found
-        seg_of = np.searchsorted(at, np.arange(len(c)), side="right") - 1  # each contour point's segment
-        dist = ((c - a[seg_of]) * n[seg_of]).sum(1)
-        mean = np.bincount(seg_of, dist, len(poly)) / np.maximum(np.bincount(seg_of, minlength=len(poly)), 1)
-    off = (mean + 0.5 * np.abs(n).max(1))[:, None] * n
-    return (a + off).astype(np.float32), (b + off).astype(np.float32)
-
-
-def _vertex_places(contour: np.ndarray, poly: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """(the contour rolled to start at the polygon's first vertex, each vertex's index on it), or None if
-    the vertices are not found in order: the polygon keeps the contour's order from some start."""
-    start = int(np.flatnonzero((contour == poly[0]).all(1))[0])
-    c = np.roll(contour, -start, axis=0)
-    at, k = np.zeros(len(poly), np.int64), 0
-    for v in range(1, len(poly)):
-        hit = np.flatnonzero((c[k + 1:] == poly[v]).all(1))
-        if not len(hit):
-            return None
-        k += 1 + int(hit[0])
-        at[v] = k
-    return c, at
 
 
 def refine_on_boundary(bank: TemplateBank, prop: RegionProposal, reg: Regions, K: np.ndarray,
@@ -1041,9 +524,9 @@ def region_proposals(bank: TemplateBank, image: np.ndarray, K: np.ndarray, image
     proposed unless segmenting and matching (their running mean's ``high``) and ``reserve_ms`` fit, and
     each refinement starts only if the previous one's duration and ``reserve_ms`` do (fewer proposals,
     best first, rather than a late answer). ``part_colours``: a taught part's colour density
-    (``colour_prior.part_density``): regions are then ranked by how part-coloured they are too (and
-    merged by it, ``GUIDED_MERGE``). ``score`` (hypotheses -> their scores) with ``n_scored`` > ``n_out``:
-    that many proposals, up to ``PER_REGION_SCORED`` a region, are scored and the best ``n_out`` refined.
+    (``colour_prior.part_density``): regions are then ranked by how part-coloured they are too.
+    ``score`` (hypotheses -> their scores) with ``n_scored`` > ``n_out``: that many proposals, up to
+    ``PER_REGION_SCORED`` a region, are scored and the best ``n_out`` refined.
     ``likelihood``: makes ``working_likelihood`` of the frame and ``part_colours`` (a caller's, made once
     for several passes) instead."""
     if not deadline.allows(_PROPOSE_MS.high + reserve_ms):
@@ -1055,7 +538,7 @@ def region_proposals(bank: TemplateBank, image: np.ndarray, K: np.ndarray, image
         lik = working_likelihood(image, part_colours)
     else:
         lik = None if likelihood is None else likelihood()
-    reg = segment(image, guide=lik)
+    reg = segment(image)
     purity = None if lik is None else node_means(reg, lik)
     if score is None or n_scored <= n_out:
         props, reg = propose(bank, image, K, rng, n_out=n_out, reg=reg, purity=purity)

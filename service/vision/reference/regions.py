@@ -3,7 +3,7 @@ a reference implementation.
 
 Clarity over speed: the merging is a Python loop over a heap of boundary contrasts with a neighbour
 dict per live region, and every candidate region's mask is gathered from its initial regions by
-``np.isin``. The service runs the numba kernel ``regions.merge`` and the batched ``regions.propose``;
+``np.isin``. The service runs the numba kernel ``segmentation.merge`` and the batched ``regions.propose``;
 tests and ``bench/region_speed.py`` check that both give the same hierarchy and the same proposals.
 """
 
@@ -17,11 +17,12 @@ import numpy as np
 
 from service.vision.bank import TemplateBank
 from service.vision.estimate import regions as rg
+from service.vision.estimate import segmentation as sg
 from service.vision.estimate import shapes
-from service.vision.estimate.coarse import Hypothesis
+from service.vision.estimate.search import Hypothesis
 
 
-def merge_py(labels: np.ndarray, sc: float, st: rg.RegionStats) -> rg.Regions:
+def merge_py(labels: np.ndarray, sc: float, st: sg.RegionStats) -> sg.Regions:
     """Hierarchical merging: every merge of the weakest shared boundary (mean contrast, specks discounted)
     is a node, up to ``MAX_MERGE_DE``."""
     n0 = len(st.area)
@@ -44,13 +45,13 @@ def merge_py(labels: np.ndarray, sc: float, st: rg.RegionStats) -> rg.Regions:
         # a speck (noise, a mean-shift leftover) merges before its contrast says: otherwise a part's
         # region absorbs the specks along its outline one at a time and never stands out as one node
         a = min(area[node_of[i]], area[node_of[j]])
-        return e[0] / e[1] * min(1.0, a / rg.SPECK_PX)
+        return e[0] / e[1] * min(1.0, a / sg.SPECK_PX)
 
     heap = [(key(i, j, e), i, j) for i in range(n0) for j, e in nb[i].items() if i < j]
     heapq.heapify(heap)
     while heap:
         d, i, j = heapq.heappop(heap)
-        if d > rg.MAX_MERGE_DE:
+        if d > sg.MAX_MERGE_DE:
             break
         e = nb[i].get(j)
         if e is None:
@@ -88,11 +89,11 @@ def merge_py(labels: np.ndarray, sc: float, st: rg.RegionStats) -> rg.Regions:
                 nb[m][big] = keep[m]
             heapq.heappush(heap, (key(big, m, keep[m]), min(big, m), max(big, m)))
         nb[small] = {}
-    return rg.Regions(labels, sc, np.array(children, np.int64).reshape(-1, 2), np.array(area),
+    return sg.Regions(labels, sc, np.array(children, np.int64).reshape(-1, 2), np.array(area),
                      np.array(bbox, int).reshape(-1, 4), np.array(born), np.array(died), np.array(mom))
 
 
-def members_py(reg: rg.Regions, c: int) -> list[int]:
+def members_py(reg: sg.Regions, c: int) -> list[int]:
     out, stack = [], [c]
     while stack:
         n = stack.pop()
@@ -104,21 +105,21 @@ def members_py(reg: rg.Regions, c: int) -> list[int]:
     return out
 
 
-def region_mask_py(reg: rg.Regions, c: int) -> np.ndarray:
+def region_mask_py(reg: sg.Regions, c: int) -> np.ndarray:
     x0, y0, x1, y1 = reg.bbox[c]
     lab = reg.labels[y0:y1, x0:x1]
     return np.isin(lab, members_py(reg, c)).astype(np.uint8)
 
 
-def segment_py(image_bgr: np.ndarray, work_width: int = rg.WORK_WIDTH) -> rg.Regions:
-    sc, lab = rg.smooth(image_bgr, work_width)
-    labels, n0, dh, dv = rg.initial_regions(lab)
-    return merge_py(labels, sc, rg.region_stats(labels, n0, dh, dv))
+def segment_py(image_bgr: np.ndarray, work_width: int = sg.WORK_WIDTH) -> sg.Regions:
+    sc, lab = sg.smooth(image_bgr, work_width)
+    labels, n0, dh, dv = sg.initial_regions(lab)
+    return merge_py(labels, sc, sg.region_stats(labels, n0, dh, dv))
 
 
 def propose_py(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
                distance_range_mm: tuple[float, float], *, n_out: int = 30,
-               reg: rg.Regions | None = None) -> tuple[list[rg.RegionProposal], rg.Regions]:
+               reg: sg.Regions | None = None) -> tuple[list[rg.RegionProposal], sg.Regions]:
     """``regions.propose`` as first written: one region at a time."""
     sil = rg.silhouettes(bank)
     canon = rg.canonical_templates(bank, sil)
