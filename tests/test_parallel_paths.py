@@ -80,7 +80,7 @@ def test_segment_distance_tensor_without_segments_is_tau():
 
 
 def _window_offsets_serial(p_rel, theta, Rv, zc, depth_f, ray, fx, fy, cx, cy, s, c0u, c0v, phis_rad, C):
-    """``coarse._window_offsets``'s loop, one template after the other, in plain Python."""
+    """``level_b._window_offsets``'s loop, one template after the other, in plain Python."""
     Tv, P = theta.shape
     T, D = len(Rv), len(depth_f)
     off_u = np.empty((1, D, T, P), np.int16)
@@ -105,7 +105,7 @@ def _window_offsets_serial(p_rel, theta, Rv, zc, depth_f, ray, fx, fy, cx, cy, s
 
 @pytest.mark.parametrize("n_threads", [1, 2])
 def test_window_offsets_equal_the_template_loop(n_threads):
-    from service.vision.estimate.coarse import _window_offsets
+    from service.vision.estimate.level_b import _window_offsets
     from service.vision.geometry.frames import R_from_rotvec
 
     rng = np.random.default_rng(7)
@@ -154,21 +154,15 @@ def _evidence_serial(bank, pose, intr, frame, others=None):
     r = ev._region(win, mask, band, hidden, explained)
     inside = ev._inside_samples(fid, bank, pose)
     s = ev._shading(win, inside)
-    fit = ev._robust_shading(win, inside) if ev.VISIBLE_PART else None
     generic = genericity(mask)
     return ev.Evidence(e[0], e[1], r[0], r[1], r[2], e[2], s[0], s[1], float(in_image.mean()),
-                       generic, distinct_px(mask, generic), visible=fit.visible if fit else None,
-                       shading_r2_robust=fit.r2 if fit else None)
+                       generic, distinct_px(mask, generic))
 
 
-@pytest.mark.parametrize("visible_part", [False, True])
-def test_evidence_with_its_region_on_the_pool_equals_the_pieces_in_turn(visible_part, monkeypatch):
+def test_evidence_with_its_region_on_the_pool_equals_the_pieces_in_turn():
     import trimesh
 
-    from service.vision.estimate import evidence as ev_module
     from service.vision.estimate.evidence import colour_frame, evidence
-
-    monkeypatch.setattr(ev_module, "VISIBLE_PART", visible_part)
     from service.vision.geometry.camera import Intrinsics
     from service.vision.geometry.frames import Pose, Rx, Ry
     from service.vision.geometry.render import render_shaded

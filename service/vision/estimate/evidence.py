@@ -14,20 +14,8 @@ distractor satisfies that almost anywhere. A real part at the right pose also sh
 All three are fractions in [0, 1], higher is better, computed in the region of interest of the
 projected model only (a few ms per hypothesis at 1280 x 960).
 
-A part behind a nearer object shows the occluder's colours inside its silhouette and no contrast along
-the covered outline; the evidence above then measures the occluder as much as the part. The visible
-part is estimated by a robust colour shading fit (``_robust_shading``: each BGR channel a quadratic in
-the face normals, refitted on the pixels it explains, least trimmed squares style, from the half
-nearest the median colour): its inliers are the pixels whose colour is the part's, and
-
-- ``visible``: the inlier share of the silhouette's inside (an estimate of the visible fraction);
-- ``shading_r2_robust``: the share of the inliers' colour variance the fit explains.
-
-Measured and dropped (session 12, ``bench/truth_evidence.py`` on the tuning sets and clutter): the
-region separability of the inliers only, of the best 5 of 8 sectors, and the colour edges of the outline
-points with an inlier inside. Each separated truths from wrong candidates less well than
-``region_global`` / ``colour_edge`` (AUC 0.61-0.67 against 0.71 on clutter2), the refit gave them no
-weight, and they cost ~5 ms a hypothesis.
+A part partly hidden by a nearer object spoils this evidence; the robust colour fit measured for it is
+not in the service (docs/detection-history.md, "Switches taken out of the service").
 """
 
 from __future__ import annotations
@@ -75,10 +63,6 @@ class Evidence:
     # the mean distance, image pixels, of the silhouette's outline from that plain shape's
     # (``shapes.distinct_px``): under a pixel nothing in the image can tell the part from the plain object
     distinct_px: float = 0.0
-    # The visible part's evidence (module docstring): what an occluder does not spoil.
-    # None where the fit did not run (``VISIBLE_PART``): the dict then leaves them out.
-    visible: float | None = None  # inlier share of the inside under the robust colour shading fit
-    shading_r2_robust: float | None = None  # colour variance of the inliers the fit explains
     # The taught appearance's evidence (``appearance``), None for a part with no reference photos.
     appearance: float | None = None  # correlation of the image's colours with the taught face colours
     appearance_known: float | None = None  # share of the inside whose face colour was taught
@@ -88,8 +72,6 @@ class Evidence:
                 "region_low": self.region_low, "region_global": self.region_global,
                 "coherence": self.coherence, "shading_r2": self.shading_r2, "shading_std": self.shading_std,
                 "in_image": self.in_image, "generic": self.generic, "distinct_px": self.distinct_px} | (
-            {} if self.visible is None else {"visible": self.visible,
-                                              "shading_r2_robust": self.shading_r2_robust}) | (
             {} if self.appearance is None else {"appearance": self.appearance,
                                                  "appearance_known": self.appearance_known})
 
@@ -97,18 +79,6 @@ class Evidence:
 NO_EVIDENCE = Evidence(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 SHADING_ERODE_PX = 2  # the outline's mixed pixels and the pose's last pixel of error are not "inside"
 MIN_SHADING_PIXELS = 50
-# The robust colour shading fit: start from the ROBUST_START share of the inside nearest its median
-# colour, then refit on the pixels whose colour residual (BGR norm) is within ROBUST_K robust standard
-# deviations of the inliers' (never under ROBUST_MIN_LEVELS: sensor noise and JPEG), ROBUST_ITERS times.
-ROBUST_START = 0.5
-ROBUST_K = 3.0
-ROBUST_MIN_LEVELS = 8.0
-ROBUST_ITERS = 6
-ROBUST_MAX_PIXELS = 3000
-# Whether ``evidence`` runs the robust fit. Off in the service: the verdict's score does not read it
-# (verdict.py says why) and it costs ~4 ms a checked pose (bench/ab.py visible_part); the benchmarks that
-# study it (bench/hypotheses.py, truth_evidence.py, detection.py --weights) switch it on.
-VISIBLE_PART = False
 # Another found part hides a pixel of this one where its surface is nearer by more than this (mm):
 # rasterised depths of touching parts differ by less along their contact.
 OCCLUSION_MARGIN_MM = 1.0
@@ -176,10 +146,10 @@ def face_ids_roi(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, m
     top-left pixel (u0, v0).
 
     A closed mesh's back faces are hidden behind its front faces (``MeshTopology.closed``): only the
-    front ones are rasterised (half the triangles; the ROI is the whole mesh's projection either way)
-    when ``FRONT_FACES_ONLY``, each pixel given its face's index in the whole mesh (``face_ids``)."""
-    topo = mesh_topology(bank.vertices_mm, bank.faces) if FRONT_FACES_ONLY else None
-    if topo is None or not topo.closed:
+    front ones are rasterised (half the triangles; the ROI is the whole mesh's projection either way),
+    each pixel given its face's index in the whole mesh (``face_ids``)."""
+    topo = mesh_topology(bank.vertices_mm, bank.faces)
+    if not topo.closed:
         invz, fid, origin = rasterise_roi(bank.vertices_mm, bank.faces, pose, intr, image_size,
                                           margin_px=margin_px, inverse_depth=True)
         return fid, invz, origin
@@ -188,8 +158,6 @@ def face_ids_roi(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size, m
                                       margin_px=margin_px, inverse_depth=True, face_ids=front)
     return fid, invz, origin
 
-
-FRONT_FACES_ONLY = True
 
 
 def _outline(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -345,61 +313,6 @@ def _shading(win: _Window, inside: _Inside | None) -> tuple[float, float]:
     return (float(1.0 - res.var() / var) if var > 0 else 0.0), float(np.sqrt(var))
 
 
-@dataclass(frozen=True)
-class ColourFit:
-    """The robust colour shading fit of one pose."""
-    visible: float  # inlier share of the pixels fitted
-    r2: float  # share of the inliers' colour variance the fit explains
-
-
-def _trimmed_fit(A: np.ndarray, c: np.ndarray, inl: np.ndarray) -> tuple[np.ndarray, float]:
-    """Per-channel least squares refitted on the pixels within the inlier threshold, from ``inl``:
-    (coef (10, 3), threshold)."""
-    tau = ROBUST_MIN_LEVELS
-    coef = np.zeros((A.shape[1], 3))
-    for _ in range(ROBUST_ITERS):
-        Ai = A[inl]
-        coef = np.linalg.lstsq(Ai.T @ Ai, Ai.T @ c[inl], rcond=None)[0]
-        res = np.linalg.norm(c - A @ coef, axis=1)
-        tau = max(ROBUST_K * 1.4826 * float(np.median(res[inl])), ROBUST_MIN_LEVELS)
-        new = res <= tau
-        if new.sum() < MIN_SHADING_PIXELS or np.array_equal(new, inl):
-            break
-        inl = new
-    return coef, tau
-
-
-def _robust_shading(win: _Window, inside: _Inside | None) -> ColourFit | None:
-    """The colour shading fit on the inside's visible part (module docstring), on the same pixels as
-    ``_shading`` (at most ``ROBUST_MAX_PIXELS`` of them); ``None`` with too few pixels."""
-    if inside is None:
-        return None
-    vi, ui, normals = inside.v, inside.u, inside.normals
-    if len(vi) > ROBUST_MAX_PIXELS:  # evenly thinned: the fit and the inlier share need a few thousand
-        keep = np.linspace(0, len(vi) - 1, ROBUST_MAX_PIXELS).astype(np.int64)
-        vi, ui, normals = vi[keep], ui[keep], normals[keep]
-    c = win.bgr[vi, ui].astype(np.float64)
-    A = _normal_design(normals)
-    # Two starts: all pixels (a part in full view: a plain fit already explains it), and the half
-    # nearest the median colour (an occluder's colours pull a plain fit between the two; the median is
-    # the part's while it shows more than half). The fit that explains more pixels within the SMALLER of
-    # the two thresholds is kept: each fit's own threshold would reward the one an occluder inflates, and
-    # the smaller median residual picks a constant fit to a mostly uniform part's plain faces (r2 0).
-    d0 = np.linalg.norm(c - np.median(c, axis=0), axis=1)
-    fits = [_trimmed_fit(A, c, inl) for inl in (np.ones(len(c), bool), d0 <= np.quantile(d0, ROBUST_START))]
-    tau_c = min(t for _, t in fits)
-    counts = [int((np.linalg.norm(c - A @ cf, axis=1) <= tau_c).sum()) for cf, _ in fits]
-    coef, tau = fits[int(np.argmax(counts))]
-    res = np.linalg.norm(c - A @ coef, axis=1)
-    inl = res <= tau
-    if inl.sum() < MIN_SHADING_PIXELS:
-        return ColourFit(float(inl.mean()), 0.0)
-    ci = c[inl]
-    total = float(((ci - ci.mean(axis=0)) ** 2).sum())
-    r2 = 1.0 - float((res[inl] ** 2).sum()) / total if total > 0 else 0.0
-    return ColourFit(float(inl.mean()), max(r2, 0.0))
-
-
 def appearance(win: _Window, fid: np.ndarray, inside: _Inside | None, face_bgr: np.ndarray
                ) -> tuple[float, float]:
     """How well the taught face colours (``build/appearance.py``) predict the inside's colours ->
@@ -493,18 +406,13 @@ def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFram
     c = _covered(bank, pose, intr, frame, others_depth_mm)
     if c is None:
         return _nothing(face_bgr)
-    region_fut, inside, m = _start_region_and_shading(c, bank, pose, face_bgr)
+    region_fut, _, m = _start_region_and_shading(c, bank, pose, face_bgr)
     colour_edge, polarity, coherence = _edge_and_polarity(c.win, c.p, c.n, c.in_image)
-    visible = robust_r2 = None
-    if VISIBLE_PART:
-        fit = _robust_shading(c.win, inside)
-        visible, robust_r2 = (fit.visible, fit.r2) if fit else (0.0, 0.0)
     generic = genericity(c.mask)
     region, region_low, region_global = region_fut.result()
     return Evidence(colour_edge, polarity, region, region_low, region_global, coherence, m["shading_r2"],
                     m["shading_std"], m["in_image"], generic, distinct_px(c.mask, generic),
-                    visible=visible, shading_r2_robust=robust_r2, appearance=m.get("appearance"),
-                    appearance_known=m.get("appearance_known"))
+                    appearance=m.get("appearance"), appearance_known=m.get("appearance_known"))
 
 
 # The evidence ``region_and_shading`` measures: all a verification score of the service reads besides the

@@ -10,13 +10,9 @@ fitted by ``bench/fit_verdict.py`` on the tuning sets (seeded synthetic scenes o
 on. Evidence the fit gave no weight is still reported: the reason of a rejection names the evidence
 furthest from a true pose's.
 
-The visible part's evidence (``visible``, ``shading_r2_robust``: what a nearer object partly hiding the
-part does not spoil) and how closely a plain shape fits the pose's silhouette (``generic``,
-``shapes.genericity``) are reported and not scored, and so is how far apart the two outlines lie
-(``distinct_px``; a rule refusing poses within ``MIN_DISTINCT_PX`` of a plain shape's is measured and
-off). A refit on them (below) found more parts in clutter and in synthetic scenes of the Linemod objects
-with no more wrong answers on the detection sets, but accepted flipped poses of flat-faced blocks in the
-multi-instance scenes: the robust fit takes the faces that disagree with the image for occluded ones.
+How closely a plain shape fits the pose's silhouette (``generic``, ``shapes.genericity``) and how far
+apart the two outlines lie (``distinct_px``) are reported and not scored (docs/detection-history.md,
+sessions 12-15).
 """
 
 from __future__ import annotations
@@ -32,20 +28,15 @@ FEATURES = ("edge_support", "unexplained", "colour_edge", "polarity", "region", 
             # how closely a plain shape fits the pose's silhouette (``shapes.genericity``), and how far
             # apart, in image pixels, the two outlines lie on average (``shapes.distinct_px``)
             "generic", "distinct_px",
-            # the visible part's (``evidence``: what an occluder in front of the part does not spoil)
-            "visible", "shading_r2_robust",
             # the taught appearance's (``evidence.appearance``): only for a part with reference photos
             "appearance", "appearance_known")
-# Of these, reported only where ``evidence.VISIBLE_PART`` runs the robust fit (the benchmarks; off in the
-# service, whose score does not read them).
-VISIBLE_FEATURES = ("visible", "shading_r2_robust")
 # Evidence an older record (a bench cache made before it existed) may lack: read as 0 in a feature vector.
 # Of these, reported only for a part with taught colours (scored by ``APPEARANCE_WEIGHTS`` then).
 TAUGHT_FEATURES = ("appearance", "appearance_known")
-LATER_FEATURES = (*VISIBLE_FEATURES, "distinct_px", *TAUGHT_FEATURES)
+LATER_FEATURES = ("distinct_px", *TAUGHT_FEATURES)
 # Evidence the verification score of an untaught part may use, and which of it counts against a pose.
 MODEL_FEATURES = ("edge_support", "unexplained", "colour_edge", "region_low", "region_global", "coherence",
-                  "shading_r2", "visible", "shading_r2_robust", "generic")
+                  "shading_r2", "generic")
 LOWER_IS_BETTER = ("unexplained", "generic")
 # The score's weights (logistic regression, each weight's sign fixed so that better evidence never lowers
 # the score), fitted by ``bench/fit_verdict.py`` on the tuning sets (120 synthetic scenes of
@@ -59,23 +50,7 @@ WEIGHTS = {"bias": -3.935, "unexplained": -0.339, "region_global": 5.265, "shadi
 APPEARANCE_WEIGHTS = {"bias": -5.58, "appearance": 4.43, "appearance_known": 3.76, "region_global": 4.29}
 # Operating point (``options.min_score`` moves it).
 MIN_SCORE = 0.98
-# Measured in session 12 and not switched on (docs/detection-history.md): the refit on occluded realistic
-# scenes (``synth_scenes.py --seed 11 --look real --occlusion clutter``) + clutter2 + absent2, region_global
-# 4.487 + shading_r2_robust 3.595 - 3.533 at 0.97: clutter right found 0 -> 1 and wrong found 0 on the
-# detection sets, but lmo_dev's one right answer lost (0.981 -> 0.967) and, on bench/plane.py's scenes
-# without the plane, 2 wrong instances (a flat-shaded block's flipped pose, whose faces the robust fit
-# explains on 98 % of the pixels, where the plain grey fit explained 41 %) and recall 0.89 -> 0.83.
-# Its weights: bench/verdict_occlusion12.json (``bench/detection.py --weights ... --min-score 0.97``).
-# Measured in session 14 and not switched on: with ``generic`` (bench/verdict_generic14.json: bias 2.133,
-# region_global 5.067, shading_r2_robust 3.999, generic -7.295, at 0.97; fitted also on 320 synthetic
-# scenes of the Linemod objects, printed-picture images left out) and the region proposals on: clutter
-# right found 0 -> 1, clutter2 2, absent / absent2 0, lmo_dev 1 (312 queries), paper 20 of 20, wrong
-# found 0 on all; but bench/instances.py textured 0 -> 3 wrong instances and bench/plane.py's textured
-# scenes without the plane 0 -> 2, all the L-block's flipped pose on a real copy (plain grey shading
-# r2 0.03-0.71, robust 0.56-1.00). Counting a flat face's disagreeing pixels against the pose (branch
-# flip14) refuses those flips but also clutter's one find (a flange's self-shadow on its flat top). Session
-# 15: the mirror-twin check (``pipeline``, on) replaces two of the three instance flips by the true pose and
-# both plane ones; one wrong instance is left (a copy whose true pose was never proposed).
+# Refits on the visible part's evidence and on ``generic``: docs/detection-history.md, sessions 12-15.
 
 # The reasons a verdict gives.
 REASONS = ("found", "no_candidate", "outside_distance_range", "outside_image", "off_plane", "low_support",
@@ -89,19 +64,8 @@ TYPICAL_RIGHT = {"edge_support": 0.9, "unexplained": 0.1, "colour_edge": 0.95, "
                  "shading_r2": 0.9, "generic": 0.88, "appearance": 0.74}
 # A pose whose outline lies more than a fifth outside the image is not checked ("outside_image"): the
 # evidence sees only its inside part, and the cut-off part is where a wrong pose on the part's own visible
-# piece would be refuted. Was 0.5 (mostly outside); 3 of lmo_dev's 312 truths lie more than a fifth outside.
-# Session 23 (docs/detection-history.md): over lmo_dev's 8 reference choices right / wrong 350 / 2 -> 351 / 1
-# (the eggbox cut by the border, 73.6 px off at 0.984, went), with the calibration still counting border poses
-# (``pipeline.CALIBRATION_MIN_IN_IMAGE``); the untaught sets unchanged.
+# piece would be refuted (docs/detection-history.md, session 23).
 MIN_IN_IMAGE = 0.8
-# A pose whose outline lies within this many image pixels (mean, ``distinct_px``) of a plain shape's is not
-# found, whatever its score ("generic_outline"): the image cannot tell the part from a can, a box or a disc
-# of that outline. 0: off. Measured in session 15 at 0.75 px (service weights): synth_occ13's wrong found
-# 6 -> 5 (the sprayer seen end-on, fitted to a cylinder's end: 0.56 px), every detection set's answers
-# unchanged, but bench/plane.py's plain scenes lose 2 right L-blocks seen nearly as a box (0.71, 0.72 px;
-# recall with the plane 0.89 -> 0.87), and clutter2's sprayer seen end-on lies at 0.9 px: no margin
-# between right and wrong answers, so it stays off.
-MIN_DISTINCT_PX = 0.0
 
 
 @dataclass(frozen=True)
@@ -113,14 +77,12 @@ class Verdict:
 
 
 def _read(ev: dict, k: str) -> float:
-    """``ev[k]``; the visible part's evidence reads 0 where the robust fit had nothing to fit, and
-    evidence a record made before it existed lacks reads 0."""
+    """``ev[k]``; evidence a record made before it existed lacks (``LATER_FEATURES``) reads 0."""
     return float(ev[k] if k in ev or k not in LATER_FEATURES else 0.0)
 
 
 def feature_vector(ev: dict) -> np.ndarray:
-    """The evidence in ``FEATURES`` order, (len(FEATURES),) float64. The visible part's evidence reads 0
-    where the robust fit had nothing to fit (a pose with no pixel or outline in the image)."""
+    """The evidence in ``FEATURES`` order, (len(FEATURES),) float64."""
     return np.array([_read(ev, k) for k in FEATURES], float)
 
 
@@ -166,7 +128,7 @@ def decide(ev: dict | None, *, z_mm: float | None = None,
     if ev is None:
         return Verdict(False, 0.0, "no_candidate")
     score = verification_score(ev, weights)
-    # (evidence dicts made before the visible part's evidence existed lack it: reported as given)
+    # (a part without taught colours lacks their evidence: reported as given)
     evidence = {k: float(ev[k]) for k in FEATURES if k in ev} | {"in_image": float(ev.get("in_image", 1.0))}
     if distance_range_mm is not None and z_mm is not None and not (
             distance_range_mm[0] <= z_mm <= distance_range_mm[1]):
@@ -178,8 +140,5 @@ def decide(ev: dict | None, *, z_mm: float | None = None,
         if plane_tolerance_mm is not None and abs(plane_gap_mm) > plane_tolerance_mm:
             return Verdict(False, score, "off_plane", evidence)
     if score >= (MIN_SCORE if min_score is None else min_score):
-        # (evidence made before ``distinct_px`` existed lacks it: not judged on it then)
-        if ev.get("distinct_px", np.inf) < MIN_DISTINCT_PX:
-            return Verdict(False, score, "generic_outline", evidence)
         return Verdict(True, score, "found", evidence)
     return Verdict(False, score, rejection_reason(evidence), evidence)
