@@ -147,7 +147,7 @@ def cmd_warm_up(args: argparse.Namespace) -> int:
     done ahead (the Docker image runs it when it is built, so a container is ready in seconds)."""
     import time
 
-    from service import pipeline
+    from service.vision import pipeline
 
     _settings(args)
     t0 = time.perf_counter()

@@ -28,10 +28,10 @@ import math
 import numpy as np
 
 from service.errors import UnprocessableError
-from service.pipeline import DEFAULT_DISTANCE_RANGE_MM
 from service.schemas import Camera, Options
 from service.vision.bank import TemplateBank
 from service.vision.estimate.coarse import SearchParams
+from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM
 
 DISTANCE_MM = (10.0, 20_000.0)
 FOCAL_PX = (50.0, 1_000_000.0)

@@ -212,7 +212,7 @@ def run_build(location: str, mid: str, lease_s: float, *, parent_pid: int | None
     the model is deleted (within ``WATCH_S``) or when ``parent_pid`` is no longer this process's
     parent (the service died). "Back to queued" never overwrites a build that finished meanwhile.
     """
-    from service.pipeline import build_templates
+    from service.vision.pipeline import build_templates
 
     store = Store(location)
     token: str | None = None

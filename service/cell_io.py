@@ -4,15 +4,15 @@ added to a result (``service.cell`` does the frame math); ``estimate_result`` ru
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import numpy as np
 
 from service.bounds import check_apparent_size, check_plausible
 from service.cell import Grasp, base_from_cam, place_grasps, rigid
-from service.decode import image_size
+from service.decode import decode_image, image_size
 from service.errors import UnprocessableError
-from service.pipeline import estimate_image
 from service.schemas import (
     Camera,
     CameraRef,
@@ -30,6 +30,7 @@ from service.schemas import (
 )
 from service.vision.bank import TemplateBank
 from service.vision.build.appearance import Appearance
+from service.vision.pipeline import estimate_image
 
 
 def resolve_camera(text: str | None, store) -> tuple[CellCamera, str | None]:
@@ -163,17 +164,18 @@ def estimate_result(record: dict[str, Any], bank: TemplateBank, data: bytes, cam
         if size is not None:  # from the header: refused before a pixel is decoded
             check_image_size(cam, size, camera_name)
 
-    def check(size: tuple[int, int]) -> None:  # the decoded image's (w, h)
-        if cell:
-            check_image_size(cam, size, camera_name)
-        check_plausible(cam, opts, size)
-        check_apparent_size(bank, cam, opts, size, units=record.get("units") or "mm")
-
+    started_at = time.perf_counter()  # a deadline counts from here, decoding included
+    image = decode_image(data, max_pixels=max_pixels)
+    size = (image.shape[1], image.shape[0])
+    if cell:
+        check_image_size(cam, size, camera_name)
+    check_plausible(cam, opts, size)
+    check_apparent_size(bank, cam, opts, size, units=record.get("units") or "mm")
     kwargs = opts.estimate_kwargs()
     if kwargs["deadline_ms"] is None:
         kwargs["deadline_ms"] = default_deadline_ms or None
     kwargs["appearance"] = appearance
-    out = estimate_image(bank, data, cam.to_intrinsics(), max_pixels=max_pixels, check=check, **kwargs)
+    out = estimate_image(bank, image, cam.to_intrinsics(), started_at=started_at, **kwargs)
     result = EstimateResult.from_output(record["id"], out)
     result.warnings = ModelInfo.from_record(record).warnings + snap_warnings(cam, opts) + result.warnings
     if cell:

@@ -21,7 +21,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service import monitoring, pipeline, ui
+from service import monitoring, ui
 from service.api import cameras, error_responses, estimate, grasps, health, metrics, models, references
 from service.api.deps import ApiKeyDocumented
 from service.api.health import VERSION
@@ -32,7 +32,7 @@ from service.logs import capture_warnings
 from service.middleware import ApiKeyGuard, RequestContext
 from service.settings import Settings
 from service.store import Store
-from service.vision import threads
+from service.vision import pipeline, threads
 
 log = logging.getLogger("service")
 

@@ -27,10 +27,10 @@ from pydantic import (
 
 from service.cell import extent_warnings, nearest_rotation, rigid, snap_warning, watertight_warnings
 from service.errors import UnprocessableError, validation_sentence
-from service.pipeline import EstimateOutput, PoseCandidate, RefinedPose
 from service.vision.estimate.plane import PLANE_TOLERANCE_MM
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, euler_xyz_deg_from_R, quat_xyzw_from_R
+from service.vision.pipeline import EstimateOutput, PoseCandidate, RefinedPose
 
 Units = Literal["mm", "cm", "m", "in"]
 SymmetryOption = Literal["auto", "none", "x", "y", "z"]

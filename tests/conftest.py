@@ -23,7 +23,7 @@ def numba_kernels():
     """Every compiled kernel, compiled (or loaded from numba's on-disk cache) once per session before
     the first test: no test's duration includes it, and the servers the tests start load the kernels
     from the cache instead of each compiling them."""
-    from service import pipeline
+    from service.vision import pipeline
 
     pipeline.warm_up()
 
@@ -101,7 +101,7 @@ def l_block_bank():
     """The template bank of bench/instances.py's L-shaped block (arms of unequal length: no symmetry),
     on the coarse grid the instance and plane tests use."""
     from bench.instances import part
-    from service import pipeline
+    from service.vision import pipeline
 
     return pipeline.build_templates(part(), symmetry="none", grid={"view_step_deg": 15.0, "render_px": 160})
 

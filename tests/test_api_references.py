@@ -19,12 +19,12 @@ import warnings
 import numpy as np
 import pytest
 
-from service import pipeline
 from service.decode import decode_image
 from service.main import create_app
 from service.references import ESTIMATE_POSE_KEYS, MAX_REFERENCES
 from service.settings import Settings
 from service.store import Store, model_id
+from service.vision import pipeline
 from service.vision.build.appearance import ReferenceView, teach
 from service.vision.estimate.verdict import MIN_SCORE
 from service.vision.geometry.camera import Intrinsics

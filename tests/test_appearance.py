@@ -191,8 +191,8 @@ def _rot_deg(Ra, Rb) -> float:
 def test_the_outline_and_the_shading_fit_cannot_tell_a_turned_box_the_taught_colours_can():
     """A box's silhouette is the same turned 180 degrees about its axis, and a quadratic in the normals
     fits any three side colours: untaught, both poses verify. Taught, only the painted truth does."""
-    from service.pipeline import unrefined_score
     from service.vision.estimate.verdict import MIN_SCORE
+    from service.vision.pipeline import unrefined_score
 
     app = _taught()
     img, _ = _photo(POSE_T, seed=8)
@@ -209,7 +209,7 @@ def test_the_outline_and_the_shading_fit_cannot_tell_a_turned_box_the_taught_col
 
 @pytest.fixture(scope="module")
 def box_bank():
-    from service import pipeline
+    from service.vision import pipeline
 
     mesh = trimesh.Trimesh(BOX.vertices_mm, BOX.faces, process=False)
     return pipeline.build_templates(mesh, symmetry="none", grid={"view_step_deg": 15.0, "render_px": 160})
@@ -218,7 +218,7 @@ def box_bank():
 def test_estimate_with_taught_colours_finds_the_painted_pose(box_bank):
     """End to end: taught from three photos at other poses (``pipeline.teach_appearance``), the estimate
     reports the taught evidence and finds the box at the painted truth."""
-    from service import pipeline
+    from service.vision import pipeline
 
     photos = [(_photo(p, seed=7, intr=INTR_E2E, size=SIZE_E2E)[0], INTR_E2E, p)
               for p in (POSE_A, POSE_C, POSE_B)]
@@ -232,16 +232,14 @@ def test_estimate_with_taught_colours_finds_the_painted_pose(box_bank):
     assert np.linalg.norm(out.refined.pose.t_mm - POSE_T.t_mm) < 5.0
 
 
-@pytest.mark.parametrize("rivals", [True, False])
-def test_a_taught_found_candidate_gives_way_to_a_later_one_that_verifies_better(box_bank, monkeypatch,
-                                                                                  rivals):
+def test_a_taught_pass_ends_at_its_first_found_candidate(box_bank):
     """Two candidates at one place, the box turned 180 degrees about its axis first (the same outline, other
-    colours), then the painted truth, with an operating point both pass: the found answer is the better
-    verified truth (``pipeline.RIVALS``); without rivals the first found candidate ends the pass."""
-    from service import pipeline
+    colours), then the painted truth, with an operating point both pass: the first found candidate ends
+    the pass, though the taught colours tell the two apart."""
+    from service.vision import pipeline
+    from service.vision.estimate.edges import to_grey_u8
     from service.vision.estimate.evidence import colour_frame
 
-    monkeypatch.setattr(pipeline, "RIVALS", rivals)
     photos = [(_photo(p, seed=7, intr=INTR_E2E, size=SIZE_E2E)[0], INTR_E2E, p)
               for p in (POSE_A, POSE_C, POSE_B)]
     app = pipeline.teach_appearance(box_bank, photos)
@@ -252,13 +250,13 @@ def test_a_taught_found_candidate_gives_way_to_a_later_one_that_verifies_better(
     s_truth = pipeline.unrefined_score(box_bank, POSE_T, frame, INTR_E2E, None, app)
     assert s_turned < s_truth - 0.05  # the taught colours tell them apart
     cands = [pipeline.PoseCandidate(pose, 0.0, 0.0) for pose in (turned, POSE_T)]
-    checked = pipeline.verify_candidates(box_bank, cands, pipeline.to_grey_u8(img), frame, INTR_E2E,
+    checked = pipeline.verify_candidates(box_bank, cands, to_grey_u8(img), frame, INTR_E2E,
                                          distance_mm=None, distance_range_mm=(350.0, 550.0),
                                          min_score=s_turned - 0.1, n_channels=16, appearance=app)
     assert checked[0].verdict.found
     best_rot = _rot_deg(checked[0].refined.pose.R, POSE_T.R)
-    assert (best_rot < TAUGHT_FOUND_ROT_DEG) == rivals, best_rot
-    assert len(checked) == (2 if rivals else 1)
+    assert best_rot >= TAUGHT_FOUND_ROT_DEG, best_rot
+    assert len(checked) == 1
 
 
 def test_a_revolved_part_is_taught_at_every_spin_about_its_axis():
@@ -281,7 +279,7 @@ def test_photos_are_used_only_if_each_agrees_with_what_the_others_teach(repainte
     """Three photos of one paint agree (each one's colours, as the other two teach them, correlate
     perfectly); the same three with each painted another way (a different part, or shading that moves
     with the pose) disagree, and their colours are not used. One photo alone cannot be checked."""
-    from service import pipeline
+    from service.vision import pipeline
 
     part = SimpleNamespace(vertices_mm=BOX.vertices_mm, faces=BOX.faces, symmetry_axis_obj=None,
                            symmetry_point_obj=None)
@@ -298,7 +296,7 @@ def test_photos_are_used_only_if_each_agrees_with_what_the_others_teach(repainte
 def test_the_taught_colours_polish_a_pose_a_few_millimetres_off_back_onto_the_truth():
     """Started 3 mm off the painted truth along x, the polish's 1 mm steps walk back onto it: the
     colours fit best at the truth, and the score rises."""
-    from service.pipeline import polish_appearance, unrefined_score
+    from service.vision.pipeline import polish_appearance, unrefined_score
 
     app = _taught()
     img, _ = _photo(POSE_T, seed=9)
@@ -311,35 +309,28 @@ def test_the_taught_colours_polish_a_pose_a_few_millimetres_off_back_onto_the_tr
     assert unrefined_score(BOX, polished, frame, INTR, None, app) > before
 
 
-@pytest.mark.parametrize("hold", [True, False])
-def test_a_found_answer_keeps_its_colour_outline_depth_where_the_edges_disagree(box_bank, monkeypatch, hold):
+def test_a_found_answer_keeps_its_colour_outline_depth_where_the_edges_disagree(box_bank):
     """The grey image's edges drawn 3 % too far (as printed edges inside a real part's rim pull the edge
     refinement, ``bench/depth_from_gt.py``), the colours and the found answer's start at the truth x 1.06:
-    held at its colours' outline's depth (``pipeline.REGION_CONTOUR_HOLD``), the answer keeps the truth's
-    depth; refined freely on the edges afterwards, it goes back to theirs."""
-    from service import pipeline
-
-    monkeypatch.setattr(pipeline, "REGION_CONTOUR_HOLD", hold)
+    held at its colours' outline's depth (``Checker.outlined_on_colours``), the answer keeps the truth's
+    depth."""
     ratio = _outlined_against_edges(box_bank, 1.03).refined.pose.t_mm[2] / POSE_T.t_mm[2]
-    if hold:
-        assert abs(ratio - 1.0) < DEPTH_TOL
-    else:
-        assert ratio > 1.0 + 2 * DEPTH_TOL
+    assert abs(ratio - 1.0) < DEPTH_TOL
 
 
 def test_a_held_answer_the_edges_turn_is_not_taken(box_bank):
     """The edges drawn 6 % too far: held at the outline's depth, the refinement can only meet them by
-    turning the pose, and the turned pose is not the found one (``_same_place_but_depth``): the found
+    turning the pose, and the turned pose is not the found one (``same_place_but_depth``): the found
     answer stands as it was."""
     found = _found_at(Pose(POSE_T.R, POSE_T.t_mm * 1.06))
     assert _outlined_against_edges(box_bank, 1.06, found) is found
 
 
 def test_a_pose_moved_along_its_line_of_sight_is_the_same_place_but_for_its_depth(box_bank):
-    """Known answers (``HOLD_SAME_PLACE_PX``, 3 px; the box's corners 450 mm away at f = 800 px): the pose
-    scaled along its line of sight is the same place, and so is it turned 2 deg about the optical axis
-    (1.4 px on average); turned 5 deg (3.6 px) or moved 3 mm sideways (5.3 px) it is not."""
-    from service.pipeline import _same_place_but_depth
+    """Known answers (``Policy.hold_same_place_px``, 3 px; the box's corners 450 mm away at f = 800 px):
+    the pose scaled along its line of sight is the same place, and so is it turned 2 deg about the optical
+    axis (1.4 px on average); turned 5 deg (3.6 px) or moved 3 mm sideways (5.3 px) it is not."""
+    from service.vision.pipeline import same_place_but_depth as _same_place_but_depth
 
     K = INTR_E2E.K
     assert _same_place_but_depth(box_bank, POSE_T, Pose(POSE_T.R, POSE_T.t_mm * 1.07), K)
@@ -351,15 +342,16 @@ def test_a_pose_moved_along_its_line_of_sight_is_the_same_place_but_for_its_dept
 def _found_at(pose: Pose):
     from dataclasses import replace
 
-    from service import pipeline
+    from service.vision.estimate.verdict import decide
 
-    return _checked(pose, replace(pipeline.decide(None), found=True, reason="found"))
+    return _checked(pose, replace(decide(None), found=True, reason="found"))
 
 
 def _outlined_against_edges(box_bank, edges_scale: float, found=None):
     """A found answer at the truth x 1.06 moved to its colours' outline, the colours at the truth and the
     grey image's edges at the truth x ``edges_scale``."""
-    from service import pipeline
+    from service.vision import pipeline
+    from service.vision.estimate.edges import to_grey_u8
     from service.vision.estimate.evidence import colour_frame
 
     photos = [(_photo(p, seed=7, intr=INTR_E2E, size=SIZE_E2E)[0], INTR_E2E, p)
@@ -367,42 +359,16 @@ def _outlined_against_edges(box_bank, edges_scale: float, found=None):
     app = pipeline.teach_appearance(box_bank, photos)
     colours, _ = _photo(POSE_T, seed=8, intr=INTR_E2E, size=SIZE_E2E)
     edges, _ = _photo(Pose(POSE_T.R, POSE_T.t_mm * edges_scale), seed=8, intr=INTR_E2E, size=SIZE_E2E)
-    check = pipeline._Checker(box_bank, pipeline.to_grey_u8(edges), colour_frame(colours), INTR_E2E, None, 16,
-                              dict(distance_range_mm=(350.0, 550.0), min_score=0.0, appearance=app))
+    check = pipeline.Checker(box_bank, to_grey_u8(edges), colour_frame(colours), INTR_E2E, None, 16,
+                             dict(distance_range_mm=(350.0, 550.0), min_score=0.0, appearance=app))
     return check.outlined_on_colours(found or _found_at(Pose(POSE_T.R, POSE_T.t_mm * 1.06)), None)
-
-
-def test_the_polish_s_coarse_scales_turn_a_pose_16_degrees_off_back_onto_the_truth(monkeypatch):
-    """Started 16 deg off the painted truth about the optical axis: the 1 deg steps' 4 rounds end at least
-    12 deg away; with steps scaled 8, 4, 2 and 1 the climb reaches the truth within the finest scale's step
-    about each axis (1 deg each: sqrt(3) deg at most) and 1 mm along each, and the score rises more."""
-    from service import pipeline
-    from service.pipeline import polish_appearance, unrefined_score
-
-    app = _taught()
-    img, _ = _photo(POSE_T, seed=9)
-    frame = ColourFrame(img)
-    off = Pose(Rz(16.0) @ POSE_T.R, POSE_T.t_mm)
-
-    def turn_deg(pose):
-        c = (np.trace(pose.R @ POSE_T.R.T) - 1.0) / 2.0
-        return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
-
-    fine = polish_appearance(BOX, off, frame, INTR, app, None)
-    assert turn_deg(fine) >= 12.0 - 1e-6
-    monkeypatch.setattr(pipeline, "POLISH_SCALES", (8.0, 4.0, 2.0, 1.0))
-    coarse = polish_appearance(BOX, off, frame, INTR, app, None)
-    assert turn_deg(coarse) <= np.sqrt(3.0) + 1e-6
-    assert np.abs(coarse.t_mm - POSE_T.t_mm).max() <= 1.0 + 1e-6
-    assert unrefined_score(BOX, coarse, frame, INTR, None, app) > unrefined_score(BOX, fine, frame, INTR,
-                                                                                    None, app)
 
 
 def test_the_polish_never_steps_out_of_the_searched_distance_range():
     """The truth 8 mm beyond the range's far bound, a start 8 mm inside it: unbounded, the polish's 4 mm
     depth steps walk to the truth; bounded, the polish ends within the range (the depth at most the bound:
     the closest the steps come to the truth), its lateral position unchanged."""
-    from service.pipeline import polish_appearance
+    from service.vision.pipeline import polish_appearance
 
     app = _taught()
     img, _ = _photo(POSE_T, seed=9)
@@ -420,8 +386,8 @@ def test_the_polish_never_steps_out_of_the_searched_distance_range():
 def test_no_polish_step_is_taken_past_the_deadline():
     import time
 
-    from service.pipeline import polish_appearance
     from service.vision.deadline import Deadline
+    from service.vision.pipeline import polish_appearance
 
     app = _taught()
     img, _ = _photo(POSE_T, seed=9)
@@ -430,68 +396,35 @@ def test_no_polish_step_is_taken_past_the_deadline():
     assert polish_appearance(BOX, off, ColourFrame(img), INTR, app, None, spent) is off
 
 
-@pytest.mark.parametrize("on", [True, False])
-def test_a_taught_found_answer_too_far_is_moved_to_its_colours_outline(box_bank, monkeypatch, on):
+def test_a_taught_found_answer_too_far_is_moved_to_its_colours_outline(box_bank):
     """A found answer 6 % too far (as region proposals on real photos end, ``bench/depth_from_gt.py``) is
     moved to where the box's colours end and refined again: its depth comes back to the painted truth's
-    (``pipeline.REGION_CONTOUR_FOUND``); switched off, the answer is left as it was."""
+    (``Checker.outlined_on_colours``)."""
     from dataclasses import replace
 
-    from service import pipeline
+    from service.vision import pipeline
+    from service.vision.estimate.edges import to_grey_u8
     from service.vision.estimate.evidence import colour_frame
+    from service.vision.estimate.verdict import decide
 
-    monkeypatch.setattr(pipeline, "REGION_CONTOUR_FOUND", on)
     photos = [(_photo(p, seed=7, intr=INTR_E2E, size=SIZE_E2E)[0], INTR_E2E, p)
               for p in (POSE_A, POSE_C, POSE_B)]
     app = pipeline.teach_appearance(box_bank, photos)
     img, _ = _photo(POSE_T, seed=8, intr=INTR_E2E, size=SIZE_E2E)
-    check = pipeline._Checker(box_bank, pipeline.to_grey_u8(img), colour_frame(img), INTR_E2E, None, 16,
-                              dict(distance_range_mm=(350.0, 550.0), min_score=0.0, appearance=app))
+    check = pipeline.Checker(box_bank, to_grey_u8(img), colour_frame(img), INTR_E2E, None, 16,
+                             dict(distance_range_mm=(350.0, 550.0), min_score=0.0, appearance=app))
     far = Pose(POSE_T.R, POSE_T.t_mm * 1.06)
     found = pipeline.Checked(pipeline.PoseCandidate(far, 0.0, 0.0), pipeline.RefinedPose(far, 0.0, 0.0),
-                             replace(pipeline.decide(None), found=True, reason="found"))
+                             replace(decide(None), found=True, reason="found"))
     out = check.outlined_on_colours(found, None)
-    if on:
-        assert out.verdict.found
-        assert abs(out.refined.pose.t_mm[2] / POSE_T.t_mm[2] - 1.0) < DEPTH_TOL
-        assert _rot_deg(out.refined.pose.R, POSE_T.R) < TAUGHT_FOUND_ROT_DEG
-    else:
-        assert out is found
+    assert out.verdict.found
+    assert abs(out.refined.pose.t_mm[2] / POSE_T.t_mm[2] - 1.0) < DEPTH_TOL
+    assert _rot_deg(out.refined.pose.R, POSE_T.R) < TAUGHT_FOUND_ROT_DEG
 
 
 def _checked(pose: Pose, verdict):
     """A check whose candidate and refined pose are ``pose``."""
-    from service import pipeline
+    from service.vision import pipeline
 
     return pipeline.Checked(pipeline.PoseCandidate(pose, 0.0, 0.0), pipeline.RefinedPose(pose, 0.0, 0.0),
                             verdict)
-
-
-def _refused(pose: Pose, score: float, reason: str = "low_support"):
-    from service.vision.estimate.verdict import Verdict
-
-    return _checked(pose, Verdict(False, score, reason, {"appearance": 0.9}))
-
-
-def test_two_candidates_refined_to_one_pose_agree(box_bank):
-    """Known answers (``AGREEMENT_PX`` 5 px; the box 450 mm away at f = 800 px: 1 mm sideways is 1.78 px):
-    the best candidate over ``AGREED_MIN_SCORE`` is found when a supporter over ``AGREEMENT_SUPPORT_SCORE``
-    lies 2.5 mm (4.4 px) from it, not 3 mm (5.3 px); not under the floor, not with a weak supporter, not
-    when refused for where it lies; the supporter's score is its evidence."""
-    from service import pipeline
-
-    K = INTR_E2E.K
-    beside = Pose(POSE_T.R, POSE_T.t_mm + [2.5, 0.0, 0.0])
-    apart = Pose(POSE_T.R, POSE_T.t_mm + [3.0, 0.0, 0.0])
-    best = _refused(POSE_T, 0.975)
-    agreed = pipeline.agreed_answer(box_bank, [best, _refused(beside, 0.95)], K)
-    assert agreed is not None and agreed.verdict.found and agreed.verdict.reason == "found"
-    assert agreed.refined is best.refined and agreed.verdict.evidence["agreed_score"] == 0.95
-    assert pipeline.agreed_answer(box_bank, [best, _refused(apart, 0.95)], K) is None
-    assert pipeline.agreed_answer(box_bank, [_refused(POSE_T, 0.965), _refused(beside, 0.95)], K) is None
-    assert pipeline.agreed_answer(box_bank, [best, _refused(beside, 0.85)], K) is None
-    refused = _refused(POSE_T, 0.99, "outside_distance_range")
-    assert pipeline.agreed_answer(box_bank, [refused, _refused(beside, 0.95)], K) is None
-    # the best judged candidate is the one that must agree: a lower pair does not lend it support
-    other = Pose(POSE_T.R, POSE_T.t_mm + [40.0, 0.0, 0.0])
-    assert pipeline.agreed_answer(box_bank, [_refused(other, 0.978), best, _refused(beside, 0.95)], K) is None

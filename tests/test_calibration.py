@@ -12,12 +12,13 @@ import numpy as np
 import pytest
 import trimesh
 
-from service import pipeline
+from service.vision import pipeline
 from service.vision.build.appearance import Appearance
 from service.vision.estimate.verdict import MIN_SCORE, Verdict
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz
 from service.vision.geometry.render import render
+from service.vision.pipeline import teach
 from tests.test_appearance import (
     BOX,
     FLOOR_BGR,
@@ -48,7 +49,7 @@ def test_the_error_of_a_pose_moved_sideways_is_the_nearest_corner_s_image_shift(
     moved = Pose(truth.R, truth.t_mm + np.array([dx, 0.0, 0.0]))
     z_near = truth.apply(part.vertices_mm)[:, 2].min()
     expected = 800.0 * dx / z_near * 640.0 / 1280
-    assert abs(pipeline._error_px(part, moved, truth, intr, 1280) - expected) < PX_TOL
+    assert abs(teach._error_px(part, moved, truth, intr, 1280) - expected) < PX_TOL
 
 
 def test_a_revolved_part_spun_about_its_axis_is_not_an_error_and_tilted_it_is():
@@ -58,8 +59,8 @@ def test_a_revolved_part_spun_about_its_axis_is_not_an_error_and_tilted_it_is():
     truth = Pose(Rx(60.0) @ Ry(10.0), np.array([0.0, 0.0, 500.0]))
     spun = Pose(truth.R @ Rz(35.0), truth.t_mm)  # a multiple of the 5 degree spins the error tries
     tilted = Pose(truth.R @ Rx(35.0), truth.t_mm)
-    assert pipeline._error_px(part, spun, truth, intr, 640) < 1e-6
-    assert pipeline._error_px(part, tilted, truth, intr, 640) > pipeline.CALIBRATION_WRONG_PX
+    assert teach._error_px(part, spun, truth, intr, 640) < 1e-6
+    assert teach._error_px(part, tilted, truth, intr, 640) > pipeline.DEFAULT_POLICY.calibration_wrong_px
 
 
 def _checked(reason: str, in_image: float = 1.0) -> pipeline.Checked:
@@ -70,26 +71,26 @@ def _checked(reason: str, in_image: float = 1.0) -> pipeline.Checked:
 def test_the_calibration_counts_wrong_poses_the_cell_produces_even_where_the_verdict_refuses_them():
     """A wrong pose cut by a photo's border is refused there ("outside_image"), but half inside it is a
     score the part's other frames produce; a pose off the distance range or the plane is never returned."""
-    assert pipeline._counts_as_met(_checked("found"))
-    assert pipeline._counts_as_met(_checked("low_support"))
-    half = pipeline.CALIBRATION_MIN_IN_IMAGE
-    assert pipeline._counts_as_met(_checked("outside_image", half))
-    assert not pipeline._counts_as_met(_checked("outside_image", half - 0.01))
-    assert not pipeline._counts_as_met(_checked("outside_distance_range"))
-    assert not pipeline._counts_as_met(_checked("off_plane"))
+    assert teach._counts_as_met(_checked("found"))
+    assert teach._counts_as_met(_checked("low_support"))
+    half = pipeline.DEFAULT_POLICY.calibration_min_in_image
+    assert teach._counts_as_met(_checked("outside_image", half))
+    assert not teach._counts_as_met(_checked("outside_image", half - 0.01))
+    assert not teach._counts_as_met(_checked("outside_distance_range"))
+    assert not teach._counts_as_met(_checked("off_plane"))
 
 
-def test_the_operating_point_lies_the_margin_above_the_highest_wrong_score_and_never_under_the_global_one(
-        monkeypatch):
+def test_the_operating_point_lies_the_margin_above_the_highest_wrong_score_and_never_under_the_global_one():
     faces = np.zeros((1, 3), np.float32)
     assert pipeline.operating_point(None) is None
     assert pipeline.operating_point(Appearance(faces, 2)) is None  # not calibrated
     # calibrated, no wrong pose judged: the global operating point
     assert pipeline.operating_point(Appearance(faces, 2, wrong_score=-math.inf)) is None
     assert pipeline.operating_point(Appearance(faces, 2, wrong_score=0.5)) == MIN_SCORE
-    monkeypatch.setattr(pipeline, "CALIBRATION_MARGIN", math.log(2.0))
+    doubling = replace(pipeline.DEFAULT_POLICY, calibration_margin=math.log(2.0))
     # wrong odds 0.99 / 0.01 = 99 doubled: 198 / 199
-    assert abs(pipeline.operating_point(Appearance(faces, 2, wrong_score=0.99)) - 198.0 / 199.0) < 1e-12
+    point = pipeline.operating_point(Appearance(faces, 2, wrong_score=0.99), doubling)
+    assert abs(point - 198.0 / 199.0) < 1e-12
 
 
 def _scene(poses: list[Pose], seed: int) -> np.ndarray:
@@ -162,56 +163,13 @@ def test_photos_that_agree_less_are_used_only_once_calibrated():
 
 def test_a_part_calibrated_on_enough_photos_is_also_searched_with_the_colour_sweep():
     faces = np.full((1, 3), 100.0, np.float32)
+    policy = pipeline.DEFAULT_POLICY
     assert pipeline.taught_search(None) is None
-    assert pipeline.taught_search(Appearance(faces, 6)) is pipeline.TAUGHT_SEARCH  # not calibrated
-    fewer = pipeline.SWEEP_MIN_PHOTOS - 1
+    assert pipeline.taught_search(Appearance(faces, 6)) is policy.taught_search  # not calibrated
+    fewer = policy.sweep_min_photos - 1
     calibrated = pipeline.taught_search(Appearance(faces, fewer, calibrated_photos=fewer))
-    assert calibrated is pipeline.CALIBRATED_SEARCH
-    assert not pipeline.CALIBRATED_SEARCH.colour_sweep
-    enough = pipeline.SWEEP_MIN_PHOTOS
+    assert calibrated is policy.calibrated_search
+    assert not policy.calibrated_search.colour_sweep
+    enough = policy.sweep_min_photos
     swept = pipeline.taught_search(Appearance(faces, enough, calibrated_photos=enough))
-    assert swept.colour_sweep and swept == replace(pipeline.CALIBRATED_SEARCH, colour_sweep=True)
-
-
-def test_a_reference_photo_turned_upside_down_shows_the_part_where_its_turned_pose_projects():
-    """``_turned_view`` (``CALIBRATION_TURNED``): the box rendered at the turned pose through the turned
-    camera is the photo's render rotated 180 deg, and a lens's distorted projection of a point is mirrored
-    through the image's centre too (OpenCV's five coefficients: the tangential ones change sign)."""
-    w, h = SIZE_E2E
-    shown = render(BOX.vertices_mm, BOX.faces, POSE_A, INTR_E2E.K, SIZE_E2E).face_id
-    image = np.where(shown[..., None] >= 0, 200, 30).astype(np.uint8).repeat(3, axis=2)
-    turned_image, turned_intr, turned_pose = pipeline._turned_view((image, INTR_E2E, POSE_A))
-    assert np.array_equal(turned_image, image[::-1, ::-1])
-    again = render(BOX.vertices_mm, BOX.faces, turned_pose, turned_intr.K, SIZE_E2E).face_id
-    assert np.mean((again >= 0) == (shown[::-1, ::-1] >= 0)) > 0.999
-
-    import cv2
-
-    lens = Intrinsics(INTR_E2E.fx, INTR_E2E.fy, INTR_E2E.cx + 7.0, INTR_E2E.cy - 5.0,
-                      (-0.21, 0.08, 0.004, -0.006, 0.01))
-    _, turned_lens, turned_pose = pipeline._turned_view((image, lens, POSE_A))
-    p_obj = np.asarray(BOX.vertices_mm, float)
-
-    def distorted(intr: Intrinsics, pose: Pose) -> np.ndarray:
-        uv, _ = cv2.projectPoints(pose.apply(p_obj), np.zeros(3), np.zeros(3), intr.K, intr.dist_coeffs)
-        return uv.reshape(-1, 2)
-
-    mirrored = np.array([w - 1, h - 1]) - distorted(lens, POSE_A)
-    assert np.abs(distorted(turned_lens, turned_pose) - mirrored).max() < PX_TOL
-    assert pipeline._turned_view((image, Intrinsics(500, 500, 320, 240, (0.1,) * 8), POSE_A)) is None
-
-
-def test_the_calibration_with_turned_photos_meets_every_wrong_score_it_met_without(box_bank, monkeypatch):
-    """``CALIBRATION_TURNED`` searches each photo as it is and turned: the highest wrong score is over a
-    superset of the searches, so it is never lower; and the turned photos are searched too (the progress
-    counts twice the photos)."""
-    photos = _photos(True)
-    plain = pipeline.teach_appearance(box_bank, photos, calibrate=True)
-    monkeypatch.setattr(pipeline, "CALIBRATION_TURNED", True)
-    seen: list[tuple[int, int]] = []
-    taught = pipeline.teach_appearance(box_bank, photos)
-    turned = pipeline.calibrate_appearance(box_bank, photos, taught,
-                                           progress=lambda i, n: seen.append((i, n)))
-    assert seen == [(i, 2 * len(photos)) for i in range(2 * len(photos))]
-    assert turned.calibrated_photos == len(photos)
-    assert turned.wrong_score >= plain.wrong_score
+    assert swept.colour_sweep and swept == replace(policy.calibrated_search, colour_sweep=True)

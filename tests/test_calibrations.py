@@ -11,9 +11,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from service import pipeline, references
+from service import references
 from service.calibrations import Calibrator, lease_key
 from service.store import Store
+from service.vision import pipeline
 from service.vision.build.appearance import Appearance
 from tests.test_references import _reference
 

@@ -10,7 +10,7 @@ import numba
 import numpy as np
 import pytest
 
-from service import pipeline
+from service.vision import pipeline
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Rz, rotation_angle_deg
 from service.vision.geometry.render import render, render_shaded
@@ -588,7 +588,7 @@ def _decoy_scene(bank, dist: float, uv: np.ndarray, *, decoy: bool = True, phi_d
     from service.vision.estimate import coarse
     from service.vision.estimate.coarse import Hypothesis, poses_of
 
-    tpl = coarse._cached_level_a(bank, INTR, (H, W), pipeline.SEARCH_PARAMS, dist, dist)
+    tpl = coarse._cached_level_a(bank, INTR, (H, W), pipeline.DEFAULT_POLICY.search_params, dist, dist)
     h_decoy = Hypothesis(int(tpl.views[0]), 0.0, dist, uv - 3)
     h_part = Hypothesis(int(tpl.views[20]), phi_deg, dist, uv)
     (R_decoy, R_part), (t_decoy, t_part) = poses_of(bank, [h_decoy, h_part], INTR.K, dist)
@@ -618,7 +618,7 @@ def test_second_distinct_template_at_a_peak_is_proposed(l_block_bank):
     from the part's template too (the second distinct one there, the search's deferred second pass)
     and proposes it."""
     bank, dist = l_block_bank, 500.0
-    p = replace(pipeline.SEARCH_PARAMS, n_peaks=1, bg_norm=False, templates_per_peak=1)
+    p = replace(pipeline.DEFAULT_POLICY.search_params, n_peaks=1, bg_norm=False, templates_per_peak=1)
     img, R_part, t_part = _decoy_scene(bank, dist, np.array([8 * 80 + 6.5, 8 * 60 + 6.5]))
     right = _is_pose(R_part, t_part)
     single = pipeline.propose(bank, img, INTR, distance_mm=dist, params=p)[0]
@@ -642,7 +642,7 @@ def test_estimate_runs_the_second_pass_only_when_the_first_candidates_fail(l_blo
     peak_starts = coarse.peak_starts
     monkeypatch.setattr(coarse, "peak_starts", lambda *a, **k: calls.append(1) or peak_starts(*a, **k))
     bank, dist = l_block_bank, 500.0
-    p = replace(pipeline.SEARCH_PARAMS, n_peaks=1, templates_per_peak=3)
+    p = replace(pipeline.DEFAULT_POLICY.search_params, n_peaks=1, templates_per_peak=3)
     uv = np.array([8 * 80 + 6.5, 8 * 60 + 6.5])
     img, R_part, t_part = _decoy_scene(bank, dist, uv, decoy=False, phi_deg=90.0)
     out = pipeline.estimate(bank, img, INTR, distance_mm=dist, params=p)
@@ -670,7 +670,7 @@ def test_background_norm_and_templates_per_peak_together_propose_the_part_beside
     from service.vision.estimate.edges import Segments, detect_segments
 
     bank, dist = l_block_bank, 500.0
-    p = replace(pipeline.SEARCH_PARAMS, n_peaks=1, bg_norm=False, templates_per_peak=1)
+    p = replace(pipeline.DEFAULT_POLICY.search_params, n_peaks=1, bg_norm=False, templates_per_peak=1)
     tpl = coarse._cached_level_a(bank, INTR, (H, W), p, dist, dist)
     uv = np.array([8 * 100 + 3.5, 8 * 60 + 3.5])  # a level-A anchor's pixel, right of the texture
     decoy = Hypothesis(int(tpl.views[0]), 0.0, dist, uv)
@@ -726,7 +726,7 @@ def test_level_a_tables_the_deadline_leaves_no_time_for_are_made_in_the_backgrou
         return real(*args)
 
     monkeypatch.setattr(coarse, "_cached_level_a", slow)
-    p = pipeline.SEARCH_PARAMS
+    p = pipeline.DEFAULT_POLICY.search_params
     intr = Intrinsics(1234.0, 1234.0, 640.0, 480.0)  # a camera no other test made tables for
     args = (sprayer_bank, intr, (H, W), p, 500.0, 500.0, np.array([1.0]))
     deadline = Deadline(100.0, clock=lambda: 0.0)  # 100 ms left, and they stay left

@@ -3,11 +3,11 @@ of two regions with the same silhouette, the one in the part's colours is propos
 
 import numpy as np
 
-from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, taught_colour_density
 from service.vision.build.appearance import Appearance
 from service.vision.estimate import colour_prior, regions
 from service.vision.geometry.camera import project
 from service.vision.geometry.render import rasterise_roi
+from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM, taught_colour_density
 from tests.test_regions import H, K, W, best_node_iou, template_pose
 
 RED, BLUE, GREY = (40, 40, 200), (200, 60, 40), (128, 128, 128)
@@ -84,7 +84,7 @@ def test_scored_region_proposals_take_the_painted_rotation_not_its_turned_twin(m
     import trimesh
 
     import tests.test_appearance as ta
-    from service import pipeline
+    from service.vision import pipeline
     from service.vision.estimate.coarse import poses_of
     from service.vision.estimate.evidence import colour_frame
     from service.vision.geometry.frames import Pose, Rx, Ry, Rz
@@ -111,8 +111,9 @@ def test_scored_region_proposals_take_the_painted_rotation_not_its_turned_twin(m
     twins = [ta.POSE_T.R @ turn(180.0) for turn in (Rx, Ry, Rz)]
 
     def first_rotation(score) -> np.ndarray:
-        hs = regions.region_proposals(bank, img, intr.K, size[::-1], pipeline.SEARCH_PARAMS, distance_mm=None,
-                                      distance_range_mm=(350.0, 550.0), n_out=4, score=score, n_scored=24)
+        hs = regions.region_proposals(bank, img, intr.K, size[::-1], pipeline.DEFAULT_POLICY.search_params,
+                                      distance_mm=None, distance_range_mm=(350.0, 550.0), n_out=4,
+                                      score=score, n_scored=24)
         return poses_of(bank, hs[:1], intr.K, None)[0][0]
 
     R0 = first_rotation(taught_score)

@@ -92,9 +92,9 @@ def test_a_half_hidden_part_is_still_proposed(l_block_bank):
 
 def test_the_search_s_last_pass_proposes_the_part_painted_in_its_colours(l_block_bank):
     """``pipeline.propose`` with ``sweep_colours``: its last deferred pass holds the painted part's pose."""
-    from service.pipeline import propose
     from service.vision.estimate import colour_prior
     from service.vision.geometry.camera import Intrinsics
+    from service.vision.pipeline import propose
 
     bank = l_block_bank
     truth = template_pose(bank, 40, 25.0, (380.0, 210.0), 650.0)

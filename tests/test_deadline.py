@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from service import pipeline
+from service.vision import pipeline
 from service.vision.deadline import Deadline, RunningMean
 from service.vision.estimate import coarse
 from service.vision.estimate.chamfer import distance_tensor, pooled_distance_tensor
@@ -22,6 +22,7 @@ from service.vision.estimate.evidence import colour_frame
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Ry
 from service.vision.geometry.render import render_shaded
+from service.vision.pipeline import timing
 
 with warnings.catch_warnings():  # starlette would like httpx2; the test extra installs httpx
     warnings.filterwarnings("ignore", message="Using `httpx` with `starlette.testclient`")
@@ -135,7 +136,7 @@ def test_a_deadline_that_never_comes_changes_nothing(bank, image):
 
 def test_level_a_scans_the_anchors_with_most_edges_first(bank, image):
     grey = to_grey_u8(image)
-    p = pipeline.SEARCH_PARAMS
+    p = pipeline.DEFAULT_POLICY.search_params
     dtt_a = pooled_distance_tensor(distance_tensor(detect_segments(grey), n_channels=p.n_channels,
                                                    scale=p.fine_scale), p.level_scale)
     z_ref, scales = coarse.depth_scales((300.0, 700.0), p.depth_step)
@@ -232,13 +233,13 @@ def test_a_check_after_the_first_starts_only_when_the_deadline_leaves_its_high_e
     # than the high estimate 10 + 2 x 20) starts no check but the first.
     check = RunningMean(10.0)
     check.spread = 20.0
-    monkeypatch.setattr(pipeline, "_CHECK_MS", check)
+    monkeypatch.setattr(timing, "CHECK_MS", check)
     grey = to_grey_u8(image)
     cands, _, _ = pipeline.propose(bank, grey, INTR, distance_range_mm=(300.0, 700.0))
     assert cands
     frame = colour_frame(image)
     kw = dict(distance_mm=None, distance_range_mm=(300.0, 700.0), min_score=None,
-              n_channels=pipeline.SEARCH_PARAMS.n_channels)
+              n_channels=pipeline.DEFAULT_POLICY.search_params.n_channels)
     first = Deadline(30.0, clock=lambda: 0.0)
     assert len(pipeline.verify_candidates(bank, cands, grey, frame, INTR, deadline=first, **kw)) == 1
     assert first.checks >= 1

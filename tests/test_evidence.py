@@ -166,7 +166,7 @@ def test_the_region_and_shading_measure_alone_equals_the_whole_evidence_s(box_ph
     """``region_and_shading`` is ``evidence`` without the measures a score does not read: on every pose,
     taught and untaught, with another part hiding some of it and without, its values are the whole
     evidence's, and the pipeline's unrefined score is the score of the whole evidence."""
-    from service import pipeline
+    from service.vision import pipeline
     from service.vision.estimate.evidence import REGION_AND_SHADING, evidence, region_and_shading
     from service.vision.estimate.verdict import verification_score
 

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from service import pipeline
+from service.vision import pipeline
 from service.vision.estimate import verdict
 from service.vision.geometry.camera import Intrinsics
 from tests.tolerances import FOUND_POSE_AXIS_DEG, FOUND_POSE_T_MM

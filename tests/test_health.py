@@ -6,9 +6,9 @@ from __future__ import annotations
 import threading
 import warnings
 
-from service import pipeline
 from service.main import create_app
 from service.settings import Settings
+from service.vision import pipeline
 
 with warnings.catch_warnings():  # starlette would like httpx2; the test extra installs httpx
     warnings.filterwarnings("ignore", message="Using `httpx` with `starlette.testclient`")

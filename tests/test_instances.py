@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service import pipeline
+from service.vision import pipeline
 from service.vision.estimate.roi import rect_polygon
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from service import pipeline
+from service.vision import pipeline
 from service.vision.estimate.edges import detect_segments
 from service.vision.estimate.interior import model_edges, unexplained_edge_ratio
 from service.vision.geometry.camera import Intrinsics

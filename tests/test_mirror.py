@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 import trimesh
 
-from service import pipeline
-from service.pipeline import PoseCandidate
+from service.vision import pipeline
 from service.vision.build.mirror import mirror_planes, twin_poses
 from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.evidence import colour_frame
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz, rotation_angle_deg
 from service.vision.geometry.render import render, render_shaded
+from service.vision.pipeline import PoseCandidate
 from service.vision.reference.metrics import mspd_px
 from tests.tolerances import MIRROR_NORMAL_DEG, TWIN_OUTLINE_IOU, TWIN_RIGHT_PX
 
@@ -100,10 +100,14 @@ def flipped_scene(l_block_bank):
 
 
 def check(bank, img, pose, *, twin_check: bool, monkeypatch, deadline=NO_DEADLINE):
-    monkeypatch.setattr(pipeline, "TWIN_CHECK", twin_check)
+    """``pose`` checked as an estimate checks a candidate; without ``twin_check``, its own check alone."""
+    cand = PoseCandidate(pose, 0.0, 1.0)
+    if not twin_check:
+        checker = pipeline.Checker(bank, img[..., 0], colour_frame(img), INTR, None, 16,
+                                   dict(distance_range_mm=(300.0, 600.0), min_score=0.0), deadline)
+        return checker(cand, None)
     kw = dict(distance_mm=None, distance_range_mm=(300.0, 600.0), min_score=0.0, n_channels=16)
-    return pipeline.check_candidate(bank, PoseCandidate(pose, 0.0, 1.0), img[..., 0], colour_frame(img), INTR,
-                                    deadline=deadline, **kw)
+    return pipeline.check_candidate(bank, cand, img[..., 0], colour_frame(img), INTR, deadline=deadline, **kw)
 
 
 def mspd(bank, a: Pose, b: Pose) -> float:

@@ -99,7 +99,7 @@ def test_deeper_colour_input_stays_colour(bank):
 
 def test_estimate_draws_the_overlay_on_the_colour_image(bank):
     """The overlay a person reads is the colour frame the cell sent, not the grey the search reads."""
-    from service import pipeline
+    from service.vision import pipeline
 
     bgr = np.empty((480, 640, 3), np.uint8)
     bgr[...] = (180, 90, 40)

@@ -20,8 +20,7 @@ from bench.occlusion import (
     scene,
     visible_fraction,
 )
-from service import pipeline
-from service.pipeline import Checked, PoseCandidate, RefinedPose, sort_instances
+from service.vision import pipeline
 from service.vision.estimate.evidence import colour_frame
 from service.vision.estimate.plane import (
     R_cam_rest,
@@ -33,6 +32,8 @@ from service.vision.estimate.plane import (
 from service.vision.estimate.verdict import decide
 from service.vision.geometry.camera import project
 from service.vision.geometry.frames import Pose
+from service.vision.pipeline import Checked, PoseCandidate, RefinedPose, sort_instances
+from service.vision.pipeline.instances import paint_depth
 from tests.tolerances import PLANE_FOUND_T_MM, PLANE_REST_TOL_MM, ROUND_TRIP_ATOL
 
 
@@ -180,7 +181,7 @@ def test_a_found_neighbour_explains_its_pixels_in_the_evidence(bank):
     alone = evidence(bank, front, INTR, colour_frame(scene(bank, [front])))
     pair = colour_frame(scene(bank, [front, back]))
     back_depth = np.full((SIZE[1], SIZE[0]), np.inf, np.float32)
-    pipeline._paint_depth(back_depth, bank, back, INTR)
+    paint_depth(back_depth, bank, back, INTR)
     among = evidence(bank, front, INTR, pair)
     explained = evidence(bank, front, INTR, pair, back_depth)
     # The back copy's pixels in the front one's outside band look like its inside: explained, the

@@ -8,8 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from service import pipeline, references
+from service import references
 from service.store import Store
+from service.vision import pipeline
 from service.vision.build.appearance import Appearance
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose

@@ -4,13 +4,14 @@ its region, and the proposal's pose is the rendered one."""
 import numpy as np
 import pytest
 
-from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, SEARCH_PARAMS
 from service.vision.estimate import regions, shapes
 from service.vision.estimate.coarse import Hypothesis, poses_of
 from service.vision.geometry.camera import project
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz
 from service.vision.geometry.render import rasterise_roi
+from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM, DEFAULT_POLICY
 
+SEARCH_PARAMS = DEFAULT_POLICY.search_params
 K = np.array([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]])
 W, H = 640, 480
 

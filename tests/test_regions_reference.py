@@ -7,8 +7,8 @@ import cv2
 import numpy as np
 import pytest
 
-from service.pipeline import DEFAULT_DISTANCE_RANGE_MM
 from service.vision.estimate import regions, shapes
+from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM
 from service.vision.reference import regions as ref
 
 FIELDS = ("labels", "children", "area", "bbox", "born", "died", "moments")

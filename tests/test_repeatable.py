@@ -11,8 +11,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from service import pipeline
-from service.vision import threads
+from service.vision import pipeline, threads
 from service.vision.geometry.camera import Intrinsics
 from service.vision.memo import Memo
 

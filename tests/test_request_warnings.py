@@ -9,9 +9,10 @@ import warnings
 
 import pytest
 
-from service import pipeline
+from service.decode import decode_image
 from service.main import create_app
 from service.settings import Settings
+from service.vision import pipeline
 from service.vision.geometry.camera import Intrinsics
 from tests.api_helpers import wait_built
 
@@ -33,12 +34,10 @@ def paper_intrinsics(paper_gt, scale: float = 1.0) -> Intrinsics:
 
 
 def test_a_focal_length_ten_times_too_large_gets_a_sentence_naming_it(sprayer_bank, frame, paper_gt):
-    image_bytes, _ = frame
-    right = pipeline.estimate_image(sprayer_bank, image_bytes, paper_intrinsics(paper_gt), max_pixels=10**8,
-                                    distance_mm=500.0)
+    image = decode_image(frame[0], max_pixels=10**8)
+    right = pipeline.estimate_image(sprayer_bank, image, paper_intrinsics(paper_gt), distance_mm=500.0)
     assert right.found and right.warnings == ()
-    off = pipeline.estimate_image(sprayer_bank, image_bytes, paper_intrinsics(paper_gt, 10.0),
-                                  max_pixels=10**8, distance_mm=500.0)
+    off = pipeline.estimate_image(sprayer_bank, image, paper_intrinsics(paper_gt, 10.0), distance_mm=500.0)
     assert not off.found and len(off.warnings) == 1
     # the part is found where a focal length 10 times too large puts it: 10 times as far (within 10 %)
     assert "fx and fy" in off.warnings[0] and "distance_mm 500 mm" in off.warnings[0]

@@ -56,8 +56,8 @@ def test_negligible_families_are_dropped():
 
 
 def test_the_bank_carries_its_stable_poses_and_a_version_1_bank_loads_without_them():
-    from service.pipeline import build_templates
     from service.vision.bank import BANK_FORMAT_VERSION, TemplateBank
+    from service.vision.pipeline import build_templates
 
     bank = build_templates(trimesh.creation.box((80.0, 60.0, 40.0)), symmetry="none",
                            grid={"view_step_deg": 45.0, "render_px": 64})

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from service import pipeline
+from service.vision import pipeline
 from service.vision.estimate import verdict
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz

@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from service import pipeline
+from service.vision import pipeline
 from tests.test_serve import serve  # noqa: F401  (fixture)
 from tests.tolerances import WARM_UP_AXIS_DEG, WARM_UP_T_MM
 

@@ -19,8 +19,8 @@ from service.api.deps import (
 )
 from service.builder import register_upload
 from service.errors import NotFoundError
-from service.pipeline import template_picture
 from service.schemas import ModelInfo, SymmetryOption, Units, parse_json_object
+from service.vision.pipeline import template_picture
 
 router = APIRouter(tags=["models"])
 NAME_MAX_CHARS = 200

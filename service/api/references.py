@@ -12,7 +12,6 @@ from starlette.concurrency import run_in_threadpool
 from service.api import error_responses
 from service.api.deps import CalibratorDep, ModelRecord, ReadyModel, SettingsDep, StoreDep, read_upload
 from service.cell_io import resolve_camera, snap_warnings
-from service.pipeline import operating_point
 from service.references import (
     MAX_REFERENCES,
     add_reference,
@@ -22,6 +21,7 @@ from service.references import (
 )
 from service.schemas import ReferenceAdded, ReferencePhoto, References
 from service.vision.estimate.verdict import MIN_SCORE
+from service.vision.pipeline import operating_point
 
 router = APIRouter(tags=["models"])
 

@@ -1,0 +1,51 @@
+"""What the estimate reads of the part beyond its templates: mirror planes, resting poses, face areas.
+
+Each is the bank's, or, for a bank built before banks held it, made from its mesh once per bank.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from service.vision.bank import TemplateBank
+from service.vision.build.mirror import MirrorPlanes, mirror_planes
+from service.vision.memo import Memo
+
+_MADE = Memo(8)
+
+
+def _mesh(bank: TemplateBank) -> trimesh.Trimesh:
+    return trimesh.Trimesh(np.asarray(bank.vertices_mm, float), np.asarray(bank.faces), process=False)
+
+
+def mirror_planes_of(bank: TemplateBank) -> MirrorPlanes:
+    """The part's mirror planes (``build/mirror.py``); made for a bank of format version < 3."""
+    if bank.mirror_normals_obj is not None:
+        return MirrorPlanes(np.asarray(bank.mirror_normals_obj, float).reshape(-1, 3),
+                            np.asarray(bank.mirror_point_obj, float))
+    return _MADE.get(bank, "mirror", lambda: mirror_planes(_mesh(bank), axis_obj=bank.symmetry_axis_obj))
+
+
+def resting_rotations(bank: TemplateBank) -> np.ndarray:
+    """(S, 3, 3) ``R_rest_obj`` of the part's stable resting pose families; made for a bank of format
+    version 1."""
+    if bank.R_rest_obj is not None:
+        return np.asarray(bank.R_rest_obj, float).reshape(-1, 3, 3)
+
+    def make() -> np.ndarray:
+        from service.vision.build.stable import stable_poses
+
+        return stable_poses(_mesh(bank), axis_obj=bank.symmetry_axis_obj,
+                            diameter_mm=bank.diameter_mm).R_rest_obj
+
+    return _MADE.get(bank, "rest", make)
+
+
+def face_areas_mm2(bank: TemplateBank) -> np.ndarray:
+    """(F,) float64 area of each face, mm^2."""
+    def make() -> np.ndarray:
+        v = np.asarray(bank.vertices_mm, float)[np.asarray(bank.faces)]
+        return 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+
+    return _MADE.get(bank, "face_area", make)
