@@ -8,13 +8,11 @@ A has the named switches off, B on (each switch's "on" is the code as committed)
 what a loaded machine's wall clock pays), and whether the two sides' answers were identical frame by
 frame (poses, verdicts). Switches:
 
-interior_later  the refinement's interior check waited for after the evidence (``pipeline.INTERIOR_LATER``)
 nogil           the vision kernels release the GIL (``nogil=True``; off: recompiled without it)
 front_faces     the evidence rasterises a closed mesh's front faces only (``evidence.FRONT_FACES_ONLY``)
 fast_evaluate   the coarse search's ``evaluate``: one matmul, a compiled read-out (``coarse.FAST_EVALUATE``)
 visible_part    the evidence's robust colour shading fit (``evidence.VISIBLE_PART``: ``visible``,
                 ``shading_r2_robust``; the score does not read them)
-twin_check      a found pose's mirror twins are checked too (``pipeline.TWIN_CHECK``)
 numba1          numba's parallel kernels on one thread (the calling one; the background pool unchanged):
                 B is one thread, A the budget (not a code path of the service: a measurement)
 """
@@ -35,10 +33,9 @@ if str(ROOT) not in sys.path:
 
 from bench.repeat import fingerprint  # noqa: E402
 from bench.speed import frames  # noqa: E402
-from service import pipeline  # noqa: E402
-from service.pipeline import estimate, warm_up  # noqa: E402
 from service.vision import threads  # noqa: E402
 from service.vision.estimate import coarse, evidence  # noqa: E402
+from service.vision.pipeline import estimate, warm_up  # noqa: E402
 
 NOGIL_MODULES = ("service.vision.estimate.coarse", "service.vision.estimate.chamfer",
                  "service.vision.estimate.refine", "service.vision.estimate.interior")
@@ -63,7 +60,7 @@ def _nogil(on: bool) -> None:
                 setattr(mod, attr, k if on else alt)
 
 
-def _flag(attr: str, module=pipeline):
+def _flag(attr: str, module):
     def set_(on: bool) -> None:
         setattr(module, attr, on)
     return set_
@@ -76,11 +73,9 @@ def _numba1(on: bool) -> None:
     threads.use_budget = (lambda: numba.set_num_threads(1)) if on else _USE_BUDGET
 
 
-SWITCHES = {"numba1": _numba1,
-            "interior_later": _flag("INTERIOR_LATER"), "nogil": _nogil,
+SWITCHES = {"numba1": _numba1, "nogil": _nogil,
             "front_faces": _flag("FRONT_FACES_ONLY", evidence),
-            "fast_evaluate": _flag("FAST_EVALUATE", coarse), "visible_part": _flag("VISIBLE_PART", evidence),
-            "twin_check": _flag("TWIN_CHECK")}
+            "fast_evaluate": _flag("FAST_EVALUATE", coarse), "visible_part": _flag("VISIBLE_PART", evidence)}
 
 
 def main(argv=None) -> int:

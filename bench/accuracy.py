@@ -51,10 +51,10 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # `python bench/accuracy.py` without an installed package
     sys.path.insert(0, str(ROOT))
 
-from service.pipeline import EstimateOutput, PoseCandidate, RefinedPose  # noqa: E402
 from service.vision.bank import BANK_FORMAT_VERSION, TemplateBank  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
+from service.vision.pipeline import EstimateOutput, PoseCandidate, RefinedPose  # noqa: E402
 from service.vision.reference import metrics  # noqa: E402
 
 DATA_DIR = Path(os.environ.get("POSE_DATA_DIR", ROOT.parent / "shared" / "data"))
@@ -225,7 +225,7 @@ def load_bank(model: str, mesh_path: Path, grid: dict | None, *, rebuild: bool =
     """Build the template bank once per (model, grid) and cache it as .npz."""
     import trimesh
 
-    from service.pipeline import build_templates
+    from service.vision.pipeline import build_templates
 
     key = (model, hashlib.sha1(mesh_path.read_bytes()).hexdigest(), json.dumps(grid or {}, sort_keys=True))
     if key in _BANKS:  # one bank per model for the whole invocation, even if the code changes meanwhile
@@ -452,7 +452,7 @@ def selftest_estimator(seed: int = 0) -> Estimator:
 
 def pipeline_estimator(spec: RunSpec, meta: dict, *, grid: dict | None, rebuild: bool, set_dir: Path,
                        top_k: int = 5) -> Estimator:
-    from service.pipeline import estimate
+    from service.vision.pipeline import estimate
 
     banks: dict[str, TemplateBank] = {}
     distance = float(meta.get("fixed_distance_mm", 500.0)) if spec.distance_given else None

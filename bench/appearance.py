@@ -15,7 +15,7 @@ query among the cached candidates, distance 300-1200 mm).
 
     python bench/appearance.py evidence [--set lmo_dev] [--references 4] [--save w.json]
 
-``polish``: the cached candidates and truths scoring ``pipeline.TAUGHT_SEARCH.polish_from``-0.98 under the
+``polish``: the cached candidates and truths scoring ``Policy.taught_search.polish_from``-0.98 under the
 taught score, moved by ``pipeline.polish_appearance`` and scored again: how many cross the operating
 point, per half (right candidates, wrong ones, truths).
 
@@ -52,12 +52,12 @@ from bench.accuracy import (  # noqa: E402
 )
 from bench.fit_verdict import fit_monotone  # noqa: E402
 from bench.truth_evidence import auc  # noqa: E402
-from service.pipeline import teach_appearance  # noqa: E402
 from service.vision.build.appearance import Appearance  # noqa: E402
 from service.vision.estimate import evidence as _evidence  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
 from service.vision.geometry.render import rasterise_roi  # noqa: E402
+from service.vision.pipeline import DEFAULT_POLICY, Policy, teach_appearance  # noqa: E402
 
 HYPS = ROOT / "bench" / "out" / "hyps"
 RIGHT_PX = 20.0
@@ -94,9 +94,9 @@ def _pose(g: dict) -> Pose:
     return Pose(np.asarray(g["R"], float), np.asarray(g["t_mm"], float))
 
 
-def taught(set_dir: Path, n_references: int) -> dict[str, Appearance]:
+def taught(set_dir: Path, n_references: int, policy: Policy = DEFAULT_POLICY) -> dict[str, Appearance]:
     """Each model's appearance taught from the reference images it appears in (``pipeline.teach_appearance``,
-    the other annotated parts' pixels hidden)."""
+    the other annotated parts' pixels hidden; calibrated at ``policy``)."""
     by_image: dict[str, list[dict]] = defaultdict(list)
     for g in read_gt(set_dir):
         if not g.get("absent"):
@@ -117,13 +117,14 @@ def taught(set_dir: Path, n_references: int) -> dict[str, Appearance]:
             others = [d for m, d in depths.items() if m != g["model"]]
             hidden = (np.min(others, axis=0) < depths[g["model"]]) if others else None
             views[g["model"]].append((image, Intrinsics.from_K(np.asarray(g["K"], float)), _pose(g), hidden))
-    out = {m: teach_appearance(gt_bank(set_dir, m), v, calibrate=CALIBRATE) for m, v in views.items()}
+    out = {m: teach_appearance(gt_bank(set_dir, m), v, calibrate=CALIBRATE, policy=policy)
+           for m, v in views.items()}
     if CALIBRATE:
-        from service.pipeline import operating_point
+        from service.vision.pipeline import operating_point
 
         for m, a in sorted(out.items()):
             print(f"calibrated {m}: {a.calibrated_photos} photos, highest wrong score {a.wrong_score:.4f}, "
-                  f"operating point {operating_point(a) or float('nan'):.4f}", file=sys.stderr)
+                  f"operating point {operating_point(a, policy) or float('nan'):.4f}", file=sys.stderr)
     return out
 
 
@@ -177,10 +178,10 @@ def judge(rows: list[dict], w: np.ndarray, thr: float) -> tuple[int, int, int, i
 
 
 def polish(name: str, n_references: int, rows: list[dict]) -> int:
-    from service.pipeline import TAUGHT_SEARCH, polish_appearance, unrefined_score
     from service.vision.estimate.verdict import MIN_SCORE, verification_score
+    from service.vision.pipeline import DEFAULT_POLICY, polish_appearance, unrefined_score
 
-    polish_from = TAUGHT_SEARCH.polish_from  # an uncalibrated part's
+    polish_from = DEFAULT_POLICY.taught_search.polish_from  # an uncalibrated part's
 
     set_dir = set_dir_of(name)
     app = taught(set_dir, n_references)

@@ -26,7 +26,6 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `python bench/clutter_ceiling.py`
 from bench.accuracy import DATA_DIR, gt_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
-from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, estimate  # noqa: E402
 from service.vision.estimate import chamfer, coarse  # noqa: E402
 from service.vision.estimate.chamfer import distance_tensor  # noqa: E402
 from service.vision.estimate.edges import detect_segments, to_grey_u8  # noqa: E402
@@ -34,6 +33,7 @@ from service.vision.estimate.refine import PoseParams, border_points, dt_residua
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
 from service.vision.geometry.render import render  # noqa: E402
+from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM, estimate  # noqa: E402
 
 REGION_BAND_PX = 20
 REGION_BINS = 8  # per Lab channel

@@ -1,6 +1,6 @@
 """Does the refinement's depth stick? Each gt line started from its truth moved along its line of sight
 (t_mm x factor: the silhouette shrinks or grows about its centre, as a region proposal's does), refined
-as the service refines a candidate (``pipeline._refine``), and the refined depth compared with the
+as the service refines a candidate (``pipeline.check.refine``), and the refined depth compared with the
 truth's.
 
     python bench/depth_from_gt.py [--sets lmo_dev,paper] [--every 4] [--factors 0.94,1.06]

@@ -21,6 +21,7 @@ import json
 import sys
 import time
 from collections import Counter
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -41,8 +42,8 @@ from bench.accuracy import (  # noqa: E402
     read_meta,
     stage_errors,
 )
-from service.pipeline import estimate  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
+from service.vision.pipeline import DEFAULT_POLICY, Policy, estimate  # noqa: E402
 
 RIGHT_PX = 20.0
 FINE_PX = 5.0
@@ -61,7 +62,7 @@ def set_dir_of(name: str) -> Path:
 def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: float | None,
             every_image: int = 1, references: int = 0, half: str = "all",
             teach_from: str | None = None, distance_range_mm: tuple[float, float] | None = None,
-            truth: bool = False) -> list[dict]:
+            truth: bool = False, policy: Policy = DEFAULT_POLICY) -> list[dict]:
     """``references`` > 0: each part's colours are taught from that many of the set's images
     (``bench/appearance.py``), which are then not queried; ``half``: only the even or odd half of the
     rest. ``teach_from``: another set whose images teach them (its parts' meshes the same), every image
@@ -75,11 +76,11 @@ def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: fl
     if references > 0 and teach_from is not None and set_dir_of(teach_from) != set_dir:
         from bench.appearance import taught
 
-        appearance = taught(set_dir_of(teach_from), references)
+        appearance = taught(set_dir_of(teach_from), references, policy)
     elif references > 0:
         from bench.appearance import half_of, taught
 
-        appearance = taught(set_dir, references)
+        appearance = taught(set_dir, references, policy)
         halves = half_of(set_dir, references)
         gts = [g for g in gts if g["image"] in halves and half in ("all", halves[g["image"]])]
     if every_image > 1:  # every n-th image (all its gt lines: lmo_dev has several per image)
@@ -97,7 +98,7 @@ def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: fl
         t0 = time.perf_counter()
         out = estimate(bank, image, intr, distance_mm=dist, min_score=min_score,
                        distance_range_mm=distance_range_mm,
-                       appearance=appearance.get(g["model"]))
+                       appearance=appearance.get(g["model"]), policy=policy)
         ms = 1000 * (time.perf_counter() - t0)
         pose = (out.refined or out.coarse).pose if out.found else None
         mspd = float("inf")
@@ -117,7 +118,8 @@ def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: fl
         truth_checked = None if absent or not truth else _truth_checked(bank, image, intr, g, info,
                                                                        appearance.get(g["model"]),
                                                                        distance_mm=dist,
-                                                                       distance_range_mm=distance_range_mm)
+                                                                       distance_range_mm=distance_range_mm,
+                                                                       policy=policy)
         recs.append({"image": g["image"], "model": g["model"], "absent": absent, "found": out.found,
                      "mspd640": mspd, "visible": float(g.get("visible_fraction", 0.0 if absent else 1.0)),
                      "reason": out.verdict.reason, "score": out.verdict.score, "ms": ms,
@@ -129,10 +131,11 @@ def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: fl
 
 
 def _truth_checked(bank, image: np.ndarray, intr: Intrinsics, g: dict, info, appearance, *,
-                   distance_mm: float | None, distance_range_mm: tuple[float, float] | None) -> dict:
+                   distance_mm: float | None, distance_range_mm: tuple[float, float] | None,
+                   policy: Policy = DEFAULT_POLICY) -> dict:
     """The true pose refined and judged as ``estimate`` judges a candidate, at the part's operating point:
     its score, reason, whether found, and where the refinement took it (MSPD)."""
-    from service import pipeline
+    from service.vision import pipeline
     from service.vision.estimate.edges import to_grey_u8
     from service.vision.estimate.evidence import colour_frame
     from service.vision.geometry.camera import undistort_image
@@ -143,8 +146,9 @@ def _truth_checked(bank, image: np.ndarray, intr: Intrinsics, g: dict, info, app
     c = pipeline.check_candidate(bank, pipeline.PoseCandidate(truth, 0.0, 0.0), to_grey_u8(image),
                                  colour_frame(undistort_image(image, intr)), intr, distance_mm=distance_mm,
                                  distance_range_mm=pipeline.judged_range(distance_mm, distance_range_mm),
-                                 min_score=pipeline.operating_point(appearance),
-                                 n_channels=pipeline.search_params(1).n_channels, appearance=appearance)
+                                 min_score=policy.operating_point(appearance),
+                                 n_channels=policy.search_params.n_channels, appearance=appearance,
+                                 policy=policy)
     return {"score": c.verdict.score, "reason": c.verdict.reason, "found": c.verdict.found,
             "mspd640": _mspd640(c.refined.pose, g, info)}
 
@@ -177,68 +181,47 @@ def _cell(vals: list[float], fmt: str) -> str:
     return f"{format(float(np.mean(vals)), fmt)} ({format(min(vals), fmt)}-{format(max(vals), fmt)})"
 
 
-# Bench switches that set one module constant of the service for a run: option -> (module.CONSTANT, kind,
-# help). Kinds: "on/off" (a bool), "flag" (turns it on), "floats" (a comma-separated tuple), int, float.
-# Default: the service's value.
-SWITCHES: dict[str, tuple[str, str | type, str]] = {
-    "--regions": ("pipeline.REGION_PROPOSALS", int, "region proposals per frame instead of the service's"),
-    "--sweep-min-photos": ("pipeline.SWEEP_MIN_PHOTOS", int,
+# Bench options that run the estimate at another policy (``service.vision.pipeline.Policy``): option ->
+# (Policy field, type, help). Default: the service's value.
+POLICY_OPTIONS: dict[str, tuple[str, type, str]] = {
+    "--sweep-min-photos": ("sweep_min_photos", int,
                            "parts calibrated on this many photos or more have a last pass of silhouettes "
                            "swept over the taught colours (estimate/colour_sweep.py; 2: every calibrated "
                            "part, 1000: none)"),
-    "--sweep-per-location": ("colour_sweep.PER_LOCATION", int,
-                             "placements the colour sweep proposes per blob"),
-    "--sweep-locations": ("colour_sweep.N_LOCATIONS", int, "blobs the colour sweep sweeps"),
-    "--region-contour": ("pipeline.REGION_CONTOUR", "on/off",
-                         "a taught candidate moved to its colours' outline before the edge refinement"),
-    "--region-contour-found": ("pipeline.REGION_CONTOUR_FOUND", "on/off",
-                               "a taught found answer moved to its colours' outline and refined again"),
-    "--region-contour-hold": ("pipeline.REGION_CONTOUR_HOLD", "on/off",
-                              "the moved found answer refined again with its depth held at the outline's"),
-    "--range-hold": ("pipeline.RANGE_HOLD", "on/off",
-                     "a refinement ending past the searched range refined again at its bound"),
-    "--calibrated-floor": ("pipeline.CALIBRATED_MIN_SCORE", float,
-                           "a calibrated part's operating point is never under this"),
-    "--calibration-turned": ("pipeline.CALIBRATION_TURNED", "flag",
-                             "the calibration also searches each reference photo turned upside down"),
-    "--agreement": ("pipeline.AGREEMENT", "on/off",
-                    "a pose under the operating point found when another checked candidate refines to it"),
-    "--polish-scales": ("pipeline.POLISH_SCALES", "floats",
-                        "the taught polish's step scales, coarse to fine (e.g. 8,4,2,1)"),
-    "--calibration-margin": ("pipeline.CALIBRATION_MARGIN", float,
-                             "logit margin over the highest wrong score"),
+    "--range-hold-max": ("range_hold_max", float,
+                         "a refinement ending past the searched range by at most this share is refined again "
+                         "at its bound (0: none)"),
+    "--calibration-margin": ("calibration_margin", float, "logit margin over the highest wrong score"),
 }
-_SWITCH_MODULES = {"pipeline": "service.pipeline", "colour_sweep": "service.vision.estimate.colour_sweep"}
+# ... and the taught search of a part not calibrated (``Policy.taught_search``): option -> field.
+TAUGHT_OPTIONS = {"--colour-prior": "colour_prior", "--scored-fits": "scored_fits",
+                  "--order-first": "order_first", "--polish-from": "polish_from"}
 
 
-def add_switches(ap: argparse.ArgumentParser) -> None:
-    for option, (target, kind, text) in SWITCHES.items():
-        _add_switch(ap, option, target, kind, text)
+def add_policy_options(ap: argparse.ArgumentParser) -> None:
+    for option, (field, kind, text) in POLICY_OPTIONS.items():
+        ap.add_argument(option, type=kind, default=None,
+                        help=f"{text} (Policy.{field}; default: the service's)")
+    ap.add_argument("--colour-prior", action="store_true",
+                    help="taught parts not calibrated: region proposals ranked by the colour prior")
+    ap.add_argument("--scored-fits", type=int, default=None,
+                    help="taught parts not calibrated: region fits scored before the best are refined "
+                         "(48 measured)")
+    ap.add_argument("--order-first", action="store_true",
+                    help="taught parts not calibrated: candidates ordered before near duplicates are dropped")
+    ap.add_argument("--polish-from", type=float, default=None,
+                    help="taught parts not calibrated: near misses from this score are polished")
 
 
-def _add_switch(ap: argparse.ArgumentParser, option: str, target: str, kind: str | type, text: str) -> None:
-    text = f"{text} ({target}; default: the service's)"
-    if kind == "flag":
-        ap.add_argument(option, action="store_true", help=text)
-    elif kind == "on/off":
-        ap.add_argument(option, choices=["on", "off"], default=None, help=text)
-    elif kind == "floats":
-        ap.add_argument(option, type=lambda v: tuple(float(x) for x in v.split(",")), default=None, help=text)
-    else:
-        ap.add_argument(option, type=kind, default=None, help=text)
-
-
-def apply_switches(a: argparse.Namespace) -> None:
-    """Set the constant of every switch given (a flag only when given)."""
-    import importlib
-
-    for option, (target, kind, _) in SWITCHES.items():
+def policy_of(a: argparse.Namespace) -> Policy:
+    """The service's policy with every option given in ``a`` (a flag only when given)."""
+    def given(option: str):
         value = getattr(a, option.lstrip("-").replace("-", "_"))
-        if value is None or value is False:
-            continue
-        module, name = target.split(".")
-        setattr(importlib.import_module(_SWITCH_MODULES[module]), name,
-                value == "on" if kind == "on/off" else value)
+        return None if value is False else value
+
+    fields = {f: given(o) for o, (f, _, _) in POLICY_OPTIONS.items() if given(o) is not None}
+    taught = {f: given(o) for o, f in TAUGHT_OPTIONS.items() if given(o) is not None}
+    return replace(DEFAULT_POLICY, **fields, taught_search=replace(DEFAULT_POLICY.taught_search, **taught))
 
 
 def main(argv=None) -> int:
@@ -263,18 +246,6 @@ def main(argv=None) -> int:
                          "clutter2's)")
     ap.add_argument("--half", default="all", choices=["all", "even", "odd"],
                     help="with --references: only this half of the other images")
-    ap.add_argument("--colour-prior", action="store_true",
-                    help="taught parts not calibrated: region proposals ranked by the colour prior "
-                         "(pipeline.TAUGHT_SEARCH)")
-    ap.add_argument("--scored-fits", type=int, default=None,
-                    help="taught parts not calibrated: region fits scored before the best are refined "
-                         "(pipeline.TAUGHT_SEARCH; 48 measured)")
-    ap.add_argument("--order-first", action="store_true",
-                    help="taught parts not calibrated: candidates ordered before near duplicates are dropped "
-                         "(pipeline.TAUGHT_SEARCH)")
-    ap.add_argument("--polish-from", type=float, default=None,
-                    help="taught parts not calibrated: near misses from this score are polished "
-                         "(pipeline.TAUGHT_SEARCH)")
     ap.add_argument("--uncalibrated", action="store_true",
                     help="with --references: the parts' operating points not calibrated on their reference "
                          "photos (as the service does at POST /references: pipeline.calibrate_appearance)")
@@ -282,21 +253,13 @@ def main(argv=None) -> int:
                     help="after the table, each set's targets per image by what became of them")
     ap.add_argument("--truth", action="store_true",
                     help="also check each target's true pose as a candidate (its score shows in --per-image)")
-    add_switches(ap)
+    add_policy_options(ap)
     a = ap.parse_args(argv)
-    from service import pipeline as _pipeline
-
+    policy = policy_of(a)
     if a.references and not a.uncalibrated:
         import bench.appearance
 
         bench.appearance.CALIBRATE = True
-    from dataclasses import replace as _replace
-
-    given = {"colour_prior": a.colour_prior or None, "order_first": a.order_first or None,
-             "scored_fits": a.scored_fits, "polish_from": a.polish_from}
-    _pipeline.TAUGHT_SEARCH = _replace(_pipeline.TAUGHT_SEARCH,
-                                       **{k: v for k, v in given.items() if v is not None})
-    apply_switches(a)
     if a.reference_offset:
         import bench.appearance
 
@@ -316,7 +279,7 @@ def main(argv=None) -> int:
         all_recs = [run_set(name, limit=a.limit, distance_given=a.distance_given, min_score=a.min_score,
                             every_image=a.every_image, references=a.references, half=a.half,
                             teach_from=a.teach_from, distance_range_mm=a.distance_range,
-                            truth=a.truth)
+                            truth=a.truth, policy=policy)
                     for _ in range(a.repeat)]
         dump[name] = {"runs": [summarise(recs) for recs in all_recs], "records": all_recs}
         for r in (r for recs in all_recs for r in recs if r["found"] and not r["mspd640"] < RIGHT_PX):

@@ -26,7 +26,6 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from service.pipeline import DEFAULT_DISTANCE_RANGE_MM as DISTANCE_RANGE_MM  # noqa: E402
 from service.vision.estimate.verdict import (  # noqa: E402
     FEATURES,
     LOWER_IS_BETTER,
@@ -35,6 +34,7 @@ from service.vision.estimate.verdict import (  # noqa: E402
     WEIGHTS,
     feature_vector,
 )
+from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM as DISTANCE_RANGE_MM  # noqa: E402
 
 OUT = ROOT / "bench" / "out" / "hyps"
 RIGHT_PX = 20.0

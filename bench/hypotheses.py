@@ -60,12 +60,11 @@ def queries(set_dir: Path, limit: int | None) -> list[dict]:
 def proposals(set_dir: Path, *, limit: int | None, distance_given: bool, params=None,
               regions: int = 0) -> list[dict]:
     """``regions`` > 0: also the search's second pass (the level-A peaks' other templates) and that many
-    region proposals (``pipeline.REGION_PROPOSALS``), appended after the first pass's hypotheses with
+    region proposals (``propose``'s ``n_regions``), appended after the first pass's hypotheses with
     their ``source`` ("second", "regions"): the pipeline checks them only when the first pass fails."""
-    from service import pipeline
-    from service.pipeline import propose
     from service.vision.estimate import regions as regions_mod
     from service.vision.geometry.camera import undistort_image
+    from service.vision.pipeline import propose
 
     # Each region candidate's look-alike gap, by its refined (cost, score): read where the region
     # proposals are refined, so the vision core keeps no record of its last call for the bench.
@@ -87,20 +86,19 @@ def proposals(set_dir: Path, *, limit: int | None, distance_given: bool, params=
         dist = float(g["t_mm"][2]) if distance_given and not g.get("absent") else None
         t0 = time.perf_counter()
         deferred: list = []
-        pipeline.REGION_PROPOSALS = regions
         regions_mod.refine_all = refine_all_noting_gaps
         gaps.clear()
         try:
             cands, _, timing = propose(bank, image, intr, distance_mm=dist, params=params,
                                        deferred=deferred if regions else None,
-                                       colour=undistort_image(image, intr) if regions else None)
+                                       colour=undistort_image(image, intr) if regions else None,
+                                       n_regions=regions)
             sources = ["first"] * len(cands)
             for later in deferred:
                 more = later()
-                name = "regions" if later.__name__ == "from_regions" else "second"
+                name = "regions" if later.func.__name__ == "from_regions" else "second"
                 cands, sources = cands + more, sources + [name] * len(more)
         finally:
-            pipeline.REGION_PROPOSALS = 0
             regions_mod.refine_all = refine_all
         wall = 1000 * (time.perf_counter() - t0)
         info = load_model_info(set_dir, g["model"], meta, minfo)
@@ -144,10 +142,10 @@ def truth_hypotheses(recs: list[dict], seed: int = 0) -> list[dict]:
 def features(set_dir: Path, recs: list[dict], *, max_refine: int = 12) -> list[dict]:
     """Per hypothesis, what the pipeline's verdict reads: the hypothesis refined and checked exactly as
     an estimate checks it (``pipeline.check_candidate``), with the refined pose's MSPD to the truth."""
-    from service.pipeline import PoseCandidate, check_candidate
     from service.vision.estimate.edges import to_grey_u8
     from service.vision.estimate.evidence import colour_frame
     from service.vision.geometry.camera import undistort_image
+    from service.vision.pipeline import PoseCandidate, check_candidate
 
     meta = read_meta(set_dir)
     minfo: dict = {}

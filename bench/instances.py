@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from service import pipeline  # noqa: E402
+from service.vision import pipeline  # noqa: E402
 from service.vision.estimate.roi import rect_polygon  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz  # noqa: E402

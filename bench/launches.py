@@ -28,8 +28,8 @@ if str(ROOT) not in sys.path:
 import service.vision as vision  # noqa: E402
 from bench.accuracy import gt_bank, read_colour  # noqa: E402
 from bench.repeat import frames  # noqa: E402
-from service.pipeline import estimate  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
+from service.vision.pipeline import estimate  # noqa: E402
 
 COUNTS: collections.Counter = collections.Counter()
 
@@ -65,7 +65,6 @@ def instrument() -> list[str]:
     """Replace every parallel kernel of the vision core, in every module that holds it, by a counter."""
     mods = [importlib.import_module(m.name)
             for m in pkgutil.walk_packages(vision.__path__, "service.vision.")]
-    mods += [importlib.import_module("service.pipeline")]
     names = []
     for mod in mods:
         for attr, obj in list(vars(mod).items()):

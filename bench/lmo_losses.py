@@ -53,14 +53,7 @@ from bench.accuracy import (  # noqa: E402
     read_meta,
     stage_errors,
 )
-from service import pipeline  # noqa: E402
-from service.pipeline import (  # noqa: E402
-    DEFAULT_DISTANCE_RANGE_MM,
-    N_VERIFY,
-    PoseCandidate,
-    check_candidate,
-    search_params,
-)
+from service.vision import pipeline  # noqa: E402
 from service.vision.estimate import colour_edges  # noqa: E402
 from service.vision.estimate.chamfer import distance_tensor  # noqa: E402
 from service.vision.estimate.edges import detect_segments, to_grey_u8  # noqa: E402
@@ -75,11 +68,24 @@ from service.vision.estimate.verdict import (  # noqa: E402
 )
 from service.vision.geometry.camera import Intrinsics, undistort_image  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
+from service.vision.pipeline import (  # noqa: E402
+    DEFAULT_DISTANCE_RANGE_MM,
+    DEFAULT_POLICY,
+    PoseCandidate,
+    check_candidate,
+    search_params,
+)
+
+N_VERIFY = DEFAULT_POLICY.n_verify  # candidates an estimate checks per pass
 
 _evidence.VISIBLE_PART = True  # the visible part's evidence is what these tables study too
 
 RIGHT_PX = 20.0
 MIN_SCORE = 0.98  # verdict.MIN_SCORE, printed for the reader
+
+
+# the module (the package's ``propose`` is its function)
+_PROPOSE = sys.modules["service.vision.pipeline.propose"]
 
 
 class CannyEdges:
@@ -88,7 +94,7 @@ class CannyEdges:
 
     def __init__(self, image: np.ndarray | None):
         self.image = image
-        self._orig = pipeline.distance_tensor
+        self._orig = _PROPOSE.distance_tensor
 
     def __enter__(self):
         if self.image is not None:
@@ -97,11 +103,11 @@ class CannyEdges:
             def dt(seg, *, n_channels, scale):
                 return colour_edges.canny_tensor(img, n_channels=n_channels, scale=scale)
 
-            pipeline.distance_tensor = dt
+            _PROPOSE.distance_tensor = dt
         return self
 
     def __exit__(self, *exc):
-        pipeline.distance_tensor = self._orig
+        _PROPOSE.distance_tensor = self._orig
 
 
 def pose_list(pose: Pose) -> list[list[float]]:

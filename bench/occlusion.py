@@ -24,9 +24,9 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench.instances import INTR, SIZE, part  # noqa: E402
-from service import pipeline  # noqa: E402
-from service.vision.estimate.plane import Plane, rest_heights_mm  # noqa: E402
+from service.vision import pipeline  # noqa: E402
 from service.vision.geometry.frames import Pose, Rz  # noqa: E402
+from service.vision.geometry.plane import Plane, rest_heights_mm  # noqa: E402
 from service.vision.geometry.render import render, render_shaded  # noqa: E402
 
 FOUND_T_MM = 3.0  # an instance this close (origin of the object frame) is the copy

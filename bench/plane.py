@@ -37,9 +37,9 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench.instances import INTR, RIGHT_MSPD_PX, SIZE, nearest_copies, part, roi_of  # noqa: E402
-from service import pipeline  # noqa: E402
-from service.vision.estimate.plane import Plane  # noqa: E402
+from service.vision import pipeline  # noqa: E402
 from service.vision.geometry.frames import Pose, Rz  # noqa: E402
+from service.vision.geometry.plane import Plane  # noqa: E402
 from service.vision.geometry.render import render, render_shaded  # noqa: E402
 
 RANGE = (300.0, 700.0)

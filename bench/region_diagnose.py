@@ -35,10 +35,10 @@ if str(ROOT) not in sys.path:
 from bench.accuracy import gt_bank, load_model_info  # noqa: E402
 from bench.region_proposals import RIGHT_PX, mspds, read_bgr, set_args  # noqa: E402
 from bench.stages import target_queries  # noqa: E402
-from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, SEARCH_PARAMS  # noqa: E402
 from service.vision.estimate import regions  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
 from service.vision.geometry.render import rasterise_roi  # noqa: E402
+from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM, DEFAULT_POLICY  # noqa: E402
 
 N_KEEP = 12
 
@@ -104,7 +104,8 @@ def run(a) -> None:
         hit = [i for i, m in enumerate(m_raw) if m < RIGHT_PX]
         why = ""
         if hit:
-            hs = [regions.refine_on_boundary(bank, p, reg, K, image.shape[:2], SEARCH_PARAMS) for p in props]
+            hs = [regions.refine_on_boundary(bank, p, reg, K, image.shape[:2], DEFAULT_POLICY.search_params)
+                  for p in props]
             m_ref = mspds(bank, hs, K, g, info)
             cls = "ok" if any(m < RIGHT_PX for m in m_ref) else "d"
             why = f"raw rank {hit[0]}"

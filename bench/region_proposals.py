@@ -28,10 +28,10 @@ from bench.accuracy import (  # noqa: E402
     stage_errors,
 )
 from bench.stages import target_queries  # noqa: E402
-from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, SEARCH_PARAMS  # noqa: E402
 from service.vision.estimate import regions  # noqa: E402
 from service.vision.estimate.coarse import poses_of  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
+from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM, DEFAULT_POLICY  # noqa: E402
 
 RIGHT_PX = 20.0
 KS = (5, 12, 30)
@@ -46,7 +46,7 @@ def mspds(bank, hyps, K, g, info) -> list[float]:
 
 
 def read_bgr(path: Path) -> np.ndarray:
-    """(H, W, 3) BGR: a grey image repeated, an alpha channel dropped (what ``regions.segment`` reads)."""
+    """(H, W, 3) BGR: a grey image repeated, an alpha channel dropped (``segmentation.segment`` reads it)."""
     image = read_colour(path)
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=2)
@@ -81,7 +81,8 @@ def run(a) -> None:
             raw_at[k] += 0 <= r_raw < k
         if not a.no_refine:
             t1 = time.thread_time()
-            hs = [regions.refine_on_boundary(bank, p, reg, K, image.shape[:2], SEARCH_PARAMS) for p in props]
+            hs = [regions.refine_on_boundary(bank, p, reg, K, image.shape[:2], DEFAULT_POLICY.search_params)
+                  for p in props]
             cpu_r.append(1000 * (time.thread_time() - t1))
             m_ref = mspds(bank, hs, K, g, info)
             r_ref = first_right(m_ref)

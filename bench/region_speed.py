@@ -32,9 +32,9 @@ from bench.accuracy import (  # noqa: E402
     read_gt,
 )
 from bench.detection import set_dir_of  # noqa: E402
-from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, SEARCH_PARAMS  # noqa: E402
 from service.vision import memory  # noqa: E402
 from service.vision.estimate import regions  # noqa: E402
+from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM, DEFAULT_POLICY  # noqa: E402
 from service.vision.reference import regions as ref  # noqa: E402
 
 STAGES = ("mean shift", "linking", "stats", "merge", "matching", "refine", "total")
@@ -83,10 +83,11 @@ def run_frame(impl: str, bank, image, K, n_refine: int) -> tuple[dict, regions.R
     (props, _), t["matching"] = timed(propose, bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=30, reg=reg)
     shape, first = image.shape[:2], props[:n_refine]
     if impl == "ref":
-        hs, t["refine"] = timed(lambda: [regions.refine_on_boundary(bank, r, reg, K, shape, SEARCH_PARAMS)
+        params = DEFAULT_POLICY.search_params
+        hs, t["refine"] = timed(lambda: [regions.refine_on_boundary(bank, r, reg, K, shape, params)
                                          for r in first])
     else:
-        hs, t["refine"] = timed(regions.refine_all, bank, first, reg, K, shape, SEARCH_PARAMS)
+        hs, t["refine"] = timed(regions.refine_all, bank, first, reg, K, shape, DEFAULT_POLICY.search_params)
     t["total"] = sum(t.values())
     return t, reg, props, hs
 
@@ -94,7 +95,8 @@ def run_frame(impl: str, bank, image, K, n_refine: int) -> tuple[dict, regions.R
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sets", default="clutter2,absent2,lmo_dev:8", help="name[:every n-th image],...")
-    ap.add_argument("--n", type=int, default=5, help="proposals refined (pipeline.REGION_PROPOSALS when on)")
+    ap.add_argument("--n", type=int, default=5,
+                    help="proposals refined (a taught part's: Policy.region_proposals_taught)")
     ap.add_argument("--limit", type=int, default=None)
     a = ap.parse_args()
     memory.keep_mapped(memory.RESERVE_MB)  # freed buffers stay mapped, as in the service after its warm-up

@@ -40,9 +40,15 @@ from bench.accuracy import (  # noqa: E402
     read_meta,
     stage_errors,
 )
-from service.pipeline import (  # noqa: E402
+from service.vision.estimate.edges import to_grey_u8  # noqa: E402
+from service.vision.estimate.evidence import colour_frame  # noqa: E402
+from service.vision.estimate.refine import refine_pose  # noqa: E402
+from service.vision.estimate.verdict import FEATURES, WEIGHTS  # noqa: E402
+from service.vision.geometry.camera import Intrinsics, undistort_image  # noqa: E402
+from service.vision.geometry.frames import Pose  # noqa: E402
+from service.vision.pipeline import (  # noqa: E402
     DEFAULT_DISTANCE_RANGE_MM,
-    N_VERIFY,
+    DEFAULT_POLICY,
     Checked,
     PoseCandidate,
     RefinedPose,
@@ -51,12 +57,8 @@ from service.pipeline import (  # noqa: E402
     propose,
     search_params,
 )
-from service.vision.estimate.edges import to_grey_u8  # noqa: E402
-from service.vision.estimate.evidence import colour_frame  # noqa: E402
-from service.vision.estimate.refine import refine_pose  # noqa: E402
-from service.vision.estimate.verdict import FEATURES, WEIGHTS  # noqa: E402
-from service.vision.geometry.camera import Intrinsics, undistort_image  # noqa: E402
-from service.vision.geometry.frames import Pose  # noqa: E402
+
+N_VERIFY = DEFAULT_POLICY.n_verify  # candidates an estimate checks per pass
 
 _evidence.VISIBLE_PART = True  # the visible part's evidence is what these tables study too
 
@@ -148,7 +150,7 @@ def run(a) -> None:
         for pas, j, m0, m1, ch in near:
             chk = j < N_VERIFY and (pas == 1 or not pass1_found)
             print(line(f"P{pas}/{j:02d} {'chk' if chk else '---'}", m0, m1, ch.verdict, ref))
-            # What the refinement itself reached, kept or not (``pipeline._refine`` keeps it only when its
+            # What the refinement itself reached, kept or not (``check.refine`` keeps it only when its
             # full-resolution score reaches the candidate's coarse score).
             r = refine_pose(bank, ch.candidate.pose, grey, intr, None, distance_mm=None,
                             n_channels=p.n_channels)

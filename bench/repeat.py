@@ -32,9 +32,9 @@ from bench.accuracy import (  # noqa: E402
     read_gt,
 )
 from bench.detection import set_dir_of  # noqa: E402
-from service.pipeline import estimate  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.memo import Memo  # noqa: E402
+from service.vision.pipeline import estimate  # noqa: E402
 
 
 def clear_memos() -> None:

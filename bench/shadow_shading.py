@@ -35,12 +35,12 @@ from bench.accuracy import (  # noqa: E402
 )
 from bench.fit_verdict import load  # noqa: E402
 from bench.hypotheses import set_dir_of  # noqa: E402
-from service.pipeline import DEFAULT_DISTANCE_RANGE_MM  # noqa: E402
 from service.vision.estimate import evidence as ev  # noqa: E402
 from service.vision.estimate.verdict import verification_score  # noqa: E402
 from service.vision.geometry.camera import Intrinsics, undistort_image  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
 from service.vision.geometry.render import rasterise_roi  # noqa: E402
+from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM  # noqa: E402
 
 RIGHT_PX = 20.0
 MAP_PX = 400  # the light's depth map across the part's diameter

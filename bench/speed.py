@@ -44,8 +44,8 @@ from bench.accuracy import (  # noqa: E402
     read_meta,
     stage_errors,
 )
-from service.pipeline import estimate, warm_up  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
+from service.vision.pipeline import estimate, warm_up  # noqa: E402
 
 RIGHT_PX, FINE_PX, MIN_VISIBLE = 20.0, 5.0, 0.5
 STAGES = ("edges", "coarse", "refine", "total")
@@ -137,7 +137,7 @@ import json, sys, time
 t0 = time.perf_counter()
 sys.path.insert(0, {root!r})
 from bench.speed import frames
-from service.pipeline import estimate, warm_up
+from service.vision.pipeline import estimate, warm_up
 t1 = time.perf_counter()
 warm_up()
 t2 = time.perf_counter()

@@ -40,7 +40,6 @@ from bench.accuracy import (  # noqa: E402
     read_meta,
     stage_errors,
 )
-from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, SEARCH_PARAMS  # noqa: E402
 from service.vision.bank import view_dirs_obj  # noqa: E402
 from service.vision.estimate import coarse, contrast  # noqa: E402
 from service.vision.estimate.chamfer import distance_tensor, pooled_distance_tensor  # noqa: E402
@@ -48,6 +47,7 @@ from service.vision.estimate.edges import detect_segments, to_grey_u8  # noqa: E
 from service.vision.estimate.refine import border_points, verify  # noqa: E402
 from service.vision.geometry.camera import Intrinsics, project, ray_rotation  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
+from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM, DEFAULT_POLICY  # noqa: E402
 
 RIGHT_PX = 20.0
 NEAR_PX = 12.0  # full-res px: an anchor this close to the truth's reference point is "the truth's"
@@ -121,11 +121,12 @@ def target_queries(a) -> tuple[Path, dict, list[dict]]:
 def run(a) -> None:
     set_dir, meta, gts = target_queries(a)
     minfo: dict = {}
-    p = replace(SEARCH_PARAMS, fine_scale=a.fine_scale, level_scale=a.level_scale, n_peaks=a.n_peaks,
+    p = replace(DEFAULT_POLICY.search_params, fine_scale=a.fine_scale, level_scale=a.level_scale,
+                n_peaks=a.n_peaks,
                 n_polish=a.n_polish, peak_accept_ratio=a.accept_ratio,
-                bg_norm=SEARCH_PARAMS.bg_norm if a.bg_norm is None else a.bg_norm == "on",
-                templates_per_peak=a.templates_per_peak or SEARCH_PARAMS.templates_per_peak,
-                template_peaks=a.template_peaks or SEARCH_PARAMS.template_peaks)
+                bg_norm=DEFAULT_POLICY.search_params.bg_norm if a.bg_norm is None else a.bg_norm == "on",
+                templates_per_peak=a.templates_per_peak or DEFAULT_POLICY.search_params.templates_per_peak,
+                template_peaks=a.template_peaks or DEFAULT_POLICY.search_params.template_peaks)
     coarse.CONTRAST_TEMPLATES = a.contrast_templates
     tot = {"n": 0, "peak": 0, "inB": 0, "inP": 0, "inP1": 0, "inP5": 0, "cheap": 0, "oracleB": 0}
     cov_all, search_ms, ranks_a, ranks_c = [], [], [], []
@@ -248,8 +249,8 @@ def main(argv=None) -> int:
     ap.add_argument("--distance-given", action="store_true")
     ap.add_argument("--edges", default="lsd", choices=["lsd", "lsd-bgr", "canny-bgr"])
     ap.add_argument("--lsd-scale", type=float, default=0.5)
-    ap.add_argument("--fine-scale", type=float, default=SEARCH_PARAMS.fine_scale)
-    ap.add_argument("--level-scale", type=float, default=SEARCH_PARAMS.level_scale)
+    ap.add_argument("--fine-scale", type=float, default=DEFAULT_POLICY.search_params.fine_scale)
+    ap.add_argument("--level-scale", type=float, default=DEFAULT_POLICY.search_params.level_scale)
     ap.add_argument("--n-peaks", type=int, default=30)
     ap.add_argument("--n-polish", type=int, default=12)
     ap.add_argument("--accept-ratio", type=float, default=3.0)

@@ -35,12 +35,14 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench.speed import frames  # noqa: E402
-from service.pipeline import estimate, warm_up  # noqa: E402
+from service.vision.pipeline import estimate, warm_up  # noqa: E402
 
 PIECES = {
-    "service.pipeline": ["to_grey_u8", "propose", "colour_frame", "undistort_image", "evidence", "decide",
-                         "distinct_candidates", "_refine"],
-    "service.vision.estimate.edges": ["detect_segments", "detect_segments_in_bands"],
+    "service.vision.pipeline.propose": ["propose", "distinct_candidates"],
+    "service.vision.pipeline.check": ["refine"],
+    "service.vision.geometry.camera": ["undistort_image"],
+    "service.vision.estimate.verdict": ["decide"],
+    "service.vision.estimate.edges": ["to_grey_u8", "detect_segments", "detect_segments_in_bands"],
     "service.vision.estimate.chamfer": ["distance_tensor", "segment_distance_tensor", "pooled_and_quantised"],
     "service.vision.estimate.coarse": ["_cached_level_a", "scan_level_a", "background_cost", "pick_peaks",
                                        "local_scan", "evaluate", "polish", "poses_of", "_scan_window",
@@ -50,7 +52,8 @@ PIECES = {
     "service.vision.estimate.lsq": ["least_squares"],
     "service.vision.geometry.silhouette": ["border_with_tangents"],
     "service.vision.geometry.render": ["rasterise_roi"],
-    "service.vision.estimate.evidence": ["face_ids_roi", "_window", "_outline", "_edge_and_polarity",
+    "service.vision.estimate.evidence": ["colour_frame", "evidence", "face_ids_roi", "_window", "_outline",
+                                         "_edge_and_polarity",
                                          "_region", "_shading"],
 }
 

@@ -37,12 +37,12 @@ from bench.accuracy import (  # noqa: E402
     read_gt,
 )
 from bench.stages import edge_tensor  # noqa: E402
-from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, SEARCH_PARAMS  # noqa: E402
 from service.vision.estimate import coarse, contrast  # noqa: E402
 from service.vision.estimate.chamfer import DT_QUANT, pooled_and_quantised, quantised  # noqa: E402
 from service.vision.estimate.edges import to_grey_u8  # noqa: E402
 from service.vision.geometry.camera import Intrinsics, project, ray_rotation  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
+from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM, DEFAULT_POLICY  # noqa: E402
 
 NEAR_PX = 17.0  # full-res px: the anchors (16 px apart) next to the truth's reference point
 TOL_SYM_DEG = 8.0  # a revolved part's level-A views are 6 deg apart
@@ -65,7 +65,7 @@ def truth_templates(bank, tpl, R_ray: np.ndarray, gt: Pose) -> np.ndarray:
 
 
 def truth_rank(g: dict, set_dir: Path, configs: list[tuple[float, float]], distance_given: bool) -> list[int]:
-    p = SEARCH_PARAMS
+    p = DEFAULT_POLICY.search_params
     bank = gt_bank(set_dir, g["model"])
     image = read_colour(set_dir / g["image"])
     grey = to_grey_u8(image)

@@ -57,11 +57,16 @@ def truth_rows(name: str, limit: int | None = None, refresh: bool = False) -> li
     if path.exists() and not refresh:
         rows = pickle.loads(path.read_bytes())
         return rows[:limit] if limit else rows
-    from service.pipeline import DEFAULT_DISTANCE_RANGE_MM, PoseCandidate, check_candidate, search_params
     from service.vision.estimate.edges import to_grey_u8
     from service.vision.estimate.evidence import colour_frame
     from service.vision.geometry.camera import Intrinsics, undistort_image
     from service.vision.geometry.frames import Pose
+    from service.vision.pipeline import (
+        DEFAULT_DISTANCE_RANGE_MM,
+        PoseCandidate,
+        check_candidate,
+        search_params,
+    )
 
     set_dir = set_dir_of(name)
     meta, minfo = read_meta(set_dir), {}

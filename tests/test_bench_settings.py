@@ -10,7 +10,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 SERVICE_BENCHES = ("detection", "appearance", "speed", "repeat", "stages", "launches", "region_speed",
-                   "region_detection", "region_proposals")
+                   "region_proposals")
 
 
 def test_the_service_benchmarks_leave_the_service_s_evidence_as_it_is():
@@ -27,37 +27,28 @@ def test_the_service_benchmarks_leave_the_service_s_evidence_as_it_is():
     assert out.stdout.strip() == "True", out.stderr
 
 
-def test_each_bench_switch_sets_the_service_constant_it_names(monkeypatch):
+def test_each_bench_policy_option_sets_the_policy_field_it_names():
+    """``bench/detection.py`` runs the estimate at another ``Policy``: each option sets its field, the
+    taught-search options the uncalibrated part's search, and no option leaves the service's policy."""
     import argparse
-    import importlib
 
     sys.path.insert(0, str(ROOT))
     from bench import detection
+    from service.vision.pipeline import DEFAULT_POLICY
 
     argv, expected = [], {}
-    for option, (target, kind, _) in detection.SWITCHES.items():
-        module_name, name = target.split(".")
-        module = importlib.import_module(detection._SWITCH_MODULES[module_name])
-        original = getattr(module, name)  # a renamed constant fails here
-        monkeypatch.setattr(module, name, original)  # restored after the test
-        if kind == "flag":
-            argv.append(option)
-            value = True
-        elif kind == "on/off":
-            value = not original
-            argv += [option, "on" if value else "off"]
-        elif kind == "floats":
-            value = tuple(2.0 * x for x in original) + (1.0,)
-            argv += [option, ",".join(map(str, value))]
-        else:
-            value = kind(original) + kind(1)
-            argv += [option, str(value)]
-        expected[(module, name)] = value
+    for option, (field, kind, _) in detection.POLICY_OPTIONS.items():
+        value = kind(getattr(DEFAULT_POLICY, field)) + kind(1)  # a renamed field fails here
+        argv += [option, str(value)]
+        expected[field] = value
     ap = argparse.ArgumentParser()
-    detection.add_switches(ap)
-    detection.apply_switches(ap.parse_args(argv))
-    for (module, name), value in expected.items():
-        assert getattr(module, name) == value, name
+    detection.add_policy_options(ap)
+    policy = detection.policy_of(ap.parse_args([*argv, "--colour-prior", "--scored-fits", "48"]))
+    for field, value in expected.items():
+        assert getattr(policy, field) == value, field
+    assert policy.taught_search.colour_prior and policy.taught_search.scored_fits == 48
+    assert policy.calibrated_search == DEFAULT_POLICY.calibrated_search
+    assert detection.policy_of(ap.parse_args([])) == DEFAULT_POLICY
 
 
 def test_each_target_s_fate_follows_from_its_record():
