@@ -26,13 +26,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `python bench/clutter_ceiling.py`
 from bench.accuracy import DATA_DIR, gt_bank, load_model_info, read_gt, read_meta, stage_errors  # noqa: E402
-from service.vision.estimate import chamfer, coarse  # noqa: E402
+from service.vision.estimate import chamfer, coarse, level_a  # noqa: E402
 from service.vision.estimate.chamfer import distance_tensor  # noqa: E402
 from service.vision.estimate.edges import detect_segments, to_grey_u8  # noqa: E402
-from service.vision.estimate.refine import PoseParams, border_points, dt_residuals, verify  # noqa: E402
+from service.vision.estimate.refine import border_points, dt_residuals, verify  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
 from service.vision.geometry.render import render  # noqa: E402
+from service.vision.geometry.rotations import PoseParams  # noqa: E402
 from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM, estimate  # noqa: E402
 
 REGION_BAND_PX = 20
@@ -69,9 +70,9 @@ def truth_cost(border, pose: Pose, intr: Intrinsics, dtt, tau_px: float) -> floa
 
 def level_a_rank(bank, intr: Intrinsics, dtt_b, shape, truth: Pose, p: coarse.SearchParams) -> int:
     z_ref, scales = coarse.depth_scales(DEFAULT_DISTANCE_RANGE_MM, p.depth_step)
-    tpl = coarse.level_a_templates(bank, intr, shape, p, distance_mm=None, z_ref_mm=z_ref)
+    tpl = level_a.level_a_templates(bank, intr, shape, p, distance_mm=None, z_ref_mm=z_ref)
     dtt_a = chamfer.pooled_distance_tensor(dtt_b, p.level_scale)
-    au, av, _, cost, _, _ = coarse.scan_level_a(dtt_a, tpl, scales, shape, p)
+    au, av, _, cost, _, _ = level_a.scan_level_a(dtt_a, tpl, scales, shape, p)
     c = truth.apply(bank.centre_obj[None])[0]
     uv = intr.K[:2, :2] @ (c[:2] / c[2]) + intr.K[:2, 2]
     ul, vl = (uv + 0.5) * p.level_scale - 0.5

@@ -38,7 +38,7 @@ def _rounds(kernel, args) -> int:
     """Parallel regions one call starts: one, but ``_scan_bounded`` starts one per round of anchors that
     is larger than ``serial_round`` (smaller rounds run on the calling thread), ``_block_lower_bounds``
     none for at most ``serial_blocks`` blocks."""
-    from service.vision.estimate import coarse
+    from service.vision.estimate import coarse, scan
     if kernel.py_func.__name__ == "_block_lower_bounds":
         serial = args[9] if len(args) > 9 else getattr(coarse, "SERIAL_BLOCKS", 0)
         return int(len(args[6]) > serial)
@@ -46,7 +46,7 @@ def _rounds(kernel, args) -> int:
         return 1
     n_anchors, shared = len(args[5]), bool(args[10])
     serial = args[13] if len(args) > 13 else getattr(coarse, "SERIAL_ROUND", 0)
-    size, start, n = (coarse.SHARED_FIRST_ROUND if shared else n_anchors), 0, 0
+    size, start, n = (scan.SHARED_FIRST_ROUND if shared else n_anchors), 0, 0
     while start < n_anchors:
         n += min(size, n_anchors - start) > serial
         start += size
@@ -79,8 +79,8 @@ def _with_last(kernel, serial_upto: int):
 
 
 def ab(todo, distance_given: bool, repeat: int, upto: int | None) -> None:
-    from service.vision.estimate import coarse
-    kernels = {"_scan_bounded": coarse._scan_bounded, "_block_lower_bounds": coarse._block_lower_bounds}
+    from service.vision.estimate import coarse, scan
+    kernels = {"_scan_bounded": scan._scan_bounded, "_block_lower_bounds": scan._block_lower_bounds}
     serial = dict(kernels) if upto is None else {k: _with_last(f, upto) for k, f in kernels.items()}
     parallel = {k: _with_last(f, 0) for k, f in kernels.items()}
     times: dict[str, list] = {"serial small kernels": [], "all parallel": []}

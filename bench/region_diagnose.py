@@ -35,7 +35,7 @@ if str(ROOT) not in sys.path:
 from bench.accuracy import gt_bank, load_model_info  # noqa: E402
 from bench.region_proposals import RIGHT_PX, mspds, read_bgr, set_args  # noqa: E402
 from bench.stages import target_queries  # noqa: E402
-from service.vision.estimate import regions  # noqa: E402
+from service.vision.estimate import regions, segmentation  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
 from service.vision.geometry.render import rasterise_roi  # noqa: E402
 from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM, DEFAULT_POLICY  # noqa: E402
@@ -52,7 +52,7 @@ def truth_mask(bank, g: dict) -> np.ndarray:
     return m
 
 
-def node_scores(reg: regions.Regions, S_w: np.ndarray, v: float) -> tuple[np.ndarray, np.ndarray]:
+def node_scores(reg: segmentation.Regions, S_w: np.ndarray, v: float) -> tuple[np.ndarray, np.ndarray]:
     """(every node's |N & S| in working px, its approximate IoU with the visible mask)."""
     pos, span = reg.leaf_ranges()
     n_leaf = int(span[:, 1].max())
@@ -90,7 +90,7 @@ def run(a) -> None:
         image = read_bgr(set_dir / g["image"])
         K = np.asarray(g["K"], float)
         v = float(g.get("visible_fraction", 1.0))
-        reg = regions.segment(image)
+        reg = segmentation.segment(image)
         h, w = reg.labels.shape
         S = truth_mask(bank, g)
         S_w = (cv2.resize(S.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) > 0.5).astype(np.uint8)

@@ -33,7 +33,7 @@ from bench.accuracy import (  # noqa: E402
 )
 from bench.detection import set_dir_of  # noqa: E402
 from service.vision import memory  # noqa: E402
-from service.vision.estimate import regions  # noqa: E402
+from service.vision.estimate import regions, segmentation  # noqa: E402
 from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM, DEFAULT_POLICY  # noqa: E402
 from service.vision.reference import regions as ref  # noqa: E402
 
@@ -50,7 +50,7 @@ def queries(spec: str) -> tuple[str, Path, list[dict]]:
     return name, set_dir, gts
 
 
-def same_regions(a: regions.Regions, b: regions.Regions) -> bool:
+def same_regions(a: segmentation.Regions, b: segmentation.Regions) -> bool:
     fields = ("labels", "children", "area", "bbox", "born", "died", "moments")
     return a.scale == b.scale and all(np.array_equal(getattr(a, f), getattr(b, f)) for f in fields)
 
@@ -73,12 +73,13 @@ def timed(f, *args, **kw):
     return out, 1000 * (time.process_time() - c0)
 
 
-def run_frame(impl: str, bank, image, K, n_refine: int) -> tuple[dict, regions.Regions, list, list]:
+def run_frame(impl: str, bank, image, K, n_refine: int) -> tuple[dict, segmentation.Regions, list, list]:
     t: dict[str, float] = {}
-    (sc, lab), t["mean shift"] = timed(regions.smooth, image)
-    (labels, n0, dh, dv), t["linking"] = timed(regions.initial_regions, lab)
-    st, t["stats"] = timed(regions.region_stats, labels, n0, dh, dv)
-    merge, propose = (ref.merge_py, ref.propose_py) if impl == "ref" else (regions.merge, regions.propose)
+    (sc, lab), t["mean shift"] = timed(segmentation.smooth, image)
+    (labels, n0, dh, dv), t["linking"] = timed(segmentation.initial_regions, lab)
+    st, t["stats"] = timed(segmentation.region_stats, labels, n0, dh, dv)
+    merge, propose = ((ref.merge_py, ref.propose_py) if impl == "ref"
+                      else (segmentation.merge, regions.propose))
     reg, t["merge"] = timed(merge, labels, sc, st)
     (props, _), t["matching"] = timed(propose, bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=30, reg=reg)
     shape, first = image.shape[:2], props[:n_refine]

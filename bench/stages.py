@@ -41,7 +41,7 @@ from bench.accuracy import (  # noqa: E402
     stage_errors,
 )
 from service.vision.bank import view_dirs_obj  # noqa: E402
-from service.vision.estimate import coarse, contrast  # noqa: E402
+from service.vision.estimate import coarse, contrast, level_a, level_b  # noqa: E402
 from service.vision.estimate.chamfer import distance_tensor, pooled_distance_tensor  # noqa: E402
 from service.vision.estimate.edges import detect_segments, to_grey_u8  # noqa: E402
 from service.vision.estimate.refine import border_points, verify  # noqa: E402
@@ -179,22 +179,22 @@ def run(a) -> None:
         b_rank = int(min(np.sum(qs < qs[i]) for i in b_in)) if b_in else -1
         m_p = mspd_of(bank, hyps, K, dist, g, info)
         v_gt = int(np.argmax(view_dirs_obj(bank) @ (gt.R.T @ (gt.apply(bank.centre_obj[None])[0]))))
-        tc = float(coarse.evaluate(bank, np.array([v_gt]), gt.R[None], gt.t_mm[None], K, dtt, p.fine_points,
+        tc = float(level_b.evaluate(bank, np.array([v_gt]), gt.R[None], gt.t_mm[None], K, dtt, p.fine_points,
                                    p.score_px, p.rank_tau_px)[0][0])
         if p.bg_norm:  # the truth's cost over its background, as the search ranks
             z_ref, sc = (dist, np.array([1.0])) if dist is not None else \
                 coarse.depth_scales(DEFAULT_DISTANCE_RANGE_MM, p.depth_step)
-            lv = coarse._cached_level_a(bank, intr, grey.shape, p, dist, z_ref)
+            lv = level_a._cached_level_a(bank, intr, grey.shape, p, dist, z_ref)
             r_bg = int(coarse.BG_WINDOW_EXTENT * lv.extent_px * float(np.median(sc)))
-            bgm = coarse.background_cost(pooled_distance_tensor(dtt, p.level_scale), r_bg)
-            tc_rank = tc / float(coarse._bg_at(bgm, c_uv, p.level_scale)[0])
+            bgm = level_a.background_cost(pooled_distance_tensor(dtt, p.level_scale), r_bg)
+            tc_rank = tc / float(level_a._bg_at(bgm, c_uv, p.level_scale)[0])
         else:
             tc_rank = tc
         beat = sum(h.rank_cost < tc_rank for h in hyps)
         # Oracle: level B started from the truth's own level-A cell (nearest level-A view, in-plane angle
         # on level A's 10-degree grid, the anchor nearest the truth's reference point, true depth).
         _, R_ray = ray_rotation(c_uv, K)
-        lvl_views = coarse._level_a_views(bank, p.view_step_deg if bank.symmetry_axis_obj is not None
+        lvl_views = level_a._level_a_views(bank, p.view_step_deg if bank.symmetry_axis_obj is not None
                                           else p.view_step_any_deg)
         zd = view_dirs_obj(bank)[lvl_views] @ (gt.R.T @ R_ray[:, 2])
         v0 = int(lvl_views[int(np.argmax(zd))])
@@ -204,7 +204,7 @@ def run(a) -> None:
         uv0 = np.round((c_uv + 0.5) / step) * step - 0.5
         z0 = float(gt.apply(bank.centre_obj[None])[0, 2])
         dt_q, tau_q = coarse.quantised(dtt, p.rank_tau_px * dtt.scale)
-        oh, _ = coarse.local_scan(bank, coarse.Hypothesis(v0, float(phi0), z0, uv0), dt_q, tau_q, dtt, K, p,
+        oh, _ = level_b.local_scan(bank, coarse.Hypothesis(v0, float(phi0), z0, uv0), dt_q, tau_q, dtt, K, p,
                                   distance_mm=dist, accept_q=int(tau_q))
         m_o = mspd_of(bank, [oh], K, dist, g, info)[0] if oh is not None else np.inf
         tot["oracleB"] += m_o < RIGHT_PX

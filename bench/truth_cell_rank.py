@@ -37,7 +37,7 @@ from bench.accuracy import (  # noqa: E402
     read_gt,
 )
 from bench.stages import edge_tensor  # noqa: E402
-from service.vision.estimate import coarse, contrast  # noqa: E402
+from service.vision.estimate import coarse, contrast, level_a  # noqa: E402
 from service.vision.estimate.chamfer import DT_QUANT, pooled_and_quantised, quantised  # noqa: E402
 from service.vision.estimate.edges import to_grey_u8  # noqa: E402
 from service.vision.geometry.camera import Intrinsics, project, ray_rotation  # noqa: E402
@@ -51,7 +51,7 @@ TOL_ANY_DEG = 20.0  # any other part's: 20 deg views x 10 deg in-plane steps
 
 def truth_templates(bank, tpl, R_ray: np.ndarray, gt: Pose) -> np.ndarray:
     """Level-A template indices whose rotation about the ray is within tolerance of the truth's."""
-    axes = coarse.template_axes(bank, tpl)
+    axes = level_a.template_axes(bank, tpl)
     Rt = R_ray.T @ gt.R
     if bank.symmetry_axis_obj is not None:
         a_t = Rt @ np.asarray(bank.symmetry_axis_obj, float)
@@ -77,19 +77,19 @@ def truth_rank(g: dict, set_dir: Path, configs: list[tuple[float, float]], dista
     dtt_a, _, _ = pooled_and_quantised(dtt, p.level_scale, p.rank_tau_px * dtt.scale)
     z_ref, scales = (dist, np.array([1.0])) if dist is not None else \
         coarse.depth_scales(DEFAULT_DISTANCE_RANGE_MM, p.depth_step)
-    tpl = coarse._cached_level_a(bank, intr, grey.shape, p, dist, z_ref)
-    off_u, off_v = coarse.scaled_offsets(tpl, scales)
+    tpl = level_a._cached_level_a(bank, intr, grey.shape, p, dist, z_ref)
+    off_u, off_v = level_a.scaled_offsets(tpl, scales)
     c_uv = project(gt.apply(bank.centre_obj[None]), K)[0]
     zt = float(gt.apply(bank.centre_obj[None])[0, 2])
     tok = truth_templates(bank, tpl, ray_rotation(c_uv, K)[1], gt)
     r_bg = int(coarse.BG_WINDOW_EXTENT * tpl.extent_px * float(np.median(scales)))
-    bg = coarse.background_cost(dtt_a, r_bg) if p.bg_norm else np.ones(dtt_a.dt.shape[1:])
+    bg = level_a.background_cost(dtt_a, r_bg) if p.bg_norm else np.ones(dtt_a.dt.shape[1:])
     out = []
     for w, d, *norm in configs:
         cp = contrast.ContrastParams(weight=w, d_px=d, normalise=not norm or norm[0] != 0)
         con = contrast.Contrast(image, p.n_channels, p.level_scale, cp) if w > 0 else None
         lac = (lambda q, tq, con=con: con.level_a(q, tq, r_bg)) if con is not None else None
-        au, av, tile, cost, _, _ = coarse.scan_level_a(dtt_a, tpl, scales, grey.shape, p, level_a_cost=lac)
+        au, av, tile, cost, _, _ = level_a.scan_level_a(dtt_a, tpl, scales, grey.shape, p, level_a_cost=lac)
         dd = np.hypot((au + 0.5) / p.level_scale - 0.5 - c_uv[0], (av + 0.5) / p.level_scale - 0.5 - c_uv[1])
         near = np.flatnonzero(dd <= NEAR_PX)
         if len(near) == 0 or len(tok) == 0:
@@ -107,7 +107,7 @@ def truth_rank(g: dict, set_dir: Path, configs: list[tuple[float, float]], dista
             if not ok_z.any():
                 continue
             ou, ov = off_u[:, di:di + 1][:, :, tok], off_v[:, di:di + 1][:, :, tok]
-            c, _ = coarse._scan_templates(dt_q, tau_q, ou, ov, tpl.chan[tok], au[near], av[near], tile[near],
+            c, _ = level_a._scan_templates(dt_q, tau_q, ou, ov, tpl.chan[tok], au[near], av[near], tile[near],
                                           np.full(len(near), accept_q, np.int64))
             c = np.where(ok_z, c / DT_QUANT, np.inf) / bg[av[near], au[near]][:, None]
             best = min(best, float(c.min()))

@@ -216,7 +216,7 @@ def _brute_best(dt, tau_q, off_u, off_v, chan, au, av):
 def test_scan_with_a_shared_bound_finds_the_brute_force_best():
     """The local scans prune every anchor against the best any anchor has reached; the overall best
     must be exactly the brute-force one, also with template points falling outside the image."""
-    from service.vision.estimate.coarse import _scan
+    from service.vision.estimate.scan import _scan
 
     rng = np.random.default_rng(7)
     H, W, C, T, P = 30, 40, 4, 9, 12
@@ -262,7 +262,8 @@ def test_window_block_bounds_are_lower_bounds_and_change_no_result(seed, near_im
     """Level B's block bounds: for every anchor of a block and template, the bound is at most the
     anchor's own sum over the first LEVEL_B_SENTINEL_POINTS points (tau_q outside the image), and the
     bounded scan returns exactly what the unbounded one does, at any accept threshold."""
-    from service.vision.estimate.coarse import LEVEL_B_SENTINEL_POINTS, _scan, _scan_bounded, _window_bounds
+    from service.vision.estimate.level_b import _window_bounds
+    from service.vision.estimate.scan import LEVEL_B_SENTINEL_POINTS, _scan, _scan_bounded
 
     dt, tau_q, off_u, off_v, chan, au, av, gu, gv, stride = _window_case(seed,
                                                                          near_image_edge=near_image_edge)
@@ -295,7 +296,7 @@ def test_window_block_bounds_are_lower_bounds_and_change_no_result(seed, near_im
 def _shared_scan_reference(dt, tau_q, off_u, off_v, chan, au, av, accept, n_sentinel):
     """``_scan_bounded`` with a shared bound as its docstring specifies it, serially in Python: anchors in
     rounds of SHARED_FIRST_ROUND, 2x, 4x, ..., each starting from the best total of the rounds before."""
-    from service.vision.estimate.coarse import SENTINEL_RATIO, SHARED_FIRST_ROUND
+    from service.vision.estimate.scan import SENTINEL_RATIO, SHARED_FIRST_ROUND
 
     H, W, _ = dt.shape
     _, D, T, P = off_u.shape
@@ -330,7 +331,8 @@ def test_shared_bound_scan_does_not_depend_on_the_threads(seed):
     scales, with one thread and with every thread numba has: the bound an anchor prunes against (and so
     its sentinel tests and ties) follows from the anchors' order, never from the threads' timing (a bound
     read as the threads ran changed clutter 0002's candidates from run to run)."""
-    from service.vision.estimate.coarse import LEVEL_B_SENTINEL_POINTS, _scan_bounded, _window_bounds
+    from service.vision.estimate.level_b import _window_bounds
+    from service.vision.estimate.scan import LEVEL_B_SENTINEL_POINTS, _scan_bounded
 
     dt, tau_q, off_u, off_v, chan, au, av, gu, gv, stride = _window_case(seed)
     # two depths: the scale index is part of the answer
@@ -360,12 +362,8 @@ def test_shared_bound_scan_does_not_depend_on_the_threads(seed):
 def test_serial_rounds_and_blocks_give_the_parallel_kernels_answer(seed):
     """The small rounds and block tables that run on the calling thread (no parallel region to start)
     give exactly the answer of the same kernel run all in parallel, and of the serial reference."""
-    from service.vision.estimate.coarse import (
-        LEVEL_B_SENTINEL_POINTS,
-        _block_lower_bounds,
-        _scan_bounded,
-        _window_bounds,
-    )
+    from service.vision.estimate.level_b import _window_bounds
+    from service.vision.estimate.scan import LEVEL_B_SENTINEL_POINTS, _block_lower_bounds, _scan_bounded
 
     dt, tau_q, off_u, off_v, chan, au, av, gu, gv, stride = _window_case(seed)
     n = LEVEL_B_SENTINEL_POINTS
@@ -394,7 +392,8 @@ def test_serial_rounds_and_blocks_give_the_parallel_kernels_answer(seed):
 def test_level_a_block_scan_equals_the_anchor_scan(seed, stride):
     """Level A's banded scan (tiles, several scales, any subset of the stride grid, anchors near and past
     the image border) returns exactly ``_scan``'s per-anchor best."""
-    from service.vision.estimate.coarse import LEVEL_A_SENTINEL_POINTS, _scan, _scan_level_a_bands
+    from service.vision.estimate.level_a import _scan_level_a_bands
+    from service.vision.estimate.scan import LEVEL_A_SENTINEL_POINTS, _scan
 
     rng = np.random.default_rng(seed)
     H, W, C, J, D, T, P = 40, 56, 4, 2, 3, 30, 32
@@ -424,12 +423,8 @@ def test_level_a_block_scan_equals_the_anchor_scan(seed, stride):
 def test_level_a_scan_of_scattered_blocks_equals_the_anchor_scan():
     """A deadline scans level A in chunks of whole blocks in edge-count order, not in rows: a chunk of
     scattered blocks (gaps inside a band) still gets exactly ``_scan``'s per-anchor best."""
-    from service.vision.estimate.coarse import (
-        LEVEL_A_BLOCK_ANCHORS,
-        LEVEL_A_SENTINEL_POINTS,
-        _scan,
-        _scan_level_a_bands,
-    )
+    from service.vision.estimate.level_a import LEVEL_A_BLOCK_ANCHORS, _scan_level_a_bands
+    from service.vision.estimate.scan import LEVEL_A_SENTINEL_POINTS, _scan
 
     rng = np.random.default_rng(7)
     H, W, C, J, D, T, P, stride = 48, 96, 3, 1, 2, 20, 32, 2
@@ -479,7 +474,8 @@ def test_window_offsets_equal_the_projected_posed_border(sprayer_bank):
     """The compiled window templates against an independent path: poses_of (ray, in-plane angle,
     bank view, known distance) then the pinhole projection of the same 3D border points."""
     from service.vision.bank import border_triplets
-    from service.vision.estimate.coarse import Hypothesis, Window, _window_offsets, poses_of
+    from service.vision.estimate.coarse import Hypothesis, poses_of
+    from service.vision.estimate.level_b import Window, _window_offsets
     from service.vision.geometry.camera import ray_rotation
 
     bank = sprayer_bank
@@ -524,7 +520,7 @@ def test_min_pool_is_the_cell_minimum_in_coarser_pixels():
 
 
 def test_scaled_offsets_are_the_rounded_products_and_are_made_once():
-    from service.vision.estimate.coarse import LevelATemplates, scaled_offsets
+    from service.vision.estimate.level_a import LevelATemplates, scaled_offsets
 
     rng = np.random.default_rng(2)
     off_u = rng.uniform(-40, 40, (3, 5, 7)).astype(np.float32)
@@ -544,7 +540,8 @@ def test_background_normalised_cost_ranks_a_partial_outline_above_dense_texture(
     cost picks the texture; over the local background cost (``background_cost``: what any template
     costs there) the outline, standing out of plain ground, ranks first."""
     from service.vision.estimate.chamfer import distance_tensor_from_edges, quantised
-    from service.vision.estimate.coarse import _scan, background_cost, pick_peaks
+    from service.vision.estimate.level_a import background_cost, pick_peaks
+    from service.vision.estimate.scan import _scan
 
     C, H, W, half = 8, 64, 160, 8
     rng = np.random.default_rng(3)
@@ -585,10 +582,10 @@ def _decoy_scene(bank, dist: float, uv: np.ndarray, *, decoy: bool = True, phi_d
     from an outline itself -> (grey image, R_part, t_part)."""
     import cv2
 
-    from service.vision.estimate import coarse
+    from service.vision.estimate import level_a
     from service.vision.estimate.coarse import Hypothesis, poses_of
 
-    tpl = coarse._cached_level_a(bank, INTR, (H, W), pipeline.DEFAULT_POLICY.search_params, dist, dist)
+    tpl = level_a._cached_level_a(bank, INTR, (H, W), pipeline.DEFAULT_POLICY.search_params, dist, dist)
     h_decoy = Hypothesis(int(tpl.views[0]), 0.0, dist, uv - 3)
     h_part = Hypothesis(int(tpl.views[20]), phi_deg, dist, uv)
     (R_decoy, R_part), (t_decoy, t_part) = poses_of(bank, [h_decoy, h_part], INTR.K, dist)
@@ -639,7 +636,7 @@ def test_estimate_runs_the_second_pass_only_when_the_first_candidates_fail(l_blo
     from service.vision.estimate import coarse
 
     calls: list[int] = []
-    peak_starts = coarse.peak_starts
+    peak_starts = coarse.peak_starts  # as the search calls it
     monkeypatch.setattr(coarse, "peak_starts", lambda *a, **k: calls.append(1) or peak_starts(*a, **k))
     bank, dist = l_block_bank, 500.0
     p = replace(pipeline.DEFAULT_POLICY.search_params, n_peaks=1, templates_per_peak=3)
@@ -664,14 +661,14 @@ def test_background_norm_and_templates_per_peak_together_propose_the_part_beside
     from the part's own rotation there and propose it."""
     import cv2
 
-    from service.vision.estimate import coarse
+    from service.vision.estimate import coarse, level_a
     from service.vision.estimate.chamfer import distance_tensor
     from service.vision.estimate.coarse import Hypothesis, poses_of
     from service.vision.estimate.edges import Segments, detect_segments
 
     bank, dist = l_block_bank, 500.0
     p = replace(pipeline.DEFAULT_POLICY.search_params, n_peaks=1, bg_norm=False, templates_per_peak=1)
-    tpl = coarse._cached_level_a(bank, INTR, (H, W), p, dist, dist)
+    tpl = level_a._cached_level_a(bank, INTR, (H, W), p, dist, dist)
     uv = np.array([8 * 100 + 3.5, 8 * 60 + 3.5])  # a level-A anchor's pixel, right of the texture
     decoy = Hypothesis(int(tpl.views[0]), 0.0, dist, uv)
     part = Hypothesis(int(tpl.views[20]), 94.0, dist, uv + 3)
@@ -716,31 +713,32 @@ def test_level_a_tables_the_deadline_leaves_no_time_for_are_made_in_the_backgrou
     import threading
 
     from service.vision.deadline import Deadline
-    from service.vision.estimate import coarse
+    from service.vision.estimate import level_a
 
     gate = threading.Event()
-    real = coarse._cached_level_a
+    real = level_a._cached_level_a
 
     def slow(*args):
         assert gate.wait(30)  # hang guard: the test opens the gate
         return real(*args)
 
-    monkeypatch.setattr(coarse, "_cached_level_a", slow)
+    monkeypatch.setattr(level_a, "_cached_level_a", slow)
     p = pipeline.DEFAULT_POLICY.search_params
     intr = Intrinsics(1234.0, 1234.0, 640.0, 480.0)  # a camera no other test made tables for
     args = (sprayer_bank, intr, (H, W), p, 500.0, 500.0, np.array([1.0]))
     deadline = Deadline(100.0, clock=lambda: 0.0)  # 100 ms left, and they stay left
-    assert coarse._level_a_in_time(*args, deadline, reserve_ms=100.0) is None
+    deadline.checked()  # past the frame's first check, which would be owed the tables whatever the time
+    assert level_a._level_a_in_time(*args, deadline, reserve_ms=100.0) is None
     assert deadline.hit
     gate.set()
     later = Deadline(60_000.0, clock=lambda: 0.0)  # a hang guard, not a speed assert
-    tpl = coarse._level_a_in_time(*args, later, reserve_ms=0.0)  # waits for the one being made
+    tpl = level_a._level_a_in_time(*args, later, reserve_ms=0.0)  # waits for the one being made
     assert tpl is not None and not later.hit
-    want = coarse.level_a_templates(sprayer_bank, intr, (H, W), p, distance_mm=500.0, z_ref_mm=500.0)
+    want = level_a.level_a_templates(sprayer_bank, intr, (H, W), p, distance_mm=500.0, z_ref_mm=500.0)
     np.testing.assert_array_equal(tpl.off_u, want.off_u)
     np.testing.assert_array_equal(tpl.chan, want.chan)
     again = Deadline(100.0, clock=lambda: 0.0)
-    assert coarse._level_a_in_time(*args, again, reserve_ms=100.0) is tpl  # made once, no wait
+    assert level_a._level_a_in_time(*args, again, reserve_ms=100.0) is tpl  # made once, no wait
     assert not again.hit
 
 
@@ -748,12 +746,12 @@ def test_level_a_tables_the_deadline_leaves_no_time_for_are_made_in_the_backgrou
 def test_level_a_padding_covers_every_scaled_offset(sprayer_bank, distance_range_mm):
     """Level A's banded scan reads its padded DT3 without bounds tests: the padding it is given from the
     templates' extent (``scan_level_a``) must cover every scaled offset it will read."""
-    from service.vision.estimate import coarse
+    from service.vision.estimate import coarse, level_a
 
     intr = Intrinsics.from_K(np.array([[1100.0, 0, 643.0], [0, 1100.0, 477.0], [0, 0, 1]]))
     p = coarse.SearchParams()
     z_ref, scales = coarse.depth_scales(distance_range_mm, p.depth_step)
-    tpl = coarse.level_a_templates(sprayer_bank, intr, (960, 1280), p, distance_mm=None, z_ref_mm=z_ref)
-    off_u, off_v = coarse.scaled_offsets(tpl, scales)
+    tpl = level_a.level_a_templates(sprayer_bank, intr, (960, 1280), p, distance_mm=None, z_ref_mm=z_ref)
+    off_u, off_v = level_a.scaled_offsets(tpl, scales)
     reach = int(np.ceil(tpl.extent_px * float(scales.max()))) + 1
     assert max(np.abs(off_u).max(), np.abs(off_v).max()) <= reach

@@ -4,11 +4,11 @@ of two regions with the same silhouette, the one in the part's colours is propos
 import numpy as np
 
 from service.vision.build.appearance import Appearance
-from service.vision.estimate import colour_prior, regions
+from service.vision.estimate import colour_prior, regions, segmentation
 from service.vision.geometry.camera import project
 from service.vision.geometry.render import rasterise_roi
 from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM, taught_colour_density
-from tests.test_regions import H, K, W, best_node_iou, template_pose
+from tests.test_regions import H, K, W, template_pose
 
 RED, BLUE, GREY = (40, 40, 200), (200, 60, 40), (128, 128, 128)
 
@@ -36,12 +36,12 @@ def test_a_node_s_mean_is_the_mean_over_its_pixels():
     rng = np.random.default_rng(4)
     image = np.kron(rng.integers(0, 6, (12, 16)), np.ones((20, 20), int))
     palette = rng.integers(0, 255, (6, 3)).astype(np.uint8)
-    reg = regions.segment(palette[image])
+    reg = segmentation.segment(palette[image])
     values = rng.random(reg.labels.shape)
-    means = regions.node_means(reg, values)
+    means = segmentation.node_means(reg, values)
     for c in range(len(reg.area)):
         x0, y0, x1, y1 = reg.bbox[c]
-        m = regions.region_mask(reg, c).astype(bool)
+        m = segmentation.region_mask(reg, c).astype(bool)
         assert np.isclose(means[c], values[y0:y1, x0:x1][m].mean())
 
 
@@ -63,8 +63,8 @@ def test_of_two_same_shaped_regions_the_part_coloured_one_is_proposed_first(l_bl
     for part_pose, part_bgr, twin_bgr in ((left, RED, BLUE), (right, RED, BLUE), (left, RED, (40, 200, 40))):
         twin_pose = right if part_pose is left else left
         image = _two_parts_scene(bank, part_pose, twin_pose, part_bgr, twin_bgr)
-        reg = regions.segment(image)
-        purity = regions.node_means(reg, regions.working_likelihood(image, density))
+        reg = segmentation.segment(image)
+        purity = segmentation.node_means(reg, regions.working_likelihood(image, density))
         props, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=4, reg=reg, purity=purity)
         centre = project(part_pose.apply(bank.centre_obj[None]), K)[0]
         assert np.hypot(*(props[0].hyp.uv - centre)) < 8.0, (props[0].hyp.uv, centre)
@@ -120,18 +120,3 @@ def test_scored_region_proposals_take_the_painted_rotation_not_its_turned_twin(m
     assert ta._rot_deg(R0, ta.POSE_T.R) < VIEW_STEP_DEG
     R0 = first_rotation(None)
     assert min(ta._rot_deg(R0, R) for R in twins) < VIEW_STEP_DEG
-
-
-def test_a_part_painted_in_two_far_colours_is_one_region_only_when_guided_by_them(monkeypatch):
-    # a red and a blue half (far apart: the hierarchy does not merge them) on a grey floor; the part's
-    # colours taught, their shared boundary counts less and the part is one region
-    monkeypatch.setattr(regions, "GUIDED_MERGE", 0.8)
-    img = np.full((240, 320, 3), GREY, np.uint8)
-    img[80:160, 100:140] = RED
-    img[80:160, 140:180] = BLUE
-    target = np.zeros((240, 320), bool)
-    target[80:160, 100:180] = True
-    faces = np.array([RED, BLUE], np.float32)
-    guide = regions.working_likelihood(img, colour_prior.part_density(faces, np.ones(2)), work_width=320)
-    assert best_node_iou(regions.segment(img, work_width=320), target) < 0.6
-    assert best_node_iou(regions.segment(img, work_width=320, guide=guide), target) > 0.97

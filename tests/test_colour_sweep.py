@@ -10,7 +10,7 @@ from service.vision.geometry.frames import Pose
 from service.vision.geometry.render import rasterise_roi
 from tests.test_regions import H, K, W, template_pose
 
-SCALE = 0.5  # the likelihood's working px per frame px (regions.WORK_WIDTH 320 of 640)
+SCALE = 0.5  # the likelihood's working px per frame px (segmentation.WORK_WIDTH 320 of 640)
 RANGE_MM = (300.0, 1200.0)
 PART, FRAME = 0.95, 0.05  # likelihood of a part-coloured pixel and of any other
 # The sweep's grid: depths 1.26 apart (7 over 300-1200 mm), angles 15 deg, a template 15 deg from the

@@ -15,7 +15,7 @@ import trimesh
 
 from service.vision import pipeline
 from service.vision.deadline import Deadline, RunningMean
-from service.vision.estimate import coarse
+from service.vision.estimate import coarse, level_a
 from service.vision.estimate.chamfer import distance_tensor, pooled_distance_tensor
 from service.vision.estimate.edges import detect_segments, to_grey_u8
 from service.vision.estimate.evidence import colour_frame
@@ -140,25 +140,25 @@ def test_level_a_scans_the_anchors_with_most_edges_first(bank, image):
     dtt_a = pooled_distance_tensor(distance_tensor(detect_segments(grey), n_channels=p.n_channels,
                                                    scale=p.fine_scale), p.level_scale)
     z_ref, scales = coarse.depth_scales((300.0, 700.0), p.depth_step)
-    tpl = coarse.level_a_templates(bank, INTR, grey.shape, p, distance_mm=None, z_ref_mm=z_ref)
-    full = coarse.scan_level_a(dtt_a, tpl, scales, grey.shape, p)
+    tpl = level_a.level_a_templates(bank, INTR, grey.shape, p, distance_mm=None, z_ref_mm=z_ref)
+    full = level_a.scan_level_a(dtt_a, tpl, scales, grey.shape, p)
     # Chunked and run to the end: every anchor's result is the unchunked scan's.
-    whole = coarse.scan_level_a(dtt_a, tpl, scales, grey.shape, p, deadline=Deadline(NEVER))
+    whole = level_a.scan_level_a(dtt_a, tpl, scales, grey.shape, p, deadline=Deadline(NEVER))
     for a, b in zip(full, whole, strict=True):
         np.testing.assert_array_equal(a, b)
     # A clock that ticks 10 ms per reading and a 45 ms budget: the first chunk is scanned, then the
     # next would not fit (allows_next reads the clock twice per chunk).
-    part = coarse.scan_level_a(dtt_a, tpl, scales, grey.shape, p,
+    part = level_a.scan_level_a(dtt_a, tpl, scales, grey.shape, p,
                                deadline=Deadline(45.0, clock=TickingClock(0.010)))
     np.testing.assert_array_equal(part[0], full[0])
     # The chunks, recounted here: whole blocks of anchors, ordered by the most edge pixels round one of
     # their anchors, most first.
-    edges = (dtt_a.dt.min(axis=0) < coarse.EDGE_PIXEL_DT_PX).astype(np.int32)
-    r = max(int(tpl.extent_px * float(scales.min()) * coarse.EDGE_COUNT_EXTENT), 1)
+    edges = (dtt_a.dt.min(axis=0) < level_a.EDGE_PIXEL_DT_PX).astype(np.int32)
+    r = max(int(tpl.extent_px * float(scales.min()) * level_a.EDGE_COUNT_EXTENT), 1)
     counts = np.array([edges[max(v - r, 0):v + r + 1, max(u - r, 0):u + r + 1].sum()
                        for u, v in zip(part[0], part[1], strict=True)])
-    chunks = coarse._block_chunks(part[0], part[1], part[2], counts, p.anchor_stride)
-    assert len(chunks) > 1 and len(chunks[0]) >= coarse.LEVEL_A_CHUNK_ANCHORS
+    chunks = level_a._block_chunks(part[0], part[1], part[2], counts, p.anchor_stride)
+    assert len(chunks) > 1 and len(chunks[0]) >= level_a.LEVEL_A_CHUNK_ANCHORS
     assert counts[chunks[0]].max() == counts.max()
     first = chunks[0]
     rest = np.concatenate(chunks[1:])

@@ -97,63 +97,6 @@ def test_shading_fit_explains_a_grey_level_that_is_a_quadratic_in_the_normals():
     np.testing.assert_allclose(std, bgr[sampled][:, 0].astype(float).std(), rtol=1e-12)
 
 
-def _occluded_part(cover: float, seed: int = 5):
-    """A faceted sphere painted a brown whose brightness is a quadratic in each pixel's face normal (the
-    shading model is exact), on a grey floor with sensor noise, its silhouette's ``cover`` share (left
-    columns first) painted over by a green occluder: (bank, pose, intr, frame, uncovered fraction of the
-    silhouette)."""
-    from service.vision.geometry.camera import Intrinsics
-    from service.vision.geometry.render import render
-
-    mesh = trimesh.creation.icosphere(subdivisions=3, radius=40.0)
-    bank = SimpleNamespace(vertices_mm=np.asarray(mesh.vertices, float), faces=np.asarray(mesh.faces))
-    pose = Pose(Rx(20.0), np.array([0.0, 0.0, 400.0]))
-    intr = Intrinsics(500.0, 500.0, 159.5, 119.5)
-    r = render(bank.vertices_mm, bank.faces, pose, intr.K, (320, 240))
-    n = face_normals_cam(bank.vertices_mm, bank.faces, pose.R, pose.t_mm).astype(np.float64)
-    shade = 0.35 + 0.55 * np.clip(-n[:, 2], 0, 1) + 0.2 * n[:, 0] ** 2  # lit from the camera
-    rng = np.random.default_rng(seed)
-    img = np.empty((240, 320, 3))
-    img[:] = (120.0, 120.0, 120.0)
-    on = r.face_id >= 0
-    img[on] = np.array([60.0, 110.0, 180.0]) * shade[r.face_id[on]][:, None]
-    cols = np.nonzero(on.any(axis=0))[0]
-    cut = cols[0]  # the first column left of which `cover` of the silhouette lies
-    counts = np.cumsum(on.sum(axis=0))
-    if cover > 0:
-        cut = int(np.searchsorted(counts, cover * counts[-1]))
-        img[:, : cut + 1] = (60.0, 170.0, 40.0)  # the occluder: nearer, another colour, all rows
-    covered = on.copy()
-    covered[:, cut + 1:] = False
-    uncovered = 1.0 - (covered.sum() / on.sum() if cover > 0 else 0.0)
-    img += rng.normal(0, 2.0, img.shape)
-    frame = ColourFrame(np.clip(np.rint(img), 0, 255).astype(np.uint8))
-    return bank, pose, intr, frame, uncovered
-
-
-def test_visible_evidence_measures_the_uncovered_part_of_an_occluded_part(monkeypatch):
-    """Known answer: with a known share of the silhouette painted over by an occluder of another
-    colour, ``visible`` reports the uncovered share (within the erosion of the outline's last pixels),
-    and the robust shading fit explains the part's pixels as well as without the occluder while the
-    plain grey fit drops."""
-    from service.vision.estimate import evidence as ev_module
-    from service.vision.estimate.evidence import evidence
-
-    monkeypatch.setattr(ev_module, "VISIBLE_PART", True)
-
-    bank, pose, intr, frame, full = _occluded_part(0.0)
-    clear = evidence(bank, pose, intr, frame)
-    assert full == 1.0 and clear.visible > 0.97
-    assert clear.shading_r2_robust > 0.95 and clear.shading_r2 > 0.95
-    for cover in (0.25, 0.4):
-        bank, pose, intr, frame, uncovered = _occluded_part(cover)
-        assert abs(uncovered - (1 - cover)) < 0.02  # whole columns
-        ev = evidence(bank, pose, intr, frame)
-        assert abs(ev.visible - uncovered) < 0.05, (cover, ev.visible, uncovered)
-        assert abs(ev.shading_r2_robust - clear.shading_r2_robust) < 0.03
-        assert ev.shading_r2 < clear.shading_r2 - 0.1  # the plain grey fit is spoiled by the occluder
-
-
 # Poses of the painted box of tests/test_appearance.py: in full view, turned, cut by the image's left border,
 # and wholly outside the image.
 _SCORED_POSES = [Pose(Rx(-35.0) @ Ry(30.0), np.array([0.0, 0.0, 400.0])),

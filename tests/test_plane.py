@@ -22,16 +22,11 @@ from bench.occlusion import (
 )
 from service.vision import pipeline
 from service.vision.estimate.evidence import colour_frame
-from service.vision.estimate.plane import (
-    R_cam_rest,
-    _poses,
-    centre_height_mm,
-    rest_gap_mm,
-    rest_heights_mm,
-)
+from service.vision.estimate.plane import _poses
 from service.vision.estimate.verdict import decide
 from service.vision.geometry.camera import project
 from service.vision.geometry.frames import Pose
+from service.vision.geometry.plane import R_cam_rest, centre_height_mm, rest_gap_mm, rest_heights_mm
 from service.vision.pipeline import Checked, PoseCandidate, RefinedPose, sort_instances
 from service.vision.pipeline.instances import paint_depth
 from tests.tolerances import PLANE_FOUND_T_MM, PLANE_REST_TOL_MM, ROUND_TRIP_ATOL
@@ -70,7 +65,7 @@ def test_every_placement_of_the_search_rests_on_the_plane_with_its_centre_at_the
 def test_the_verdict_rejects_a_pose_off_the_plane():
     ev = {"edge_support": 1.0, "unexplained": 0.0, "colour_edge": 1.0, "polarity": 1.0, "region": 1.0,
           "region_low": 1.0, "region_global": 1.0, "coherence": 1.0, "shading_r2": 1.0, "shading_std": 10.0,
-          "visible": 1.0, "shading_r2_robust": 1.0, "generic": 0.8}
+          "generic": 0.8}
     assert decide(ev).found
     assert decide(ev, plane_gap_mm=4.0, plane_tolerance_mm=5.0).found
     for gap in (50.0, -10.0):  # floating, or through the surface
@@ -195,7 +190,7 @@ def test_a_found_neighbour_explains_its_pixels_in_the_evidence(bank):
 
 def test_the_nearest_view_table_agrees_with_a_scan_of_every_view(bank):
     from service.vision.bank import view_dirs_obj
-    from service.vision.estimate.plane import nearest_views
+    from service.vision.estimate.plane_scoring import nearest_views
 
     rng = np.random.default_rng(3)
     dirs = rng.normal(size=(20000, 3))
@@ -222,7 +217,7 @@ def test_the_block_floor_is_the_least_over_its_reach_and_the_channels_either_sid
 def test_the_channel_by_bisection_is_the_rounded_atan2_modulo_pi(n_ch):
     import math
 
-    from service.vision.estimate.plane import _bin_edges, _channel
+    from service.vision.estimate.plane_scoring import _bin_edges, _channel
 
     def rounded(x, y):
         th = math.atan2(y, x)
@@ -243,9 +238,9 @@ def test_the_channel_by_bisection_is_the_rounded_atan2_modulo_pi(n_ch):
 
 def test_the_compiled_polish_cost_is_coarse_evaluate(bank):
     from service.vision.estimate.chamfer import distance_tensor
-    from service.vision.estimate.coarse import evaluate
     from service.vision.estimate.edges import detect_segments, to_grey_u8
-    from service.vision.estimate.plane import evaluate_poses, scoring_poses
+    from service.vision.estimate.level_b import evaluate
+    from service.vision.estimate.plane_scoring import evaluate_poses, scoring_poses
 
     img = scene(bank, [resting(bank, 0, 25.0, 10.0, -20.0), resting(bank, 1, 100.0, -60.0, 30.0)])
     dtt = distance_tensor(detect_segments(to_grey_u8(img)), n_channels=16, scale=0.5)
@@ -265,7 +260,7 @@ def test_the_compiled_polish_cost_is_coarse_evaluate(bank):
 def test_the_scoring_kernel_picks_the_views_scoring_poses_would(bank):
     from service.vision.estimate.chamfer import distance_tensor, quantised
     from service.vision.estimate.edges import detect_segments, to_grey_u8
-    from service.vision.estimate.plane import _points, _score, score_poses, scoring_poses
+    from service.vision.estimate.plane_scoring import _points, _score, score_poses, scoring_poses
 
     img = scene(bank, [resting(bank, 0, 25.0, 10.0, -20.0)])
     dtt = distance_tensor(detect_segments(to_grey_u8(img)), n_channels=16, scale=0.5)

@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from service.vision.estimate import regions, shapes
+from service.vision.estimate import regions, segmentation, shapes
 from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM
 from service.vision.reference import regions as ref
 
@@ -18,7 +18,7 @@ def key(p: regions.RegionProposal) -> tuple:
     return p.region, p.iou, p.hyp.view, p.hyp.phi_deg, p.hyp.z_mm, tuple(p.hyp.uv)
 
 
-def assert_same_regions(a: regions.Regions, b: regions.Regions) -> None:
+def assert_same_regions(a: segmentation.Regions, b: segmentation.Regions) -> None:
     assert a.scale == b.scale
     for f in FIELDS:
         np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
@@ -42,9 +42,9 @@ def test_the_merge_kernel_builds_the_reference_hierarchy_with_ties(seed):
     rng = np.random.default_rng(seed)
     h, w = int(rng.integers(8, 60)), int(rng.integers(8, 80))
     lab = blocky_lab(rng, h, w, n_levels=int(rng.integers(2, 6)))
-    labels, n0, dh, dv = regions.initial_regions(lab)
-    st = regions.region_stats(labels, n0, dh, dv)
-    a, b = ref.merge_py(labels, 0.5, st), regions.merge(labels, 0.5, st)
+    labels, n0, dh, dv = segmentation.initial_regions(lab)
+    st = segmentation.region_stats(labels, n0, dh, dv)
+    a, b = ref.merge_py(labels, 0.5, st), segmentation.merge(labels, 0.5, st)
     assert_same_regions(a, b)
     # a hierarchy: every merged node's area is its children's, and it forms no weaker than they did
     merged = a.children[:, 0] >= 0
@@ -54,8 +54,8 @@ def test_the_merge_kernel_builds_the_reference_hierarchy_with_ties(seed):
 
 
 def test_a_single_region_image_has_one_node():
-    labels, n0, dh, dv = regions.initial_regions(np.zeros((6, 9, 3), np.float32))
-    reg = regions.merge(labels, 1.0, regions.region_stats(labels, n0, dh, dv))
+    labels, n0, dh, dv = segmentation.initial_regions(np.zeros((6, 9, 3), np.float32))
+    reg = segmentation.merge(labels, 1.0, segmentation.region_stats(labels, n0, dh, dv))
     assert len(reg.area) == 1 and reg.area[0] == 54 and reg.children[0].tolist() == [-1, -1]
 
 
@@ -70,7 +70,7 @@ def noisy_scene(rng: np.random.Generator) -> np.ndarray:
 @pytest.mark.parametrize("seed", range(3))
 def test_segment_matches_the_reference_on_noisy_scenes(seed):
     img = noisy_scene(np.random.default_rng(seed))
-    assert_same_regions(ref.segment_py(img), regions.segment(img))
+    assert_same_regions(ref.segment_py(img), segmentation.segment(img))
 
 
 @pytest.mark.slow
@@ -85,7 +85,7 @@ def test_segment_and_proposals_match_the_reference_on_real_photos(data_dir, monk
         bank = gt_bank(set_dir, g["model"])
         img = read_colour(set_dir / g["image"])[..., :3]
         K = np.asarray(g["K"], float)
-        reg_a, reg_b = ref.segment_py(img), regions.segment(img)
+        reg_a, reg_b = ref.segment_py(img), segmentation.segment(img)
         assert_same_regions(reg_a, reg_b)
         for n_out in (30, 5, 1):
             pa, _ = ref.propose_py(bank, img, K, DEFAULT_DISTANCE_RANGE_MM, n_out=n_out, reg=reg_a)
@@ -111,9 +111,9 @@ def test_best_fits_are_the_positive_head_of_a_full_sort(levels):
 
 
 def test_region_masks_from_leaf_ranges_are_the_reference_masks():
-    reg = regions.segment(noisy_scene(np.random.default_rng(5)))
+    reg = segmentation.segment(noisy_scene(np.random.default_rng(5)))
     for c in range(len(reg.area)):
-        m = regions.region_mask(reg, c)
+        m = segmentation.region_mask(reg, c)
         np.testing.assert_array_equal(m, ref.region_mask_py(reg, c))
         assert m.sum() == reg.area[c]  # and every pixel of the node is in its box
 

@@ -49,7 +49,7 @@ def test_part_on_a_plain_floor_is_found_at_its_pose(part_bank):
     assert out.found and out.verdict.found and out.verdict.reason == "found"
     assert out.verdict.score >= verdict.MIN_SCORE
     assert np.linalg.norm(out.refined.pose.t_mm - POSE.t_mm) <= FOUND_POSE_T_MM
-    assert set(verdict.FEATURES) - {*verdict.VISIBLE_FEATURES, *verdict.TAUGHT_FEATURES} <= set(
+    assert set(verdict.FEATURES) - set(verdict.TAUGHT_FEATURES) <= set(
             out.verdict.evidence)
 
 
@@ -89,7 +89,7 @@ def test_empty_image_has_no_candidate(part_bank):
 
 TRUE_LIKE = {"edge_support": 0.98, "unexplained": 0.0, "colour_edge": 1.0, "polarity": 1.0, "region": 0.95,
              "region_low": 0.9, "region_global": 0.95, "coherence": 0.95, "shading_r2": 0.95,
-             "shading_std": 20.0, "in_image": 1.0, "visible": 1.0, "shading_r2_robust": 0.95, "generic": 0.85}
+             "shading_std": 20.0, "in_image": 1.0, "generic": 0.85}
 
 
 def test_true_like_evidence_is_found():
@@ -98,17 +98,15 @@ def test_true_like_evidence_is_found():
 
 
 @pytest.mark.parametrize("change, reason", [
-    ({"edge_support": 0.2, "region_global": 0.5, "shading_r2": 0.6, "shading_r2_robust": 0.6},
-     "low_support"),
-    ({"unexplained": 6.0, "region_global": 0.5, "shading_r2": 0.6, "shading_r2_robust": 0.6},
-     "interior_edges"),
+    ({"edge_support": 0.2, "region_global": 0.5, "shading_r2": 0.6}, "low_support"),
+    ({"unexplained": 6.0, "region_global": 0.5, "shading_r2": 0.6}, "interior_edges"),
     ({"region": 0.05, "region_low": 0.0, "region_global": 0.0, "colour_edge": 0.3, "polarity": 0.3,
       "coherence": 0.0}, "region_mismatch"),
-    ({"shading_r2": 0.0, "shading_r2_robust": 0.0, "region_global": 0.6}, "shading_mismatch"),
+    ({"shading_r2": 0.0, "region_global": 0.6}, "shading_mismatch"),
     ({"in_image": 0.2}, "outside_image"),
     ({"in_image": 0.7}, "outside_image"),  # a pose cut by the border: its cut-off part is not checked
     # fair region and shading evidence along an outline an ellipse or a cylinder view has as well
-    ({"region_global": 0.8, "shading_r2": 0.82, "shading_r2_robust": 0.82, "generic": 0.99},
+    ({"region_global": 0.8, "shading_r2": 0.82, "generic": 0.99},
      "generic_outline"),
 ])
 def test_each_rejection_names_its_evidence(change, reason):
@@ -120,15 +118,6 @@ def test_a_pose_cut_by_the_border_is_judged_only_when_nearly_all_its_outline_is_
     below, at = verdict.MIN_IN_IMAGE - 0.01, verdict.MIN_IN_IMAGE
     assert verdict.decide(TRUE_LIKE | {"in_image": below}).reason == "outside_image"
     assert verdict.decide(TRUE_LIKE | {"in_image": at}).found
-
-
-def test_an_outline_within_min_distinct_px_of_a_plain_shape_is_not_found_whatever_the_score(monkeypatch):
-    assert verdict.decide(TRUE_LIKE | {"distinct_px": 0.1}).found  # off in the service (0)
-    monkeypatch.setattr(verdict, "MIN_DISTINCT_PX", 0.75)
-    v = verdict.decide(TRUE_LIKE | {"distinct_px": 0.7})
-    assert not v.found and v.reason == "generic_outline" and v.score >= verdict.MIN_SCORE
-    assert verdict.decide(TRUE_LIKE | {"distinct_px": 0.8}).found
-    assert verdict.decide(TRUE_LIKE).found  # evidence made before distinct_px: not judged on it
 
 
 def test_distance_outside_range_is_rejected_whatever_the_evidence():
