@@ -37,7 +37,7 @@ START_WAIT_S = 120
 
 from service.builder import register_upload, run_build  # noqa: E402
 from service.settings import Settings  # noqa: E402
-from service.store import Store  # noqa: E402
+from service.stores import open_store  # noqa: E402
 from tests.redis_server import RedisServer, free_port  # noqa: E402
 
 
@@ -77,7 +77,7 @@ def stop(procs: list[subprocess.Popen]) -> None:
 def build(location: str, mesh: bytes) -> str:
     settings = Settings(store=location if location.startswith("redis://") else None,
                         cache_dir=Path(location), template_grid=GRID)
-    with Store(settings.store_location) as store:
+    with open_store(settings.store_location) as store:
         record, _ = register_upload(store, settings, mesh, filename="sprayer.stl", symmetry="y")
     assert run_build(settings.store_location, record["id"], 30.0) == "ready"
     return record["id"]
@@ -117,7 +117,7 @@ def throughput(urls: list[str], mid: str, frame: dict, requests: int) -> float:
 def store_access_ms(location: str, mid: str, n: int = 2000) -> np.ndarray:
     """What an estimate asks the store: its record, its bank (a version check and the LRU), its grasps."""
     out = np.empty(n)
-    with Store(location) as store:
+    with open_store(location) as store:
         store.bank(mid)  # loaded once, as a warm replica has it
         for i in range(n):
             t0 = time.perf_counter()

@@ -41,10 +41,10 @@ def _existing(path: str, what: str, hint: str) -> Path:
 
 def _progress(location: str, mid: str, done: threading.Event, stream=None) -> None:
     """Until ``done``: one self-overwriting line on ``stream`` (stderr) with the build's progress."""
-    from service.store import Store
+    from service.stores import open_store
 
     stream = stream or sys.stderr
-    with Store(location) as store:
+    with open_store(location) as store:
         while not done.wait(PROGRESS_EVERY_S):
             rec = store.get(mid) or {}
             stream.write(f"\rbuilding templates of {mid}: {rec.get('status', '?')} "
@@ -184,10 +184,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 def cmd_build(args: argparse.Namespace) -> int:
     from service.schemas import ModelInfo
-    from service.store import Store
+    from service.stores import open_store
 
     settings = _settings(args)
-    with Store(settings.store_location) as store:
+    with open_store(settings.store_location) as store:
         record = _ensure_built(args, settings, store)
     print(ModelInfo.from_record(record).model_dump_json(indent=2))
     return 0 if record["status"] == "ready" else 1
@@ -205,14 +205,14 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     from service.cell_io import check_robot_pose, estimate_options, estimate_result, grasps_of, resolve_camera
     from service.references import appearance_of
     from service.schemas import parse_json_object
-    from service.store import Store
+    from service.stores import open_store
 
     settings = _settings(args)
     camera_text = _camera_text(args.camera)
     parse_json_object(camera_text, "camera")  # bad JSON fails before any file is read
     parse_json_object(args.options, "options")
     image = _existing(args.image, "image", "give a PNG, JPEG, BMP or TIFF file")
-    with Store(settings.store_location) as store:
+    with open_store(settings.store_location) as store:
         cam, camera_name = resolve_camera(camera_text, store)  # inline, or a camera registered in the cache
         opts = estimate_options(args.options, cam, camera_name, store)  # its plane as the default
         if args.overlay_out:

@@ -50,7 +50,8 @@ from service.errors import (
 )
 from service.logs import configure_like, json_level
 from service.settings import Settings
-from service.store import Store, model_id
+from service.stores import open_store
+from service.stores.base import Store, model_id
 from service.vision.bank import TemplateBank
 
 log = logging.getLogger("service")
@@ -214,7 +215,7 @@ def run_build(location: str, mid: str, lease_s: float, *, parent_pid: int | None
     """
     from service.vision.pipeline import build_templates
 
-    store = Store(location)
+    store = open_store(location)
     token: str | None = None
     wake = threading.Event()  # the watch stops: the build ended, or a SIGTERM came
     sigterm = threading.Event()
@@ -452,7 +453,7 @@ class Builder:
     def _died(self, mid: str, code: int) -> None:
         log.error("template build process for model %s died (exit status %s)", mid, code)
         self._deaths[mid] = self._deaths.get(mid, 0) + 1
-        with Store(self.location) as store:
+        with open_store(self.location) as store:
             rec = store.get(mid)
             if rec is None or rec["status"] not in ACTIVE:
                 return

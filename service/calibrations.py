@@ -26,7 +26,7 @@ import threading
 from typing import Any
 
 from service.references import calibrate_stored, calibration_due
-from service.store import Store
+from service.stores.base import Store
 
 log = logging.getLogger("service")
 

@@ -33,7 +33,8 @@ import redis
 from rq import Queue, Worker
 
 from service.settings import Settings
-from service.store import Store
+from service.stores import open_store
+from service.stores.base import Store
 
 log = logging.getLogger("service")
 
@@ -144,7 +145,7 @@ def worker_main(settings: Settings, *, burst: bool = False) -> int:
 
     def sweeper() -> None:
         orphans: dict[str, float] = {}
-        with Store(settings.store_location) as store:
+        with open_store(settings.store_location) as store:
             while not stop.wait(period_s):
                 try:
                     sweep(store, queue, settings, orphans, grace_s=float(settings.build_lease_s))

@@ -31,7 +31,7 @@ from service.errors import install_handlers, sentence
 from service.logs import capture_warnings
 from service.middleware import ApiKeyGuard, RequestContext
 from service.settings import Settings
-from service.store import Store
+from service.stores import open_store
 from service.vision import pipeline, threads
 
 log = logging.getLogger("service")
@@ -110,7 +110,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         threads.configure(settings.threads)
         if not settings.shared_store:
             settings.cache_dir.mkdir(parents=True, exist_ok=True)
-        store = Store(settings.store_location, bank_cache_mb=settings.bank_cache_mb)
+        store = open_store(settings.store_location, bank_cache_mb=settings.bank_cache_mb)
         builder = make_builder(settings)
         calibrator = Calibrator(store, settings.build_lease_s)
         app.state.store, app.state.builder, app.state.calibrator = store, builder, calibrator

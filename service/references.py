@@ -30,7 +30,7 @@ from service.cell_io import check_image_size
 from service.decode import decode_image
 from service.errors import NotFoundError, UnprocessableError
 from service.schemas import CellCamera, Options, Refined, Transform, parse_json_object, validate_part
-from service.store import Store, references_full
+from service.stores.base import Store, references_full
 from service.vision import pipeline
 from service.vision.bank import TemplateBank
 from service.vision.build.appearance import Appearance

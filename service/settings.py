@@ -74,7 +74,7 @@ class Settings(BaseSettings):
 
     @property
     def store_location(self) -> str:
-        """What ``Store(...)`` opens: the Redis URL, else the cache directory."""
+        """What ``open_store(...)`` opens: the Redis URL, else the cache directory."""
         return self.store or str(self.cache_dir)
 
     @property

@@ -15,7 +15,8 @@ import pytest
 
 from service.main import create_app
 from service.settings import Settings
-from service.store import Store, model_id
+from service.stores import open_store
+from service.stores.base import model_id
 from tests.api_helpers import wait_built
 
 with warnings.catch_warnings():  # starlette would like httpx2; the test extra installs httpx
@@ -87,7 +88,7 @@ def test_not_ready_is_409_with_retry_after(tmp_path, sprayer_bytes, image_bytes)
     """Another process holds the model's build lease, so the build here waits: the model stays queued."""
     settings = Settings(cache_dir=tmp_path, template_grid=GRID)
     mid = model_id(sprayer_bytes, units="mm", symmetry="auto", templates=GRID)
-    with Store(tmp_path) as other_process, TestClient(create_app(settings)) as c:
+    with open_store(tmp_path) as other_process, TestClient(create_app(settings)) as c:
         assert other_process.try_lock(mid, lease_s=600) is not None
         r = c.post("/models", files={"file": ("sprayer.stl", sprayer_bytes)})
         assert r.status_code == 202 and r.json()["id"] == mid

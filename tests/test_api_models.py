@@ -13,7 +13,8 @@ import pytest
 
 from service.main import create_app
 from service.settings import Settings
-from service.store import Store, model_id
+from service.stores import open_store
+from service.stores.base import model_id
 from tests.api_helpers import wait_built
 from tests.test_mesh_check import cube_stl
 
@@ -75,7 +76,7 @@ def test_upload_build_list_picture_delete(settings, sprayer_bytes):
         assert r.status_code == 204 and r.content == b""
         assert c.get(f"/models/{mid}").status_code == 404
         assert c.get("/models").json() == []
-    with Store(settings.cache_dir) as store:
+    with open_store(settings.cache_dir) as store:
         assert store.mesh(mid) is None and store.bank(mid) is None
 
 
@@ -95,7 +96,7 @@ def test_upload_is_idempotent_and_builds_once(settings, sprayer_bytes):
         other = upload(c, units="cm").json()
         assert other["id"] != first["id"] and other["extents_mm"] == pytest.approx([600.0, 2000.0, 600.0])
         assert c.delete(f"/models/{other['id']}").status_code == 204
-    with Store(settings.cache_dir) as store:
+    with open_store(settings.cache_dir) as store:
         assert store.build_count(first["id"]) == 1
 
 
@@ -108,7 +109,7 @@ def test_explicit_symmetry_is_reported_at_upload(settings, sprayer_bytes):
 
 def test_models_persist_and_unfinished_builds_resume_after_restart(settings, sprayer_bytes):
     mid = model_id(sprayer_bytes, units="mm", symmetry="auto", templates=GRID)
-    with Store(settings.cache_dir) as other_process:
+    with open_store(settings.cache_dir) as other_process:
         token = other_process.try_lock(mid, lease_s=600)  # the build cannot start in this first run
         with TestClient(create_app(settings)) as c:
             assert c.post("/models", files={"file": ("sprayer.stl", sprayer_bytes)}).json()["id"] == mid

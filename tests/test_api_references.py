@@ -23,7 +23,8 @@ from service.decode import decode_image
 from service.main import create_app
 from service.references import ESTIMATE_POSE_KEYS, MAX_REFERENCES
 from service.settings import Settings
-from service.store import Store, model_id
+from service.stores import open_store
+from service.stores.base import model_id
 from service.vision import pipeline
 from service.vision.build.appearance import ReferenceView, teach
 from service.vision.estimate.verdict import MIN_SCORE
@@ -119,7 +120,7 @@ def taught_directly(client, mid: str, image: bytes, camera: dict, truth: dict, s
     """What ``build.appearance.teach`` teaches from the view itself, outside the service: with
     ``spins``, from the view turned to that many spins about the model's y axis (the sprayer's, through
     its origin): T_cam_obj @ Ry(s). (No lens distortion here: the photo is the ideal camera's.)"""
-    with Store(client.cache) as store:
+    with open_store(client.cache) as store:
         bank = store.bank(mid)
     intr = Intrinsics(camera["fx"], camera["fy"], camera["cx"], camera["cy"])
     R, t = np.asarray(truth["R"], float), np.asarray(truth["t_mm"], float)
@@ -355,7 +356,7 @@ def test_a_model_not_ready_is_409(client, frame, truth, sprayer_bytes):
     """Another process holds the build lease of a second model (other options): it stays queued."""
     image, camera = frame
     mid = model_id(sprayer_bytes, units="mm", symmetry="none", templates=GRID)
-    with Store(client.cache) as other_process:
+    with open_store(client.cache) as other_process:
         assert other_process.try_lock(mid, lease_s=600) is not None
         r = client.post("/models", files={"file": ("sprayer.stl", sprayer_bytes)}, data={"symmetry": "none"})
         assert r.status_code == 202 and r.json()["id"] == mid
@@ -391,5 +392,5 @@ def test_deleting_the_model_deletes_its_references(tmp_path, sprayer_bytes, fram
         assert c.get(f"/models/{mid}").json()["references"] == 1
         assert c.get(f"/models/{mid}/references").json()["references"] == 1
         assert c.delete(f"/models/{mid}").status_code == 204
-    with Store(tmp_path) as store:
+    with open_store(tmp_path) as store:
         assert store.references(mid, images=True) == []

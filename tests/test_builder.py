@@ -20,7 +20,7 @@ from service.builder import Builder, register_upload
 from service.decode import TEMPLATE_FACE_BUDGET
 from service.main import create_app
 from service.settings import Settings
-from service.store import Store
+from service.stores import open_store
 from tests.api_helpers import wait_built
 from tests.processes import alive
 
@@ -99,7 +99,7 @@ def test_a_delete_by_another_process_ends_the_build_by_itself(tmp_path, sprayer_
     """Item 2, several service processes: the one that answers the DELETE is not the build's parent;
     the build process notices the record is gone and exits."""
     settings = Settings(cache_dir=tmp_path / "cache")
-    with Store(settings.cache_dir) as store:
+    with open_store(settings.cache_dir) as store:
         rec, _ = register_upload(store, settings, sprayer_bytes, filename="sprayer.stl", symmetry="none",
                                  templates=SLOW_GRID)
         builder = Builder(settings)
@@ -107,7 +107,7 @@ def test_a_delete_by_another_process_ends_the_build_by_itself(tmp_path, sprayer_
             builder.submit(rec["id"])
             pid = _until(lambda: builder.running().get(rec["id"]), "the build process")
             _until(lambda: store.get(rec["id"])["status"] == "building", "the build to start")
-            with Store(settings.cache_dir) as other_process:
+            with open_store(settings.cache_dir) as other_process:
                 assert other_process.delete(rec["id"])
             _until(lambda: not builder.running() and not alive(pid), "the build process to exit", 10)
             assert store.get(rec["id"]) is None
@@ -120,7 +120,8 @@ _STOP_AFTER_READY = textwrap.dedent("""
     import os, signal, sys, time
     sys.path.insert(0, {root!r})
     from service.builder import run_build
-    from service.store import Store
+    from service.stores.base import Store
+    from service.stores import open_store
 
     real_update = Store.update
 
@@ -140,12 +141,12 @@ def test_a_stop_right_after_the_build_finished_leaves_it_ready(tmp_path, sprayer
     """Item 10: the watch thread's "back to queued" on SIGTERM must not overwrite the "ready" the build
     just wrote (it did: the model was rebuilt at the next start and clients got 409 meanwhile)."""
     settings = Settings(cache_dir=tmp_path / "cache", template_grid=SMALL_GRID)
-    with Store(settings.cache_dir) as store:
+    with open_store(settings.cache_dir) as store:
         rec, _ = register_upload(store, settings, sprayer_bytes, filename="sprayer.stl", symmetry="y")
     code = _STOP_AFTER_READY.format(root=str(ROOT), cache=str(settings.cache_dir), mid=rec["id"])
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.returncode in (0, 128 + signal.SIGTERM), proc.stderr
-    with Store(settings.cache_dir) as store:
+    with open_store(settings.cache_dir) as store:
         assert store.get(rec["id"])["status"] == "ready"
         assert store.bank(rec["id"]) is not None and store.unfinished() == []
 
@@ -170,7 +171,7 @@ def test_a_build_process_ends_with_its_killed_service_and_puts_its_model_back(tm
     """Item 11: after kill -9 of the service, its build process does not live on (it did, holding its
     memory and the lease); the model is back in the queue, lease released, for the next start."""
     settings = Settings(cache_dir=tmp_path / "cache")
-    with Store(settings.cache_dir) as store:
+    with open_store(settings.cache_dir) as store:
         rec, _ = register_upload(store, settings, sprayer_bytes, filename="sprayer.stl", symmetry="none",
                                  templates=SLOW_GRID)
         mid = rec["id"]

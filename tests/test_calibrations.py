@@ -13,7 +13,8 @@ import pytest
 
 from service import references
 from service.calibrations import Calibrator, lease_key
-from service.store import Store
+from service.stores import open_store
+from service.stores.base import Store
 from service.vision import pipeline
 from service.vision.build.appearance import Appearance
 from tests.test_references import _reference
@@ -75,7 +76,7 @@ def test_a_calibration_runs_in_the_background_and_is_stored_for_its_photo_set(
         location, calibratable, l_block_bank, monkeypatch):
     search = Search(hold=1)
     monkeypatch.setattr(pipeline, "calibrate_appearance", search)
-    with Store(location) as store:
+    with open_store(location) as store:
         record = _part(store, l_block_bank, 3)
         taught = references.appearance_of(store, record, l_block_bank)
         assert references.calibration_state(record, taught) == ("queued", 0.0)
@@ -101,7 +102,7 @@ def test_a_calibration_stopped_by_a_shutdown_is_resumed_at_the_next_start(
         location, calibratable, l_block_bank, monkeypatch):
     search = Search(hold=1)
     monkeypatch.setattr(pipeline, "calibrate_appearance", search)
-    with Store(location) as store:
+    with open_store(location) as store:
         record = _part(store, l_block_bank, 3)
         first = Calibrator(store, LEASE_S)
         first.submit("m")
@@ -129,7 +130,7 @@ def test_photos_changed_mid_calibration_stop_it_and_the_old_set_is_never_stored(
         location, calibratable, l_block_bank, monkeypatch):
     search = Search(hold=1)
     monkeypatch.setattr(pipeline, "calibrate_appearance", search)
-    with Store(location) as store, Store(location) as other:
+    with open_store(location) as store, open_store(location) as other:
         _part(store, l_block_bank, 2)
         calibrator = Calibrator(store, LEASE_S)
         try:
@@ -156,7 +157,7 @@ def test_one_process_calibrates_a_photo_set_while_another_s_job_for_it_ends_at_o
         location, calibratable, l_block_bank, monkeypatch):
     search = Search(hold=1)
     monkeypatch.setattr(pipeline, "calibrate_appearance", search)
-    with Store(location) as a, Store(location) as b:
+    with open_store(location) as a, open_store(location) as b:
         _part(a, l_block_bank, 2)
         first, second = Calibrator(a, LEASE_S), Calibrator(b, LEASE_S)
         try:
@@ -177,7 +178,7 @@ def test_a_part_posted_without_calibrate_is_not_calibrated_nor_resumed(location,
                                                                         monkeypatch):
     search = Search()
     monkeypatch.setattr(pipeline, "calibrate_appearance", search)
-    with Store(location) as store:
+    with open_store(location) as store:
         record = _part(store, l_block_bank, 2, wanted=False)
         taught = references.appearance_of(store, record, l_block_bank)
         assert references.calibration_state(record, taught) == ("not_requested", None)
@@ -195,7 +196,7 @@ def test_a_calibration_whose_process_was_killed_is_taken_over_once_its_lease_run
     finds it held, looks again every half lease, and calibrates once it has run out."""
     search = Search()
     monkeypatch.setattr(pipeline, "calibrate_appearance", search)
-    with Store(location) as store, Store(location) as killed:
+    with open_store(location) as store, open_store(location) as killed:
         record = _part(store, l_block_bank, 2)
         assert killed.try_lock(lease_key("m"), LEASE_S) is not None  # and then it died
         calibrator = Calibrator(store, LEASE_S)

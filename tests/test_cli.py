@@ -15,7 +15,7 @@ import pytest
 
 from service.__main__ import _progress, main
 from service.schemas import CellCamera
-from service.store import Store
+from service.stores import open_store
 from tests.tolerances import COARSE_XY_MM
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -76,7 +76,7 @@ def test_the_clis_estimate_is_held_to_the_plausibility_bounds(camera, options, w
 
 def test_build_progress_line(tmp_path):
     """The line a terminal shows while a build runs: overwritten in place, cleared at the end."""
-    with Store(tmp_path) as store:
+    with open_store(tmp_path) as store:
         store.create({"id": "m1", "status": "building", "progress": 0.5}, b"mesh")
     out, done = io.StringIO(), threading.Event()
     t = threading.Thread(target=_progress, args=(tmp_path, "m1", done, out))
@@ -143,7 +143,7 @@ def test_the_clis_estimate_is_judged_on_the_model_s_reference_photos(tmp_path, d
             GRID, "--camera", json.dumps(camera), "--options", '{"distance_mm": 500}']
     assert main(args) == 0
     assert "appearance" not in json.loads(capsys.readouterr().out)["verdict"]["evidence"]
-    with Store(tmp_path) as store:
+    with open_store(tmp_path) as store:
         record = store.get(mid)
         pose = Transform(R=paper_gt["R"], t_mm=paper_gt["t_mm"])
         references.add_reference(store, record, store.bank(mid), image.read_bytes(), CellCamera(**camera),

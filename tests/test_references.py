@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from service import references
-from service.store import Store
+from service.stores import open_store
 from service.vision import pipeline
 from service.vision.build.appearance import Appearance
 from service.vision.geometry.camera import Intrinsics
@@ -49,7 +49,7 @@ def _reference(z_mm: float) -> dict:
 def test_the_appearance_is_taught_once_per_reference_set_and_renewed_by_any_process(
         location, teach_calls, l_block_bank):
     bank = l_block_bank
-    with Store(location) as api, Store(location) as other:
+    with open_store(location) as api, open_store(location) as other:
         api.create({"id": "m", "name": "part", "status": "ready", "created_at": "2024-01-01"}, b"mesh")
         assert references.appearance_of(api, api.get("m"), bank) is None and teach_calls == []
 
@@ -108,7 +108,7 @@ def test_a_calibration_counts_only_for_the_photo_set_it_was_made_on(location, te
     """The record's calibration carries its set's ``references_version``: another process adding a photo
     makes it stale, and the part is judged at the global operating point until that set is calibrated."""
     bank = l_block_bank
-    with Store(location) as api, Store(location) as other:
+    with open_store(location) as api, open_store(location) as other:
         api.create({"id": "m", "name": "part", "status": "ready", "created_at": "2024-01-01"}, b"mesh")
         record = api.add_reference("m", _reference(400.0), references.MAX_REFERENCES)
         api.update("m", calibration={"references_version": record["references_version"], "photos": 1,

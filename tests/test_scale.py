@@ -91,7 +91,7 @@ def test_two_replicas_two_workers_one_redis(tmp_path, sprayer_bytes, frame, pape
     import time
     from pathlib import Path
 
-    from service.store import Store
+    from service.stores import open_store
     from tests.test_server import BUILD_WAIT_S, LEASE_S, SLOW_GRID, Server, estimate, upload, wait_status
 
     redis = RedisServer(tmp_path / "redis").start()
@@ -124,7 +124,7 @@ def test_two_replicas_two_workers_one_redis(tmp_path, sprayer_bytes, frame, pape
         while (info := b.get(f"/models/{slow}").json())["progress"] < 0.1:
             assert info["status"] in ("queued", "building") and time.monotonic() < deadline
             time.sleep(0.05)
-        with Store(redis.url) as store:
+        with open_store(redis.url) as store:
             holder_pid = int(store.lock_holder(slow).split(":")[1])  # the worker's work-horse
         parent = int(Path(f"/proc/{holder_pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
         victim = next(w for w in workers if w.pid == parent)  # the worker whose horse builds it
@@ -132,7 +132,7 @@ def test_two_replicas_two_workers_one_redis(tmp_path, sprayer_bytes, frame, pape
         victim.wait(timeout=30)
         info = wait_status(a, slow)
         assert info["status"] == "ready" and info["progress"] == 1.0 and info["n_templates"] > 0
-        with Store(redis.url) as store:
+        with open_store(redis.url) as store:
             assert store.build_count(slow) == 2  # started, killed, finished by the other worker
 
         redis.restart()  # everything acknowledged before is in the append-only file
@@ -193,10 +193,10 @@ def test_the_sweep_requeues_only_a_build_nobody_holds_or_waits_for(redis_url):
     from rq import Queue
 
     from service import jobs
-    from service.store import Store
+    from service.stores import open_store
 
     settings = Settings(store=redis_url, build_lease_s=30)
-    with Store(redis_url) as store, jobs._connection(settings) as conn:
+    with open_store(redis_url) as store, jobs._connection(settings) as conn:
         queue = Queue(jobs.QUEUE_NAME, connection=conn)
         store.create({"id": "orphan", "status": "building", "created_at": "1"}, b"mesh")
         store.create({"id": "held", "status": "building", "created_at": "2"}, b"mesh")

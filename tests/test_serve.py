@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from service.store import Store
+from service.stores import open_store
 from tests.processes import alive
 from tests.test_server import GRID, SLOW_GRID, estimate, upload, wait_status
 
@@ -173,14 +173,14 @@ def test_sigterm_mid_build_leaves_it_queued_and_the_next_start_resumes_it(serve,
         assert info["status"] in ("queued", "building") and time.monotonic() < deadline, info
         time.sleep(0.05)
     assert server.terminate() == 0
-    with Store(tmp_path / "cache") as store:
+    with open_store(tmp_path / "cache") as store:
         record = store.get(mid)
         assert record["status"] == "queued", record  # not "building" with no one building it
         assert store.lock_holder(mid) is None and store.build_count(mid) == 1
 
     server = serve()  # resumes at once: no lease left to wait out
     deadline = time.monotonic() + LEASE_S + START_WAIT_S
-    with Store(tmp_path / "cache") as store:
+    with open_store(tmp_path / "cache") as store:
         while store.build_count(mid) < 2:
             assert time.monotonic() < deadline, "the interrupted build was not resumed"
             time.sleep(0.05)
@@ -247,7 +247,7 @@ def test_kill_9_leaves_no_build_process_and_the_next_start_removes_its_metrics_d
         time.sleep(0.05)
     stale = list(tmp.glob("posecell-metrics-*"))
     assert len(stale) == 1
-    with Store(tmp_path / "cache") as store:
+    with open_store(tmp_path / "cache") as store:
         assert store.get(mid)["status"] == "queued" and store.lock_holder(mid) is None
 
     server = serve(env={"TMPDIR": str(tmp)})

@@ -19,7 +19,7 @@ import httpx
 import numpy as np
 import pytest
 
-from service.store import Store
+from service.stores import open_store
 from service.vision.geometry.frames import Rx, Ry
 
 pytestmark = pytest.mark.slow  # every test here starts uvicorn
@@ -136,7 +136,7 @@ def test_upload_build_estimate_restart(servers, tmp_path, sprayer_bytes, frame):
     assert info["status"] == "ready" and info["n_templates"] > 0
     assert estimate(server.client, mid, frame).status_code == 200
     server.stop()
-    with Store(tmp_path / "cache") as store:
+    with open_store(tmp_path / "cache") as store:
         assert store.build_count(mid) == 1
 
 
@@ -196,14 +196,14 @@ def test_build_killed_mid_way_resumes_after_restart(servers, tmp_path, sprayer_b
         assert info["status"] in ("queued", "building") and time.monotonic() < deadline
         time.sleep(0.05)
     server.kill()  # the server and its build process die mid-build
-    with Store(tmp_path / "cache") as store:
+    with open_store(tmp_path / "cache") as store:
         assert store.get(mid)["status"] == "building" and store.build_count(mid) == 1
 
     server = servers()
     info = wait_status(server.client, mid)
     assert info["status"] == "ready" and info["progress"] == 1.0 and info["n_templates"] > 0
     server.stop()
-    with Store(tmp_path / "cache") as store:
+    with open_store(tmp_path / "cache") as store:
         assert store.build_count(mid) == 2  # started, killed, resumed once
 
 
@@ -227,7 +227,7 @@ def test_two_workers_share_one_cache_and_build_once(servers, tmp_path, sprayer_b
             lambda _: fresh_connection(lambda c: estimate(c, mid, frame).status_code), range(6)))
     assert set(statuses) == {"ready"} and set(codes) == {200}
     server.stop()
-    with Store(tmp_path / "cache") as store:
+    with open_store(tmp_path / "cache") as store:
         assert store.build_count(mid) == 1
 
 
@@ -299,7 +299,7 @@ def test_a_calibration_killed_mid_way_resumes_after_restart(servers, tmp_path, l
         assert listed["calibration_status"] == "queued" and time.monotonic() < deadline, listed
         time.sleep(0.01)
     server.kill()  # mid-calibration: one photo's search or more still to go
-    with Store(tmp_path / "cache") as store:
+    with open_store(tmp_path / "cache") as store:
         record = store.get(mid)
         assert record["calibration_wanted"] and "calibration" not in record
 
@@ -309,6 +309,6 @@ def test_a_calibration_killed_mid_way_resumes_after_restart(servers, tmp_path, l
         time.sleep(0.1)
     assert listed["calibrated"] is True and listed["calibration_progress"] == 1.0
     server.stop()
-    with Store(tmp_path / "cache") as store:
+    with open_store(tmp_path / "cache") as store:
         assert store.get(mid)["calibration"]["references_version"] == record["references_version"]
         assert store.get(mid)["calibration"]["photos"] == len(turns)

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from service.errors import ConflictError
-from service.store import Store, bank_from_bytes, bank_to_bytes, model_id
+from service.stores import open_store
+from service.stores.base import bank_from_bytes, bank_to_bytes, model_id
 from service.vision.bank import TemplateBank
 
 MESH = b"solid fake mesh bytes"
@@ -38,7 +39,7 @@ def _record(mid: str, status: str = "queued", created_at: str = "2024-01-01T00:0
 
 @pytest.fixture
 def store(location):
-    with Store(location) as s:
+    with open_store(location) as s:
         yield s
 
 
@@ -57,7 +58,7 @@ def test_model_id_is_a_content_hash_of_bytes_and_options():
 
 
 def test_records_are_shared_between_store_instances(location):
-    with Store(location) as a, Store(location) as b:
+    with open_store(location) as a, open_store(location) as b:
         assert a.create(_record("m1"), MESH)
         assert not b.create(_record("m1"), b"other")  # the id exists: first upload wins
         assert b.get("m1")["status"] == "queued" and b.mesh("m1") == MESH
@@ -98,12 +99,12 @@ def test_delete_removes_every_record(store, location):
     assert store.get("m") is None and store.mesh("m") is None and store.bank("m") is None
     assert store.build_count("m") == 0 and list(store.ids()) == []
     assert not store.delete("m")
-    with Store(location) as other:  # nothing is left in the store either
+    with open_store(location) as other:  # nothing is left in the store either
         assert other.bank("m") is None
 
 
 def test_build_lease_is_exclusive_renewable_and_expires(location):
-    with Store(location) as a, Store(location) as b:
+    with open_store(location) as a, open_store(location) as b:
         token = a.try_lock("m", lease_s=60)
         assert token is not None and a.lock_holder("m") == token
         assert b.try_lock("m", lease_s=60) is None
@@ -124,7 +125,7 @@ def test_build_counter(store):
 
 
 def test_a_rebuilt_bank_replaces_every_process_s_loaded_copy(location):
-    with Store(location) as api, Store(location) as builder:
+    with open_store(location) as api, open_store(location) as builder:
         builder.put_bank("m", _bank(3))
         assert api.bank("m").n_templates == 3
         builder.put_bank("m", _bank(2))  # rebuilt elsewhere: a new version
@@ -155,7 +156,7 @@ def _described(ref: dict) -> dict:
 
 
 def test_reference_photos_round_trip_bounded_and_survive_a_restart(location):
-    with Store(location) as store:
+    with open_store(location) as store:
         store.create(_record("m", "ready"), MESH)
         assert store.references("m") == [] and store.get("m").get("references") is None
         first = store.add_reference("m", _reference(0), limit=2)
@@ -168,7 +169,7 @@ def test_reference_photos_round_trip_bounded_and_survive_a_restart(location):
         assert store.get("m") == second  # nothing of the refused photo was kept
         assert store.references("m") == [_described(_reference(0)), _described(_reference(1))]
         assert store.add_reference("gone", _reference(0), limit=2) is None
-    with Store(location) as store:  # reopened (a restart, or another process): the photos are there
+    with open_store(location) as store:  # reopened (a restart, or another process): the photos are there
         assert store.references("m", images=True) == [_reference(0), _reference(1)]
         assert store.get("m")["references"] == 2
         cleared = store.clear_references("m")
@@ -197,7 +198,7 @@ def test_update_if_keeps_a_finished_status(store):
 
 
 def test_the_bank_cache_is_bounded_in_megabytes():
-    from service.store import BankCache, bank_nbytes
+    from service.stores.base import BankCache, bank_nbytes
 
     bank = _bank()
     cache = BankCache(max_mb=2.5 * bank_nbytes(bank) / (1024 * 1024))
@@ -213,13 +214,13 @@ def test_a_large_bank_is_stored_in_chunks(redis_url, monkeypatch):
     from service.stores import redis as redis_store
 
     monkeypatch.setattr(redis_store, "CHUNK_BYTES", 1000)
-    with Store(redis_url) as s:
+    with open_store(redis_url) as s:
         bank = _bank()
         s.put_bank("m", bank)
         with redis.Redis.from_url(redis_url) as r:
             version = r.get("posecell:v1:bank:m").decode()
             assert r.llen(f"posecell:v1:bank:m:{version}") > 1
-        with Store(redis_url) as other:
+        with open_store(redis_url) as other:
             np.testing.assert_array_equal(other.bank("m").xy_n, bank.xy_n)
 
 
@@ -227,7 +228,7 @@ def test_an_unreachable_redis_is_a_503_sentence_not_a_crash():
     from service.errors import StoreUnavailableError
     from tests.redis_server import free_port
 
-    with Store(f"redis://127.0.0.1:{free_port()}/0") as s:
+    with open_store(f"redis://127.0.0.1:{free_port()}/0") as s:
         assert "cannot be reached" in s.ping()
         with pytest.raises(StoreUnavailableError) as e:
             s.get("m")
@@ -239,7 +240,7 @@ def test_a_bank_written_before_banks_had_versions_still_loads(tmp_path):
 
     with diskcache.Cache(str(tmp_path / "old")) as old:  # a cache volume as the last release left it
         old.set("bank:m", bank_to_bytes(_bank()))
-    with Store(tmp_path / "old") as s:
+    with open_store(tmp_path / "old") as s:
         assert s.bank("m").n_templates == 3
         s.put_bank("m", _bank(2))  # rebuilt: versioned from now on
         assert s.bank("m").n_templates == 2

@@ -21,7 +21,7 @@ from service.errors import (
     TooLargeError,
 )
 from service.settings import Settings
-from service.store import Store
+from service.stores.base import Store
 from service.vision.bank import TemplateBank
 
 CHUNK_BYTES = 1 << 20

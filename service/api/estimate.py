@@ -15,7 +15,7 @@ from service.cell_io import check_robot_pose, estimate_options, estimate_result,
 from service.references import appearance_of
 from service.schemas import Camera, EstimateResult, Options
 from service.settings import Settings
-from service.store import Store
+from service.stores.base import Store
 
 router = APIRouter(tags=["estimate"])
 

@@ -17,7 +17,7 @@ from typing import Any
 
 import diskcache
 
-from service.store import (
+from service.stores.base import (
     DEFAULT_BANK_CACHE_MB,
     BankCache,
     Store,

@@ -34,7 +34,7 @@ from typing import Any, TypeVar
 import redis
 
 from service.errors import StoreUnavailableError
-from service.store import (
+from service.stores.base import (
     DEFAULT_BANK_CACHE_MB,
     BankCache,
     Store,

@@ -2,15 +2,16 @@
 reference photos.
 
 ``Store`` is the interface every layer above uses; two backends implement it, chosen by one setting
-(``POSE_STORE``) and unknown to everything above this module:
+(``POSE_STORE``) and unknown to everything above the ``service.stores`` package:
 
     service/stores/disk.py   ``DiskStore``: diskcache in ``POSE_CACHE_DIR`` (the default; one machine,
                              several processes share it through SQLite)
     service/stores/redis.py  ``RedisStore``: ``POSE_STORE=redis://host:6379/0`` (many API replicas and
                              build workers on one Redis; key names documented there)
 
-``Store(location)`` opens the backend the location names (a ``redis://``/``rediss://``/``unix://`` URL,
-else a cache directory), as ``pathlib.Path`` picks its flavour. Logical records, for a model id ``<id>``::
+``open_store(location)`` (``service/stores/__init__.py``) opens the backend the location names (a
+``redis://``/``rediss://``/``unix://`` URL, else a cache directory). Logical records, for a model id
+``<id>``::
 
     model:<id>    record (dict): name, units, options, status, progress, error, extents, ...
     mesh:<id>     the uploaded mesh bytes, exactly as sent
@@ -131,24 +132,10 @@ class BankCache:
 
 
 class Store:
-    """The interface of both backends (see the module docstring). ``Store(location)`` opens one."""
+    """The interface of both backends (see the module docstring). ``open_store(location)`` opens one."""
 
     location: str
     kind: str  # "disk" or "redis": what /health reports
-
-    def __new__(cls, location: str | os.PathLike[str] | None = None, **kwargs: Any) -> Store:
-        if cls is Store:
-            if location is None:
-                raise TypeError("Store(location): a cache directory or a redis:// URL")
-            if is_shared(location):
-                from service.stores.redis import RedisStore
-
-                cls = RedisStore
-            else:
-                from service.stores.disk import DiskStore
-
-                cls = DiskStore
-        return super().__new__(cls)
 
     def close(self) -> None:
         raise NotImplementedError
