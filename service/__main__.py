@@ -57,7 +57,7 @@ def _progress(location: str, mid: str, done: threading.Event, stream=None) -> No
 def _ensure_built(args: argparse.Namespace, settings, store) -> dict:
     """Register the mesh (idempotent) and build its templates here and now unless they are ready.
     On a terminal, a progress line on stderr while it builds."""
-    from service.builder import register_upload, run_build
+    from service.jobs.build import register_upload, run_build
     from service.schemas import parse_json_object
 
     mesh = _existing(args.mesh, "mesh", "give an STL, OBJ, PLY, OFF or GLB file")
@@ -234,7 +234,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 
 
 def cmd_worker(args: argparse.Namespace) -> int:
-    from service.jobs import worker_main
+    from service.jobs.queue import worker_main
     from service.logs import configure
     from service.settings import Settings
 

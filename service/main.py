@@ -25,9 +25,9 @@ from service import monitoring, ui
 from service.api import cameras, error_responses, estimate, grasps, health, metrics, models, references
 from service.api.deps import ApiKeyDocumented
 from service.api.health import VERSION
-from service.builder import make_builder
-from service.calibrations import Calibrator
 from service.errors import install_handlers, sentence
+from service.jobs import make_builder
+from service.jobs.calibrations import Calibrator
 from service.logs import capture_warnings
 from service.middleware import ApiKeyGuard, RequestContext
 from service.settings import Settings

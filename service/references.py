@@ -198,7 +198,7 @@ def add_reference(store: Store, record: dict[str, Any], bank: TemplateBank, data
                   calibrate: bool = True) -> dict[str, Any]:
     """Check, teach and store one reference photo, and mark whether the part's operating point is to be
     calibrated on all of them (``calibrate``: the record's ``calibration_wanted``; the calibration itself
-    runs in the background, ``service.calibrations``):
+    runs in the background, ``service.jobs.calibrations``):
     ``{"record": the updated record, "appearance": what every photo teaches now, "faces": the number of
     faces this photo alone teaches, "index": its index}``.
 

@@ -16,8 +16,9 @@ from pathlib import Path
 import pytest
 import trimesh
 
-from service.builder import Builder, register_upload
 from service.decode import TEMPLATE_FACE_BUDGET
+from service.jobs.build import register_upload
+from service.jobs.local import Builder
 from service.main import create_app
 from service.settings import Settings
 from service.stores import open_store
@@ -119,7 +120,7 @@ def test_a_delete_by_another_process_ends_the_build_by_itself(tmp_path, sprayer_
 _STOP_AFTER_READY = textwrap.dedent("""
     import os, signal, sys, time
     sys.path.insert(0, {root!r})
-    from service.builder import run_build
+    from service.jobs.build import run_build
     from service.stores.base import Store
     from service.stores import open_store
 
@@ -155,7 +156,7 @@ def test_a_stop_right_after_the_build_finished_leaves_it_ready(tmp_path, sprayer
 _SERVICE = textwrap.dedent("""
     import sys, time
     sys.path.insert(0, {root!r})
-    from service.builder import Builder
+    from service.jobs.local import Builder
     from service.settings import Settings
 
     builder = Builder(Settings(cache_dir={cache!r}))
@@ -194,8 +195,8 @@ def test_a_flat_mesh_is_refused_at_upload_and_a_line_like_bank_fails_its_build(t
     """Item 8: a degenerate model must not produce confident poses (nor 500s). A zero-thickness plate was
     accepted, built, and its edge-on views (lines, or fewer border points than the coarse search
     samples) made every estimate fail with a 500."""
-    from service.builder import check_bank
     from service.errors import UnprocessableError
+    from service.jobs.build import check_bank
     from tests.test_store import _bank
 
     plate = trimesh.creation.box((100.0, 60.0, 1.0)).subdivide()
@@ -215,7 +216,7 @@ def test_a_flat_mesh_is_refused_at_upload_and_a_line_like_bank_fails_its_build(t
 def test_a_build_process_keeps_to_the_services_thread_budget(tmp_path, monkeypatch):
     """POSE_THREADS reaches each build process: the Builder passes it on the worker's command line and
     ``worker_main`` sets the process's budget before the build (service.vision.threads)."""
-    import service.builder as builder
+    from service.jobs import build, local
     from service.vision import threads
 
     commands = []
@@ -230,7 +231,7 @@ def test_a_build_process_keeps_to_the_services_thread_budget(tmp_path, monkeypat
         commands.append(cmd)
         return _Done()
 
-    monkeypatch.setattr(builder.subprocess, "Popen", popen)
+    monkeypatch.setattr(local.subprocess, "Popen", popen)
     for budget, arg in ((1, "1"), (None, "")):
         b = Builder(Settings(cache_dir=tmp_path, threads=budget))
         b.submit("m1")
@@ -238,10 +239,10 @@ def test_a_build_process_keeps_to_the_services_thread_budget(tmp_path, monkeypat
         assert commands.pop()[-1] == arg
 
     seen = []
-    monkeypatch.setattr(builder, "run_build", lambda *a, **k: seen.append(threads.budget()) or "ready")
+    monkeypatch.setattr(build, "run_build", lambda *a, **k: seen.append(threads.budget()) or "ready")
     before = threads._budget
     try:
-        builder.worker_main([str(tmp_path), "m1", "30", str(os.getpid()), "0", "", "1"])
+        build.worker_main([str(tmp_path), "m1", "30", str(os.getpid()), "0", "", "1"])
     finally:
         threads.configure(before)
     assert seen == [1]

@@ -1,5 +1,5 @@
-"""service.calibrations: the background calibration of a taught part, on both store backends (a real Redis,
-as tests/test_store.py). The search itself (``pipeline.calibrate_appearance``) is replaced by one that
+"""service.jobs.calibrations: the background calibration of a taught part, on both store backends (a real
+Redis, as tests/test_store.py). The search itself (``pipeline.calibrate_appearance``) is replaced by one that
 reports its photos and waits where told, so a stop, a change of the photos and a second process can be
 put exactly between two photos; the real search through the API is tests/test_api_references.py's."""
 
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from service import references
-from service.calibrations import Calibrator, lease_key
+from service.jobs.calibrations import Calibrator, lease_key
 from service.stores import open_store
 from service.stores.base import Store
 from service.vision import pipeline

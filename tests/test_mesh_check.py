@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.builder import check_mesh
 from service.decode import inspect_mesh
 from service.errors import UnprocessableError, UnsupportedMediaError
+from service.jobs.build import check_mesh
 
 IN_A_PROCESS = {"in_process_bytes": 0}  # every file, however small, goes to the checking process
 

@@ -192,7 +192,7 @@ def test_the_sweep_requeues_only_a_build_nobody_holds_or_waits_for(redis_url):
     queued again once it has been so for the grace period, once; a held lease or a waiting job stops it."""
     from rq import Queue
 
-    from service import jobs
+    from service.jobs import queue as jobs
     from service.stores import open_store
 
     settings = Settings(store=redis_url, build_lease_s=30)

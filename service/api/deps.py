@@ -14,12 +14,12 @@ from typing import Annotated, Any
 from fastapi import Depends, Request, Security, UploadFile
 from fastapi.security import APIKeyHeader
 
-from service.builder import Builder
-from service.calibrations import Calibrator
 from service.errors import (
     NotFoundError,
     TooLargeError,
 )
+from service.jobs.calibrations import Calibrator
+from service.jobs.local import Builder
 from service.settings import Settings
 from service.stores.base import Store
 from service.vision.bank import TemplateBank

@@ -17,8 +17,8 @@ from service.api.deps import (
     StoreDep,
     read_upload,
 )
-from service.builder import register_upload
 from service.errors import NotFoundError
+from service.jobs.build import register_upload
 from service.schemas import ModelInfo, SymmetryOption, Units, parse_json_object
 from service.vision.pipeline import template_picture
 

@@ -32,6 +32,7 @@ from typing import Any
 import redis
 from rq import Queue, Worker
 
+from service.jobs.build import limit_memory, run_build
 from service.settings import Settings
 from service.stores import open_store
 from service.stores.base import Store
@@ -46,7 +47,6 @@ RESULT_TTL_S = 3600
 
 def build_job(location: str, mid: str, lease_s: float, memory_mb: int, threads: int | None) -> str:
     """One build attempt, in an RQ work-horse: capped memory, the service's thread budget."""
-    from service.builder import limit_memory, run_build
     from service.vision import threads as thread_budget
 
     thread_budget.configure(threads)
