@@ -56,17 +56,22 @@ def refine(bank: TemplateBank, best: PoseCandidate, grey: np.ndarray, intr: Intr
 def judge(bank: TemplateBank, c: Checked, frame: ColourFrame, intr: Intrinsics, *, edge_support: float,
           unexplained: Unexplained, distance_range_mm: tuple[float, float] | None, min_score: float | None,
           plane: Plane | None = None, plane_tolerance_mm: float = PLANE_TOLERANCE_MM,
-          others_depth_mm: np.ndarray | None = None, appearance: Appearance | None = None) -> Checked:
+          others_depth_mm: np.ndarray | None = None, appearance: Appearance | None = None,
+          weights: tuple[tuple[str, float], ...] | None = None) -> Checked:
     """``c`` with the verdict on its refined pose: the evidence measured there (``evidence``; the
     refinement's ``edge_support`` and ``unexplained`` edges with it), the distance range and the
-    plane. ``unexplained`` may be a callable giving it (read after the evidence is measured)."""
+    plane. ``unexplained`` may be a callable giving it (read after the evidence is measured).
+    ``weights``: the score's weights for a part without taught colours (``Policy.verdict_weights``;
+    None: the service's)."""
     pose = c.refined.pose
     ev = evidence(bank, pose, intr, frame, others_depth_mm, face_bgr_of(appearance)).as_dict()
     ev |= {"edge_support": edge_support, "unexplained": float(unexplained() if callable(unexplained)
                                                               else unexplained)}
     gap = rest_gap_mm(bank, pose, plane) if plane is not None else None
+    untaught = weights is not None and "appearance" not in ev  # taught: ``verdict.APPEARANCE_WEIGHTS``
     v = decide(ev, z_mm=float(pose.t_mm[2]), distance_range_mm=distance_range_mm, min_score=min_score,
-               plane_gap_mm=gap, plane_tolerance_mm=plane_tolerance_mm)
+               weights=dict(weights) if untaught else None, plane_gap_mm=gap,
+               plane_tolerance_mm=plane_tolerance_mm)
     return Checked(c.candidate, c.refined, v)
 
 
@@ -119,7 +124,7 @@ class Checker:
         """``c`` judged at its refined pose; ``evidence_kw``: the refinement's edge support and unexplained
         edges."""
         return judge(self.bank, c, self.frame, self.intr, others_depth_mm=others_depth_mm, **evidence_kw,
-                     **self.judge_kw)
+                     **self.judge_kw, weights=self.policy.verdict_weights)
 
     def _judged(self, cand: PoseCandidate, kept: RefinedPose, unexplained: Unexplained,
                 others_depth_mm: np.ndarray | None) -> Checked:

@@ -95,6 +95,12 @@ class Policy:
     # a wrong pose at least this much inside a photo counts, though refused there as outside_image
     calibration_min_in_image: float = 0.5
 
+    # -- the verdict
+    # the verification score's weights for a part without taught colours, as (evidence, weight) pairs
+    # with "bias" (None: ``verdict.WEIGHTS``, the service's fit); a benchmark judges with a refit
+    # (``bench/fit_verdict.py --save``, ``bench/detection.py --weights``)
+    verdict_weights: tuple[tuple[str, float], ...] | None = None
+
     # -- the check of one candidate
     # a twin is refined only if its unrefined pose scores this: better twins scored 0.97-0.99 unrefined
     twin_unrefined_min_score: float = 0.5
