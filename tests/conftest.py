@@ -98,12 +98,12 @@ def frame(data_dir, paper_gt) -> tuple[bytes, dict]:
 
 @pytest.fixture(scope="session")
 def l_block_bank():
-    """The template bank of bench/instances.py's L-shaped block (arms of unequal length: no symmetry),
+    """The template bank of the L-shaped block (``tests/scenes.py``; arms of unequal length: no symmetry),
     on the coarse grid the instance and plane tests use."""
-    from bench.instances import part
     from service.vision import pipeline
+    from tests.scenes import L_BLOCK_GRID, l_block
 
-    return pipeline.build_templates(part(), symmetry="none", grid={"view_step_deg": 15.0, "render_px": 160})
+    return pipeline.build_templates(l_block(), symmetry="none", grid=L_BLOCK_GRID)
 
 
 @pytest.fixture(scope="session")

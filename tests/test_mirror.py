@@ -16,6 +16,7 @@ from service.vision.geometry.frames import Pose, Rx, Ry, Rz, rotation_angle_deg
 from service.vision.geometry.render import render, render_shaded
 from service.vision.pipeline import PoseCandidate
 from service.vision.reference.metrics import mspd_px
+from tests.scenes import l_block
 from tests.tolerances import MIRROR_NORMAL_DEG, TWIN_OUTLINE_IOU, TWIN_RIGHT_PX
 
 INTR = Intrinsics(600.0, 600.0, 319.5, 239.5)
@@ -35,9 +36,7 @@ def test_a_box_has_its_three_face_planes():
 
 
 def test_an_extruded_l_has_only_its_mid_plane(l_block_bank):
-    from bench.instances import part
-
-    planes = mirror_planes(part())
+    planes = mirror_planes(l_block())
     assert normals_match(planes.normals_obj, [(0.0, 0.0, 1.0)])
     assert abs(planes.point_obj[2]) < 1e-6  # the extrusion is centred on z = 0
 
@@ -73,9 +72,7 @@ def silhouette(mesh, pose, K, size) -> np.ndarray:
 
 
 def test_the_twin_is_a_rotation_with_the_same_outline_and_centre():
-    from bench.instances import part
-
-    mesh = part()
+    mesh = l_block()
     planes = mirror_planes(mesh)
     # Seen from 20 m the projection is nearly orthographic: the outline is the same, the pose is not.
     K = np.array([[40000.0, 0.0, 319.5], [0.0, 40000.0, 239.5], [0.0, 0.0, 1.0]])

@@ -10,16 +10,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bench.occlusion import (
-    AXIS_DIST_MM,
-    INTR,
-    PLANE,
-    SIZE,
-    TILT_DEG,
-    resting,
-    scene,
-    visible_fraction,
-)
 from service.vision import pipeline
 from service.vision.estimate.evidence import colour_frame
 from service.vision.estimate.plane import _poses
@@ -29,6 +19,16 @@ from service.vision.geometry.frames import Pose
 from service.vision.geometry.plane import R_cam_rest, centre_height_mm, rest_gap_mm, rest_heights_mm
 from service.vision.pipeline import Checked, PoseCandidate, RefinedPose, sort_instances
 from service.vision.pipeline.instances import paint_depth
+from tests.scenes import (
+    AXIS_DIST_MM,
+    INTR,
+    PLANE,
+    SIZE,
+    TILT_DEG,
+    resting,
+    scene,
+    visible_fraction,
+)
 from tests.tolerances import PLANE_FOUND_T_MM, PLANE_REST_TOL_MM, ROUND_TRIP_ATOL
 
 

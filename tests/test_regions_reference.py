@@ -75,15 +75,20 @@ def test_segment_matches_the_reference_on_noisy_scenes(seed):
 
 @pytest.mark.slow
 def test_segment_and_proposals_match_the_reference_on_real_photos(data_dir, monkeypatch):
-    from bench.accuracy import gt_bank, read_colour, read_gt
+    import json
+
+    import trimesh
+
+    from service.vision.pipeline import build_templates
 
     monkeypatch.setattr(regions, "LOOKALIKE_GATE", False)  # the reference has no look-alike gate
 
     for name, idx in (("clutter2", 4), ("absent2", 23), ("lmo_dev", 0)):
         set_dir = data_dir / name
-        g = read_gt(set_dir)[idx]
-        bank = gt_bank(set_dir, g["model"])
-        img = read_colour(set_dir / g["image"])[..., :3]
+        g = json.loads((set_dir / "gt.jsonl").read_text().splitlines()[idx])
+        bank = build_templates(trimesh.load(set_dir / "models" / f"{g['model']}.stl", force="mesh"),
+                               symmetry="auto")
+        img = cv2.imread(str(set_dir / g["image"]), cv2.IMREAD_UNCHANGED)[..., :3]
         K = np.asarray(g["K"], float)
         reg_a, reg_b = ref.segment_py(img), segmentation.segment(img)
         assert_same_regions(reg_a, reg_b)
