@@ -44,88 +44,16 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.accuracy import (  # noqa: E402
-    DATA_DIR,
-    gt_bank,
-    read_colour,
-    read_gt,
-)
-from bench.fit_verdict import fit_monotone  # noqa: E402
-from bench.truth_evidence import auc  # noqa: E402
-from service.vision.build.appearance import Appearance  # noqa: E402
+from bench.lib.data import RIGHT_PX, gt_bank, read_colour, read_gt, set_dir_of  # noqa: E402
+from bench.lib.fit import auc, fit_monotone  # noqa: E402
+from bench.lib.teach import half_of, taught  # noqa: E402
 from service.vision.estimate import evidence as _evidence  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
-from service.vision.geometry.render import rasterise_roi  # noqa: E402
-from service.vision.pipeline import DEFAULT_POLICY, Policy, teach_appearance  # noqa: E402
+from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM as RANGE_MM  # noqa: E402
 
 HYPS = ROOT / "bench" / "out" / "hyps"
-RIGHT_PX = 20.0
-RANGE_MM = (300.0, 1200.0)
 FEATURES = ("appearance", "appearance_known", "region_global")
-
-
-def set_dir_of(name: str) -> Path:
-    p = Path(name)
-    return p if p.is_dir() else DATA_DIR / name
-
-
-REFERENCE_OFFSET = 0  # positions the reference images are moved by (another choice of the same spread)
-# each part's operating point calibrated on its reference photos (pipeline.teach_appearance)
-CALIBRATE = False
-
-
-def reference_images(set_dir: Path, n: int) -> list[str]:
-    """``n`` images spread evenly over the set's sorted image list (from position ``REFERENCE_OFFSET``)."""
-    images = sorted({g["image"] for g in read_gt(set_dir)})
-    if n <= 0:
-        return []
-    return [images[(i * len(images) // n + REFERENCE_OFFSET) % len(images)] for i in range(n)]
-
-
-def half_of(set_dir: Path, n_references: int) -> dict[str, str]:
-    """Each non-reference image's half: "even" or "odd" by its position among them."""
-    refs = set(reference_images(set_dir, n_references))
-    rest = [im for im in sorted({g["image"] for g in read_gt(set_dir)}) if im not in refs]
-    return {im: ("even", "odd")[i % 2] for i, im in enumerate(rest)}
-
-
-def _pose(g: dict) -> Pose:
-    return Pose(np.asarray(g["R"], float), np.asarray(g["t_mm"], float))
-
-
-def taught(set_dir: Path, n_references: int, policy: Policy = DEFAULT_POLICY) -> dict[str, Appearance]:
-    """Each model's appearance taught from the reference images it appears in (``pipeline.teach_appearance``,
-    the other annotated parts' pixels hidden; calibrated at ``policy``)."""
-    by_image: dict[str, list[dict]] = defaultdict(list)
-    for g in read_gt(set_dir):
-        if not g.get("absent"):
-            by_image[g["image"]].append(g)
-    views: dict[str, list[tuple]] = defaultdict(list)
-    for im in reference_images(set_dir, n_references):
-        image = read_colour(set_dir / im)
-        h, w = image.shape[:2]
-        depths = {}
-        for g in by_image[im]:
-            bank = gt_bank(set_dir, g["model"])
-            d, _, (u0, v0) = rasterise_roi(bank.vertices_mm, bank.faces, _pose(g), np.asarray(g["K"], float),
-                                           (w, h))
-            full = np.full((h, w), np.inf, np.float32)
-            full[v0:v0 + d.shape[0], u0:u0 + d.shape[1]] = d
-            depths[g["model"]] = full
-        for g in by_image[im]:
-            others = [d for m, d in depths.items() if m != g["model"]]
-            hidden = (np.min(others, axis=0) < depths[g["model"]]) if others else None
-            views[g["model"]].append((image, Intrinsics.from_K(np.asarray(g["K"], float)), _pose(g), hidden))
-    out = {m: teach_appearance(gt_bank(set_dir, m), v, calibrate=CALIBRATE, policy=policy)
-           for m, v in views.items()}
-    if CALIBRATE:
-        from service.vision.pipeline import operating_point
-
-        for m, a in sorted(out.items()):
-            print(f"calibrated {m}: {a.calibrated_photos} photos, highest wrong score {a.wrong_score:.4f}, "
-                  f"operating point {operating_point(a, policy) or float('nan'):.4f}", file=sys.stderr)
-    return out
 
 
 def appearance_rows(name: str, n_references: int) -> list[dict]:

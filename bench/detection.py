@@ -21,7 +21,6 @@ import json
 import sys
 import time
 from collections import Counter
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -30,23 +29,25 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.accuracy import (  # noqa: E402
-    DATA_DIR,
+from bench.lib.data import (  # noqa: E402
+    FINE_PX,
     MIN_VISIBLE,
     OUT_DIR,
     PART_NAMES,
+    RIGHT_PX,
     gt_bank,
     load_model_info,
+    mspd640,
     read_colour,
     read_gt,
     read_meta,
-    stage_errors,
+    set_dir_of,
 )
+from bench.lib.policy import add_policy_options, policy_of  # noqa: E402
+from bench.lib.teach import half_of, taught  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.pipeline import DEFAULT_POLICY, Policy, estimate  # noqa: E402
 
-RIGHT_PX = 20.0
-FINE_PX = 5.0
 NEAR_PX = 50.0  # a checked pose this close is the right place at a wrong turn or depth (a near miss)
 # under this share visible no lmo_dev query had a right candidate checked (session 19: 0 of 53)
 OCCLUDED_BELOW = 0.7
@@ -54,17 +55,14 @@ FATES = ("found right", "found wrong", "right checked, refused", "near miss", "n
 FOUND_RIGHT, FOUND_WRONG, REFUSED, NEAR_MISS, NOT_PROPOSED = FATES
 
 
-def set_dir_of(name: str) -> Path:
-    p = Path(name)
-    return p if p.is_dir() else DATA_DIR / name
-
-
 def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: float | None,
             every_image: int = 1, references: int = 0, half: str = "all",
             teach_from: str | None = None, distance_range_mm: tuple[float, float] | None = None,
-            truth: bool = False, policy: Policy = DEFAULT_POLICY) -> list[dict]:
+            truth: bool = False, policy: Policy = DEFAULT_POLICY, calibrate: bool = True,
+            reference_offset: int = 0) -> list[dict]:
     """``references`` > 0: each part's colours are taught from that many of the set's images
-    (``bench/appearance.py``), which are then not queried; ``half``: only the even or odd half of the
+    (``bench/lib/teach.py``; moved by ``reference_offset`` positions; ``calibrate``: each part's operating
+    point calibrated on them), which are then not queried; ``half``: only the even or odd half of the
     rest. ``teach_from``: another set whose images teach them (its parts' meshes the same), every image
     of this one queried. ``truth``: each target's true pose is also checked as an estimate checks a
     candidate (refined from there and judged, ``truth_checked``): whether the verdict would take the truth
@@ -73,15 +71,12 @@ def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: fl
     meta = read_meta(set_dir)
     gts = read_gt(set_dir)
     appearance: dict = {}
+    teach = {"calibrate": calibrate, "offset": reference_offset}
     if references > 0 and teach_from is not None and set_dir_of(teach_from) != set_dir:
-        from bench.appearance import taught
-
-        appearance = taught(set_dir_of(teach_from), references, policy)
+        appearance = taught(set_dir_of(teach_from), references, policy, **teach)
     elif references > 0:
-        from bench.appearance import half_of, taught
-
-        appearance = taught(set_dir, references, policy)
-        halves = half_of(set_dir, references)
+        appearance = taught(set_dir, references, policy, **teach)
+        halves = half_of(set_dir, references, reference_offset)
         gts = [g for g in gts if g["image"] in halves and half in ("all", halves[g["image"]])]
     if every_image > 1:  # every n-th image (all its gt lines: lmo_dev has several per image)
         images = sorted({g["image"] for g in gts})[::every_image]
@@ -107,8 +102,8 @@ def run_set(name: str, *, limit: int | None, distance_given: bool, min_score: fl
         if not absent:
             info = load_model_info(set_dir, g["model"], meta, minfo)
             if pose is not None:
-                mspd = _mspd640(pose, g, info)
-            checked = [(c, _mspd640(c.refined.pose, g, info)) for c in out.checked]
+                mspd = mspd640(pose, g, info)
+            checked = [(c, mspd640(c.refined.pose, g, info)) for c in out.checked]
             nearest_checked = min((m for _, m in checked), default=float("inf"))
             # the best-scoring checked candidate within RIGHT_PX (found or not): the verdict's part in recall
             right = [c for c, m in checked if m < RIGHT_PX]
@@ -150,11 +145,7 @@ def _truth_checked(bank, image: np.ndarray, intr: Intrinsics, g: dict, info, app
                                  n_channels=policy.search_params.n_channels, appearance=appearance,
                                  policy=policy)
     return {"score": c.verdict.score, "reason": c.verdict.reason, "found": c.verdict.found,
-            "mspd640": _mspd640(c.refined.pose, g, info)}
-
-
-def _mspd640(pose, g: dict, info) -> float:
-    return stage_errors(pose, g, info, np.asarray(g["K"], float), int(g["width"]))["mspd640_px"]
+            "mspd640": mspd640(c.refined.pose, g, info)}
 
 
 def summarise(recs: list[dict]) -> dict:
@@ -181,49 +172,6 @@ def _cell(vals: list[float], fmt: str) -> str:
     return f"{format(float(np.mean(vals)), fmt)} ({format(min(vals), fmt)}-{format(max(vals), fmt)})"
 
 
-# Bench options that run the estimate at another policy (``service.vision.pipeline.Policy``): option ->
-# (Policy field, type, help). Default: the service's value.
-POLICY_OPTIONS: dict[str, tuple[str, type, str]] = {
-    "--sweep-min-photos": ("sweep_min_photos", int,
-                           "parts calibrated on this many photos or more have a last pass of silhouettes "
-                           "swept over the taught colours (estimate/colour_sweep.py; 2: every calibrated "
-                           "part, 1000: none)"),
-    "--range-hold-max": ("range_hold_max", float,
-                         "a refinement ending past the searched range by at most this share is refined again "
-                         "at its bound (0: none)"),
-    "--calibration-margin": ("calibration_margin", float, "logit margin over the highest wrong score"),
-}
-# ... and the taught search of a part not calibrated (``Policy.taught_search``): option -> field.
-TAUGHT_OPTIONS = {"--colour-prior": "colour_prior", "--scored-fits": "scored_fits",
-                  "--order-first": "order_first", "--polish-from": "polish_from"}
-
-
-def add_policy_options(ap: argparse.ArgumentParser) -> None:
-    for option, (field, kind, text) in POLICY_OPTIONS.items():
-        ap.add_argument(option, type=kind, default=None,
-                        help=f"{text} (Policy.{field}; default: the service's)")
-    ap.add_argument("--colour-prior", action="store_true",
-                    help="taught parts not calibrated: region proposals ranked by the colour prior")
-    ap.add_argument("--scored-fits", type=int, default=None,
-                    help="taught parts not calibrated: region fits scored before the best are refined "
-                         "(48 measured)")
-    ap.add_argument("--order-first", action="store_true",
-                    help="taught parts not calibrated: candidates ordered before near duplicates are dropped")
-    ap.add_argument("--polish-from", type=float, default=None,
-                    help="taught parts not calibrated: near misses from this score are polished")
-
-
-def policy_of(a: argparse.Namespace) -> Policy:
-    """The service's policy with every option given in ``a`` (a flag only when given)."""
-    def given(option: str):
-        value = getattr(a, option.lstrip("-").replace("-", "_"))
-        return None if value is False else value
-
-    fields = {f: given(o) for o, (f, _, _) in POLICY_OPTIONS.items() if given(o) is not None}
-    taught = {f: given(o) for o, f in TAUGHT_OPTIONS.items() if given(o) is not None}
-    return replace(DEFAULT_POLICY, **fields, taught_search=replace(DEFAULT_POLICY.taught_search, **taught))
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sets", default="clutter,absent,paper,lmo_dev")
@@ -235,10 +183,8 @@ def main(argv=None) -> int:
                          "the service's, pipeline.DEFAULT_DISTANCE_RANGE_MM; the calibration keeps it)")
     ap.add_argument("--min-score", type=float, default=None)
     ap.add_argument("--every-image", type=int, default=1, help="every n-th image of each set (a first look)")
-    ap.add_argument("--weights", type=Path, default=None,
-                    help="JSON verdict weights (bench/fit_verdict.py --save) instead of the service's")
     ap.add_argument("--references", type=int, default=0,
-                    help="teach each part's colours from this many of the set's images (bench/appearance.py)")
+                    help="teach each part's colours from this many of the set's images (bench/lib/teach.py)")
     ap.add_argument("--reference-offset", type=int, default=0,
                     help="with --references: move the reference images by this many positions")
     ap.add_argument("--teach-from", default=None,
@@ -256,30 +202,14 @@ def main(argv=None) -> int:
     add_policy_options(ap)
     a = ap.parse_args(argv)
     policy = policy_of(a)
-    if a.references and not a.uncalibrated:
-        import bench.appearance
-
-        bench.appearance.CALIBRATE = True
-    if a.reference_offset:
-        import bench.appearance
-
-        bench.appearance.REFERENCE_OFFSET = a.reference_offset
-    if a.weights:  # the verdict reads its module's weights at every call
-        from service.vision.estimate import verdict
-
-        verdict.WEIGHTS.clear()
-        verdict.WEIGHTS.update(json.loads(a.weights.read_text()))
-        if {"visible", "shading_r2_robust"} & set(verdict.WEIGHTS):  # evidence the service leaves out
-            from service.vision.estimate import evidence
-
-            evidence.VISIBLE_PART = True
     rows = []
     dump = {}
     for name in a.sets.split(","):
         all_recs = [run_set(name, limit=a.limit, distance_given=a.distance_given, min_score=a.min_score,
                             every_image=a.every_image, references=a.references, half=a.half,
                             teach_from=a.teach_from, distance_range_mm=a.distance_range,
-                            truth=a.truth, policy=policy)
+                            truth=a.truth, policy=policy, calibrate=not a.uncalibrated,
+                            reference_offset=a.reference_offset)
                     for _ in range(a.repeat)]
         dump[name] = {"runs": [summarise(recs) for recs in all_recs], "records": all_recs}
         for r in (r for recs in all_recs for r in recs if r["found"] and not r["mspd640"] < RIGHT_PX):
@@ -291,9 +221,7 @@ def main(argv=None) -> int:
         parts = [("", all_recs)]
         # each half too: the weights were fitted on the even one
         if a.references and a.half == "all" and a.teach_from in (None, name):
-            from bench.appearance import half_of
-
-            halves = half_of(set_dir_of(name), a.references)
+            halves = half_of(set_dir_of(name), a.references, a.reference_offset)
             parts += [(f", {h} half", [[r for r in recs if halves[r["image"]] == h] for recs in all_recs])
                       for h in ("even", "odd")]
         for suffix, recs_runs in parts:

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `python bench/edge_coverage.py`
-from bench.accuracy import DATA_DIR, PART_NAMES, gt_bank, load_bank, read_grey, read_gt  # noqa: E402
+from bench.lib.data import DATA_DIR, PART_NAMES, gt_bank, load_bank, read_grey, read_gt  # noqa: E402
 from service.vision.estimate.chamfer import DEFAULT_TAU_PX, distance_tensor, distance_tensor_from_edges  # noqa: E402
 from service.vision.estimate.edges import channel_of, detect_segments  # noqa: E402
 from service.vision.estimate.refine import border_points, verify  # noqa: E402

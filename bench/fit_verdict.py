@@ -26,6 +26,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from bench.lib.data import RIGHT_PX  # noqa: E402
+from bench.lib.fit import fit_monotone  # noqa: E402
 from service.vision.estimate.verdict import (  # noqa: E402
     FEATURES,
     LOWER_IS_BETTER,
@@ -37,7 +39,6 @@ from service.vision.estimate.verdict import (  # noqa: E402
 from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM as DISTANCE_RANGE_MM  # noqa: E402
 
 OUT = ROOT / "bench" / "out" / "hyps"
-RIGHT_PX = 20.0
 
 
 def load(name: str, tag: str = "*") -> list[dict]:
@@ -57,44 +58,6 @@ def design(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
     X = np.array([feature_vector(r["ev"]) for r in rows], float)
     y = np.array([(not r["absent"]) and r["mspd1"] < RIGHT_PX for r in rows], float)
     return X, y
-
-
-def fit_logistic(X: np.ndarray, y: np.ndarray, l2: float = 1.0, iters: int = 50) -> np.ndarray:
-    """Newton's method on the L2-regularised log-loss, the classes weighted to equal total weight
-    (right hypotheses are a few percent of all); returns (bias, weights...)."""
-    cw = np.where(y > 0, 0.5 / max(y.mean(), 1e-9), 0.5 / max(1 - y.mean(), 1e-9))
-    A = np.hstack([np.ones((len(X), 1)), X])
-    w = np.zeros(A.shape[1])
-    reg = l2 * np.eye(A.shape[1])
-    reg[0, 0] = 0.0
-    for _ in range(iters):
-        p = 1.0 / (1.0 + np.exp(-A @ w))
-        g = A.T @ (cw * (p - y)) + reg @ w
-        H = (A * (cw * p * (1 - p))[:, None]).T @ A + reg
-        step = np.linalg.solve(H, g)
-        w -= step
-        if np.abs(step).max() < 1e-8:
-            break
-    return w
-
-
-def fit_monotone(X: np.ndarray, y: np.ndarray, signs: np.ndarray) -> np.ndarray:
-    """The logistic fit with every weight's sign fixed by ``signs`` (+1: more of the evidence never
-    lowers the score; -1: never raises it): features whose fitted weight takes the wrong sign are
-    dropped one at a time (the most wrong first) and the rest refitted. Returns (bias, weights...)."""
-    active = list(range(X.shape[1]))
-    while True:
-        Xs = X[:, active] * signs[active]
-        mu, sd = Xs.mean(0), Xs.std(0) + 1e-9
-        ws = fit_logistic((Xs - mu) / sd, y)
-        if min(ws[1:]) >= 0:
-            break
-        active.pop(int(np.argmin(ws[1:])))
-    w = np.zeros(X.shape[1] + 1)
-    w[0] = ws[0] - (ws[1:] * mu / sd).sum()
-    for a, v in zip(active, ws[1:] / sd, strict=True):
-        w[a + 1] = v * signs[a]
-    return w
 
 
 def judge(rows: list[dict], w: np.ndarray, thr: float) -> dict:

@@ -28,28 +28,20 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-import service.vision.estimate.evidence as _evidence  # noqa: E402
-from bench.accuracy import (  # noqa: E402
-    DATA_DIR,
+from bench.lib.data import (  # noqa: E402
+    RIGHT_PX,
     gt_bank,
     load_model_info,
     read_colour,
     read_gt,
     read_meta,
+    set_dir_of,
     stage_errors,
 )
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
 
 OUT = ROOT / "bench" / "out" / "hyps"
-RIGHT_PX = 20.0  # MSPD at 640 px width: a pose under this is "right" (BOP's loosest threshold)
-
-
-def set_dir_of(name: str, data: Path | None) -> Path:
-    p = Path(name)
-    if p.is_dir():
-        return p
-    return (data or DATA_DIR) / name
 
 
 def queries(set_dir: Path, limit: int | None) -> list[dict]:
@@ -62,19 +54,8 @@ def proposals(set_dir: Path, *, limit: int | None, distance_given: bool, params=
     """``regions`` > 0: also the search's second pass (the level-A peaks' other templates) and that many
     region proposals (``propose``'s ``n_regions``), appended after the first pass's hypotheses with
     their ``source`` ("second", "regions"): the pipeline checks them only when the first pass fails."""
-    from service.vision.estimate import regions as regions_mod
     from service.vision.geometry.camera import undistort_image
     from service.vision.pipeline import propose
-
-    # Each region candidate's look-alike gap, by its refined (cost, score): read where the region
-    # proposals are refined, so the vision core keeps no record of its last call for the bench.
-    gaps: dict = {}
-    refine_all = regions_mod.refine_all
-
-    def refine_all_noting_gaps(bank_, props, *args, **kw):
-        out = refine_all(bank_, props, *args, **kw)
-        gaps.update({(h.cost, h.score): r.lookalike_gap for h, r in zip(out, props, strict=False)})
-        return out
 
     meta = read_meta(set_dir)
     minfo: dict = {}
@@ -86,20 +67,15 @@ def proposals(set_dir: Path, *, limit: int | None, distance_given: bool, params=
         dist = float(g["t_mm"][2]) if distance_given and not g.get("absent") else None
         t0 = time.perf_counter()
         deferred: list = []
-        regions_mod.refine_all = refine_all_noting_gaps
-        gaps.clear()
-        try:
-            cands, _, timing = propose(bank, image, intr, distance_mm=dist, params=params,
-                                       deferred=deferred if regions else None,
-                                       colour=undistort_image(image, intr) if regions else None,
-                                       n_regions=regions)
-            sources = ["first"] * len(cands)
-            for later in deferred:
-                more = later()
-                name = "regions" if later.func.__name__ == "from_regions" else "second"
-                cands, sources = cands + more, sources + [name] * len(more)
-        finally:
-            regions_mod.refine_all = refine_all
+        cands, _, timing = propose(bank, image, intr, distance_mm=dist, params=params,
+                                   deferred=deferred if regions else None,
+                                   colour=undistort_image(image, intr) if regions else None,
+                                   n_regions=regions)
+        sources = ["first"] * len(cands)
+        for later in deferred:
+            more = later()
+            name = "regions" if later.func.__name__ == "from_regions" else "second"
+            cands, sources = cands + more, sources + [name] * len(more)
         wall = 1000 * (time.perf_counter() - t0)
         info = load_model_info(set_dir, g["model"], meta, minfo)
         hyps = []
@@ -107,9 +83,7 @@ def proposals(set_dir: Path, *, limit: int | None, distance_given: bool, params=
             e = {} if g.get("absent") else stage_errors(c.pose, g, info, np.asarray(g["K"], float),
                                                         int(g["width"]))
             hyps.append({"R": c.pose.R, "t": c.pose.t_mm, "cost": c.cost, "score": c.score,
-                         "mspd640": e.get("mspd640_px", float("inf")), "source": source,
-                         "lookalike_gap": gaps.get((c.cost, c.score), float("nan")) if source == "regions"
-                         else float("nan")})
+                         "mspd640": e.get("mspd640_px", float("inf")), "source": source})
         recs.append({"i": i, "g": g, "hyps": hyps, "wall_ms": wall, "timing": timing})
         best = min((h["mspd640"] for h in hyps), default=float("inf"))
         print(f"{i:4d} {g['image']} {g['model']:9s} n={len(hyps):2d} best_mspd={best:7.1f} "
@@ -173,8 +147,7 @@ def features(set_dir: Path, recs: list[dict], *, max_refine: int = 12) -> list[d
                          "source": "truth" if r.get("truth") else h.get("source", "first"),
                          "image": g["image"], "model": g["model"],
                          "vis": float(g.get("visible_fraction", 0.0)), "mspd0": h["mspd640"], "mspd1": m1,
-                         "ev": c.verdict.evidence, "R1": c.refined.pose.R, "t1": c.refined.pose.t_mm,
-                         "lookalike_gap": h.get("lookalike_gap", float("nan"))})
+                         "ev": c.verdict.evidence, "R1": c.refined.pose.R, "t1": c.refined.pose.t_mm})
         print(f"{r['i']:4d} {g['image']} {g['model']}", file=sys.stderr)
     return rows
 
@@ -206,9 +179,6 @@ def cache_path(set_name: str, tag: str) -> Path:
 
 
 def main(argv=None) -> int:
-    # the visible part's evidence is what these tables study too (set here: importing a helper of this
-    # module leaves the service's evidence as it is)
-    _evidence.VISIBLE_PART = True
     ap = argparse.ArgumentParser()
     ap.add_argument("cmd", choices=["proposals", "recall", "features", "truths", "reevidence"])
     ap.add_argument("--set", required=True)
@@ -223,7 +193,7 @@ def main(argv=None) -> int:
     set_dir = set_dir_of(a.set, a.data)
     path = cache_path(a.set, a.tag + ("-dist" if a.distance_given else ""))
     if a.cmd == "proposals":
-        from service.vision.estimate.coarse import SearchParams
+        from service.vision.estimate.search import SearchParams
 
         wide = SearchParams(n_peaks=30, n_polish=12, peak_accept_ratio=3.0)
         recs = proposals(set_dir, limit=a.limit, distance_given=a.distance_given, params=wide,

@@ -21,12 +21,12 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import trimesh
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from bench.lib.scenes import l_block_bank  # noqa: E402
 from service.vision import pipeline  # noqa: E402
 from service.vision.estimate.roi import rect_polygon  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
@@ -39,13 +39,6 @@ SIZE = (640, 480)
 RANGE = (300.0, 600.0)
 RIGHT_MSPD_PX = 5.0
 CELL = (4, 3)  # copies go to distinct cells of this grid (columns, rows): they never overlap
-
-
-def part() -> trimesh.Trimesh:
-    a = trimesh.creation.box((80.0, 20.0, 40.0))
-    b = trimesh.creation.box((20.0, 40.0, 40.0))
-    b.apply_translation((-30.0, 30.0, 0.0))
-    return trimesh.util.concatenate([a, b])
 
 
 def floor(rng: np.random.Generator, textured: bool) -> np.ndarray:
@@ -113,7 +106,7 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=10, help="scenes per background")
     ap.add_argument("--seed", type=int, default=3)
     args = ap.parse_args()
-    bank = pipeline.build_templates(part(), symmetry="none", grid={"view_step_deg": 15.0, "render_px": 160})
+    bank = l_block_bank()
     pts = bank.vertices_mm.astype(float)
     print("| floor | ROI | scenes | copies | recall (MSPD < 5 px) | wrong instances | latency p50, ms |")
     print("|---|---|---|---|---|---|---|")

@@ -11,6 +11,7 @@ the simplified silhouette's border lies from the original's, in template pixels 
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
@@ -21,13 +22,13 @@ import trimesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.lib.data import DATA_DIR  # noqa: E402
 from service.decode import TEMPLATE_FACE_BUDGET, fit_face_budget  # noqa: E402
 from service.vision.build.grid import GRID_DEFAULTS  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
 from service.vision.geometry.render import render  # noqa: E402
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "models"
 N_VIEWS = 20
 
 
@@ -60,8 +61,10 @@ def border_error_px(mesh_a: trimesh.Trimesh, mesh_b: trimesh.Trimesh) -> tuple[f
     return float(d.mean()), float(d.max())
 
 
-def main() -> None:
-    sprayer = trimesh.load(DATA / "sprayer.stl", force="mesh")
+def main(argv: list[str] | None = None) -> None:
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+                            ).parse_args(argv)
+    sprayer = trimesh.load(DATA_DIR / "models" / "sprayer.stl", force="mesh")
     meshes = {
         "sphere r50, 2.0 M faces (the issue's upload)": trimesh.creation.uv_sphere(50, count=[707, 707]),
         "sprayer subdivided x16, 266 k faces": sprayer.subdivide().subdivide(),

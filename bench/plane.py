@@ -36,7 +36,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.instances import INTR, RIGHT_MSPD_PX, SIZE, nearest_copies, part, roi_of  # noqa: E402
+from bench.instances import INTR, RIGHT_MSPD_PX, SIZE, nearest_copies, roi_of  # noqa: E402
+from bench.lib.scenes import l_block_bank  # noqa: E402
 from service.vision import pipeline  # noqa: E402
 from service.vision.geometry.frames import Pose, Rz  # noqa: E402
 from service.vision.geometry.plane import Plane  # noqa: E402
@@ -152,7 +153,7 @@ def main() -> None:
                     "the pipeline's)")
     args = ap.parse_args()
     lo, hi = (int(x) for x in args.parts.split("-"))
-    bank = pipeline.build_templates(part(), symmetry="none", grid={"view_step_deg": 15.0, "render_px": 160})
+    bank = l_block_bank()
     pts = bank.vertices_mm.astype(float)
     if args.cost_scenes:
         return five_copies_cost(bank, args.seed, args.cost_scenes, pts)

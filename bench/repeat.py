@@ -26,12 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.accuracy import (  # noqa: E402
-    gt_bank,
-    read_colour,
-    read_gt,
-)
-from bench.detection import set_dir_of  # noqa: E402
+from bench.lib.data import gt_bank, read_colour, read_gt, set_dir_of  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.memo import Memo  # noqa: E402
 from service.vision.pipeline import estimate  # noqa: E402

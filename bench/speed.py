@@ -35,19 +35,21 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.accuracy import (  # noqa: E402
-    DATA_DIR,
+from bench.lib.data import (  # noqa: E402
+    FINE_PX,
+    MIN_VISIBLE,
+    RIGHT_PX,
     gt_bank,
     load_model_info,
     read_colour,
     read_gt,
     read_meta,
+    set_dir_of,
     stage_errors,
 )
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.pipeline import estimate, warm_up  # noqa: E402
 
-RIGHT_PX, FINE_PX, MIN_VISIBLE = 20.0, 5.0, 0.5
 STAGES = ("edges", "coarse", "refine", "total")
 
 # A cell at a few frames a second sets about this much (the service has no deadline by default).
@@ -55,7 +57,7 @@ CELL_DEADLINE_MS = 450.0
 
 
 def frames(set_name: str, limit: int | None) -> list[dict]:
-    set_dir = Path(set_name) if Path(set_name).is_dir() else DATA_DIR / set_name
+    set_dir = set_dir_of(set_name)
     out = []
     for g in read_gt(set_dir)[:limit] if limit else read_gt(set_dir):
         out.append({"g": g, "set_dir": set_dir, "image": read_colour(set_dir / g["image"]),
