@@ -30,7 +30,7 @@ import numpy as np
 from service.errors import UnprocessableError
 from service.schemas import Camera, Options
 from service.vision.bank import TemplateBank
-from service.vision.estimate.coarse import SearchParams
+from service.vision.estimate.search import SearchParams
 from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM
 
 DISTANCE_MM = (10.0, 20_000.0)
@@ -98,7 +98,7 @@ def _plane(opts: Options, cam: Camera, w: int, h: int) -> None:
     """The plane is 10 mm .. 20 m from the camera and some pixel's viewing ray meets it in front."""
     import numpy as np
 
-    from service.vision.estimate.plane import MIN_RAY_COS
+    from service.vision.geometry.plane import MIN_RAY_COS
 
     lo, hi = DISTANCE_MM
     dist = -opts.plane.d_mm  # the camera's height above the plane (unit normal, d_mm < 0)

@@ -516,7 +516,7 @@ class Plane(_Request):
 
     def to_plane(self):
         """The vision core's ``Plane`` (unit normal, camera frame)."""
-        from service.vision.estimate.plane import Plane as VisionPlane
+        from service.vision.geometry.plane import Plane as VisionPlane
 
         return VisionPlane(np.asarray(self.normal, float), float(self.d_mm))
 

@@ -474,8 +474,8 @@ def test_window_offsets_equal_the_projected_posed_border(sprayer_bank):
     """The compiled window templates against an independent path: poses_of (ray, in-plane angle,
     bank view, known distance) then the pinhole projection of the same 3D border points."""
     from service.vision.bank import border_triplets
-    from service.vision.estimate.coarse import Hypothesis, poses_of
     from service.vision.estimate.level_b import Window, _window_offsets
+    from service.vision.estimate.search import Hypothesis, poses_of
     from service.vision.geometry.camera import ray_rotation
 
     bank = sprayer_bank
@@ -583,7 +583,7 @@ def _decoy_scene(bank, dist: float, uv: np.ndarray, *, decoy: bool = True, phi_d
     import cv2
 
     from service.vision.estimate import level_a
-    from service.vision.estimate.coarse import Hypothesis, poses_of
+    from service.vision.estimate.search import Hypothesis, poses_of
 
     tpl = level_a._cached_level_a(bank, INTR, (H, W), pipeline.DEFAULT_POLICY.search_params, dist, dist)
     h_decoy = Hypothesis(int(tpl.views[0]), 0.0, dist, uv - 3)
@@ -663,8 +663,8 @@ def test_background_norm_and_templates_per_peak_together_propose_the_part_beside
 
     from service.vision.estimate import coarse, level_a
     from service.vision.estimate.chamfer import distance_tensor
-    from service.vision.estimate.coarse import Hypothesis, poses_of
     from service.vision.estimate.edges import Segments, detect_segments
+    from service.vision.estimate.search import Hypothesis, poses_of
 
     bank, dist = l_block_bank, 500.0
     p = replace(pipeline.DEFAULT_POLICY.search_params, n_peaks=1, bg_norm=False, templates_per_peak=1)
@@ -746,11 +746,11 @@ def test_level_a_tables_the_deadline_leaves_no_time_for_are_made_in_the_backgrou
 def test_level_a_padding_covers_every_scaled_offset(sprayer_bank, distance_range_mm):
     """Level A's banded scan reads its padded DT3 without bounds tests: the padding it is given from the
     templates' extent (``scan_level_a``) must cover every scaled offset it will read."""
-    from service.vision.estimate import coarse, level_a
+    from service.vision.estimate import level_a, search
 
     intr = Intrinsics.from_K(np.array([[1100.0, 0, 643.0], [0, 1100.0, 477.0], [0, 0, 1]]))
-    p = coarse.SearchParams()
-    z_ref, scales = coarse.depth_scales(distance_range_mm, p.depth_step)
+    p = search.SearchParams()
+    z_ref, scales = search.depth_scales(distance_range_mm, p.depth_step)
     tpl = level_a.level_a_templates(sprayer_bank, intr, (960, 1280), p, distance_mm=None, z_ref_mm=z_ref)
     off_u, off_v = level_a.scaled_offsets(tpl, scales)
     reach = int(np.ceil(tpl.extent_px * float(scales.max()))) + 1

@@ -85,8 +85,8 @@ def test_scored_region_proposals_take_the_painted_rotation_not_its_turned_twin(m
 
     import tests.test_appearance as ta
     from service.vision import pipeline
-    from service.vision.estimate.coarse import poses_of
     from service.vision.estimate.evidence import colour_frame
+    from service.vision.estimate.search import poses_of
     from service.vision.geometry.frames import Pose, Rx, Ry, Rz
 
     monkeypatch.setattr(ta, "FLOOR_BGR", (30.0, 30.0, 30.0))

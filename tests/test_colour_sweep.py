@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 
 from service.vision.estimate import colour_sweep
-from service.vision.estimate.coarse import poses_of
+from service.vision.estimate.search import poses_of
 from service.vision.geometry.frames import Pose
 from service.vision.geometry.render import rasterise_roi
 from tests.test_regions import H, K, W, template_pose

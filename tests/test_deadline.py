@@ -15,10 +15,11 @@ import trimesh
 
 from service.vision import pipeline
 from service.vision.deadline import Deadline, RunningMean
-from service.vision.estimate import coarse, level_a
+from service.vision.estimate import level_a
 from service.vision.estimate.chamfer import distance_tensor, pooled_distance_tensor
 from service.vision.estimate.edges import detect_segments, to_grey_u8
 from service.vision.estimate.evidence import colour_frame
+from service.vision.estimate.search import depth_scales
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Ry
 from service.vision.geometry.render import render_shaded
@@ -139,7 +140,7 @@ def test_level_a_scans_the_anchors_with_most_edges_first(bank, image):
     p = pipeline.DEFAULT_POLICY.search_params
     dtt_a = pooled_distance_tensor(distance_tensor(detect_segments(grey), n_channels=p.n_channels,
                                                    scale=p.fine_scale), p.level_scale)
-    z_ref, scales = coarse.depth_scales((300.0, 700.0), p.depth_step)
+    z_ref, scales = depth_scales((300.0, 700.0), p.depth_step)
     tpl = level_a.level_a_templates(bank, INTR, grey.shape, p, distance_mm=None, z_ref_mm=z_ref)
     full = level_a.scan_level_a(dtt_a, tpl, scales, grey.shape, p)
     # Chunked and run to the end: every anchor's result is the unchunked scan's.
@@ -231,22 +232,27 @@ def test_a_check_after_the_first_starts_only_when_the_deadline_leaves_its_high_e
                                                                                       monkeypatch):
     # Checks took 10 ms on average but spread 20 ms: a deadline leaving 30 ms (more than the mean, less
     # than the high estimate 10 + 2 x 20) starts no check but the first.
-    check = RunningMean(10.0)
-    check.spread = 20.0
-    monkeypatch.setattr(timing, "CHECK_MS", check)
+    def checks_took_10_ms_spread_20():  # afresh before each frame: a check made teaches the mean
+        check = RunningMean(10.0)
+        check.spread = 20.0
+        monkeypatch.setattr(timing, "CHECK_MS", check)
+
     grey = to_grey_u8(image)
     cands, _, _ = pipeline.propose(bank, grey, INTR, distance_range_mm=(300.0, 700.0))
     assert cands
     frame = colour_frame(image)
     kw = dict(distance_mm=None, distance_range_mm=(300.0, 700.0), min_score=None,
               n_channels=pipeline.DEFAULT_POLICY.search_params.n_channels)
+    checks_took_10_ms_spread_20()
     first = Deadline(30.0, clock=lambda: 0.0)
     assert len(pipeline.verify_candidates(bank, cands, grey, frame, INTR, deadline=first, **kw)) == 1
     assert first.checks >= 1
+    checks_took_10_ms_spread_20()
     tight = Deadline(30.0, clock=lambda: 0.0)
     tight.checked()  # this frame's first check is made
     assert pipeline.verify_candidates(bank, cands, grey, frame, INTR, deadline=tight, **kw) == []
     assert tight.hit and tight.stopped_in == "edges"
+    checks_took_10_ms_spread_20()
     roomy = Deadline(50.0, clock=lambda: 0.0)
     roomy.checked()
     assert len(pipeline.verify_candidates(bank, cands, grey, frame, INTR, deadline=roomy, **kw)) >= 1

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from service.vision.estimate import regions, segmentation, shapes
-from service.vision.estimate.coarse import Hypothesis, poses_of
+from service.vision.estimate.search import Hypothesis, poses_of
 from service.vision.geometry.camera import project
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz
 from service.vision.geometry.render import rasterise_roi

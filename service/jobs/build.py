@@ -1,8 +1,8 @@
 """Template builds: registering an upload, and building its template bank off the event loop.
 
 An upload is decoded once (bad files fail at once with 415/422), registered under its content id
-with status ``queued``, and handed to the ``Builder`` (``local.py``) owned by the app's lifespan. A mesh file over
-``IN_PROCESS_MESH_BYTES`` is decoded in a process of its own (``check_mesh``): decoding a 100 MB
+with status ``queued``, and handed to the ``Builder`` (``local.py``) owned by the app's lifespan. A mesh
+file over ``IN_PROCESS_MESH_BYTES`` is decoded in a process of its own (``check_mesh``): decoding a 100 MB
 STL peaks at ~1.4 GB, and a server process that did it itself kept most of that after the model
 was deleted (its heap keeps freed memory mapped for the estimates, ``vision.memory``). The Builder runs
 each build in a process of its own (``python -c`` ``worker_main``, at most ``build_workers`` at a time),

@@ -46,8 +46,6 @@ from service.vision.estimate.level_a import (
     scan_level_a,
 )
 from service.vision.estimate.level_b import evaluate, local_scan, polish
-
-# moved: re-exported until the pipeline package imports it from service.vision.estimate.search
 from service.vision.estimate.search import Hypothesis, SearchParams, depth_scales, poses_of
 from service.vision.geometry.camera import Intrinsics
 

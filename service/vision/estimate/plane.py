@@ -39,12 +39,7 @@ from service.vision.estimate.plane_scoring import evaluate_poses, score_poses, s
 from service.vision.estimate.search import SearchParams
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Rz
-
-# moved: re-exported until the pipeline package imports it from service.vision.geometry.plane
-from service.vision.geometry.plane import MIN_RAY_COS as MIN_RAY_COS
 from service.vision.geometry.plane import Plane, R_cam_rest, placements, rest_heights_mm
-from service.vision.geometry.plane import centre_height_mm as centre_height_mm
-from service.vision.geometry.plane import rest_gap_mm as rest_gap_mm
 
 PLANE_TOLERANCE_MM = 5.0  # default: a found part's lowest point lies within this of the plane
 PLANE_ANCHOR_STRIDE_PX = 16  # level A: full-resolution px between the anchors
