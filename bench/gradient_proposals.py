@@ -60,6 +60,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--limit", type=int, default=5, help="first N images (0: all 51)")
     ap.add_argument("--stride", type=int, default=1, help="every k-th image (before --limit)")
+    ap.add_argument("--start", type=int, default=0, help="skip the first k images (after --stride)")
     ap.add_argument("--parts", default="", help="comma-separated part names (sygrid_ prefix optional)")
     ap.add_argument("--zones", type=int, default=3, help="templates rendered at the centres of Z x Z zones")
     ap.add_argument("--spin-step", type=float, default=None, help="deg (default: from the part's size and T)")
@@ -79,7 +80,7 @@ def main() -> None:
     by_image: dict[str, list[dict]] = defaultdict(list)
     for ln in lines:
         by_image[ln["image"]].append(ln)
-    images = sorted(by_image)[:: args.stride][: args.limit or None]
+    images = sorted(by_image)[:: args.stride][args.start:][: args.limit or None]
     want = {p if p.startswith("sygrid_") else "sygrid_" + p for p in args.parts.split(",") if p}
 
     meshes: dict[str, trimesh.Trimesh] = {}
@@ -124,8 +125,12 @@ def main() -> None:
             ts = tcache[key]
             N = len(copies)
             tq = time.perf_counter()
-            props = gm.match(rms[ts.t], ts, K, plane, min_score=-1.0, nms_px=args.nms_px, balanced=not args.flat,
-                             rm_fine=rms.get(args.fine_t), top_k=2 * N)
+            try:
+                props = gm.match(rms[ts.t], ts, K, plane, min_score=-1.0, nms_px=args.nms_px, balanced=not args.flat,
+                                 rm_fine=rms.get(args.fine_t), top_k=2 * N)
+            except ValueError as e:  # a plane seen so obliquely that the templates outgrow the maps
+                print(f"{im} {part}: no proposals ({e})", file=sys.stderr)
+                props = []
             query_ms.append((time.perf_counter() - tq) * 1e3)
             centre = np.asarray(mesh.bounds, float).mean(axis=0)
             gt_uv = np.array([project(np.asarray(g["R"]) @ centre + np.asarray(g["t_mm"]), K) for g in copies])
