@@ -34,7 +34,7 @@ import numpy as np
 
 from service.vision.bank import TemplateBank, view_neighbours
 from service.vision.deadline import NO_DEADLINE, Deadline
-from service.vision.estimate.chamfer import DistanceTensor, pooled_and_quantised, quantised
+from service.vision.estimate.chamfer import DistanceTensor, pooled_and_quantised
 from service.vision.estimate.level_a import (
     LEVEL_A_RESERVE_FACTOR,
     _bg_at,
@@ -62,8 +62,7 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
                   image_shape: tuple[int, int], p: SearchParams, *, distance_mm: float | None,
                   distance_range_mm: tuple[float, float], anchor_mask: np.ndarray | None = None,
                   deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0,
-                  deferred: list[Callable[[], list[Hypothesis]]] | None = None,
-                  contrast=None, extra_peaks: int = 0) -> list[Hypothesis]:
+                  deferred: list[Callable[[], list[Hypothesis]]] | None = None) -> list[Hypothesis]:
     """Ranked, polished, mutually distinct hypotheses (best first). ``dtt_b`` is the DT3 at
     ``fine_scale``; level A's grid is min-pooled from it. ``anchor_mask`` (full-resolution (h, w)
     bool): level A places the reference point only there (``scan_level_a``).
@@ -77,11 +76,7 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
 
     Anytime: each unit of work (a chunk of level-A anchors, a peak's local scan, a polish) starts only
     while the ``deadline`` leaves more than ``reserve_ms`` (the caller's time to verify a result); what
-    was reached by then is returned, hypotheses left unpolished with their level-B costs.
-
-    ``contrast`` (``contrast.Contrast``): level A scans its blend of DT3 and oriented contrast instead
-    of the DT3, and level B its blend at ``fine_scale`` (``weight_b`` > 0). With ``extra_peaks`` > 0
-    the first pass is unchanged and the second pass adds ``_contrast_pass``'s hypotheses."""
+    was reached by then is returned, hypotheses left unpolished with their level-B costs."""
     K = intr.K
     dtt_a, dt_q, tau_q = pooled_and_quantised(dtt_b, p.level_scale, p.rank_tau_px * dtt_b.scale)
     z_ref, scales = (distance_mm, np.array([1.0])) if distance_mm is not None else \
@@ -94,9 +89,8 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
         if tpl is None:
             return []
     r_bg = int(BG_WINDOW_EXTENT * tpl.extent_px * float(np.median(scales)))
-    lac = None if contrast is None else (lambda q, tq: contrast.level_a(q, tq, r_bg))
     au, av, tile, cost, t, d = scan_level_a(dtt_a, tpl, scales, image_shape, p, anchor_mask, deadline,
-                                            reserve_ms, None if extra_peaks else lac)
+                                            reserve_ms)
     radius = max(PEAK_RADIUS_EXTENT * tpl.extent_px * float(np.median(scales)), MIN_PEAK_RADIUS_PX)
     bg = background_cost(dtt_a, r_bg) if p.bg_norm else None
     rank_a = cost / bg[av, au] if bg is not None else cost
@@ -112,63 +106,25 @@ def coarse_search(bank: TemplateBank, dtt_b: DistanceTensor, intr: Intrinsics,
     starts = [start_of(a, t, d) for a in peaks]
     if not starts:
         return []
-    if contrast is not None and not extra_peaks and contrast.weight_b > 0:
-        # level B on the blend too (its own tensors: the DT3 itself stays what refinement reads)
-        dtt_b = contrast.fine_tensor(dtt_b, p.rank_tau_px * dtt_b.scale, r_bg / p.level_scale)
-        dt_q, tau_q = quantised(dtt_b, p.rank_tau_px * dtt_b.scale)
     state = _LevelB(bank, dtt_b, dt_q, tau_q, K, p, distance_mm, bg, deadline, reserve_ms)
     out = state.run(starts)
-    if p.templates_per_peak <= 1 and not (extra_peaks and lac is not None):
+    if p.templates_per_peak <= 1:
         return out
 
     def second() -> list[Hypothesis]:
-        found: list[Hypothesis] = []
-        if extra_peaks and lac is not None:
-            found = _contrast_pass(bank, dtt_b, dtt_a, tpl, scales, image_shape, K, p, distance_mm,
-                                   anchor_mask, deadline, reserve_ms, contrast, lac, bg, peaks, au, av,
-                                   radius, r_bg, extra_peaks, start_of)
+        # Each peak's second distinct template first, then each one's third, ...: the deadline reaches
+        # every peak's best alternative before any peak's next.
+        extra = peak_starts(bank, tpl, scales, dtt_a, au, av, cost, t, peaks[:p.template_peaks],
+                            image_shape, p)
         more: list[Hypothesis] = []
-        if p.templates_per_peak > 1:
-            # Each peak's second distinct template first, then each one's third, ...: the deadline
-            # reaches every peak's best alternative before any peak's next.
-            extra = peak_starts(bank, tpl, scales, dtt_a, au, av, cost, t, peaks[:p.template_peaks],
-                                image_shape, p)
-            for rank in range(p.templates_per_peak - 1):
-                more += [s[rank] for s in extra if len(s) > rank]
-        return sorted(found + state.run(more), key=lambda h: h.rank_cost)
+        for rank in range(p.templates_per_peak - 1):
+            more += [s[rank] for s in extra if len(s) > rank]
+        return sorted(state.run(more), key=lambda h: h.rank_cost)
 
     if deferred is not None:
         deferred.append(second)
         return out
     return sorted(out + second(), key=lambda h: h.rank_cost)
-
-
-def _contrast_pass(bank, dtt_b, dtt_a, tpl, scales, image_shape, K, p, distance_mm, anchor_mask, deadline,
-                   reserve_ms, contrast, lac, bg, peaks, au, av, radius, r_bg, n_extra, start_of
-                   ) -> list[Hypothesis]:
-    """Level A rescanned on ``lac``'s blend of DT3 and contrast: its best ``n_extra`` peaks farther than
-    ``radius`` from every one of ``peaks`` (the anchors are the first scan's: the edge count that
-    selects them reads the DT3 alone), each searched by level B on the blend at ``fine_scale``
-    (``contrast.fine_tensor``) in a level B of their own: not gated by the first pass's best cost."""
-    au2, av2, _, cost2, t2, d2 = scan_level_a(dtt_a, tpl, scales, image_shape, p, anchor_mask, deadline,
-                                              reserve_ms, lac)
-    assert np.array_equal(au2, au) and np.array_equal(av2, av)
-    rank2 = cost2 / bg[av, au] if bg is not None else cost2
-    taken = np.array([[au[a], av[a]] for a in peaks], float).reshape(-1, 2)
-    far = np.all(np.hypot(au[:, None] - taken[None, :, 0], av[:, None] - taken[None, :, 1]) > radius, axis=1)
-    extra = pick_peaks(au, av, np.where(far, rank2, np.inf), n_extra, radius)
-    if not extra:
-        return []
-    tau_fine = p.rank_tau_px * dtt_b.scale
-    dtt_c = contrast.fine_tensor(dtt_b, tau_fine, r_bg / p.level_scale) if contrast.weight_b > 0 else dtt_b
-    dt_qc, tau_qc = quantised(dtt_c, tau_fine)
-    state = _LevelB(bank, dtt_c, dt_qc, tau_qc, K, p, distance_mm, bg, deadline, reserve_ms)
-    starts = [start_of(a, t2, d2) for a in extra]
-    # each contrast peak's other distinct templates start level B too (docs/detection-history.md)
-    others = peak_starts(bank, tpl, scales, dtt_a, au, av, cost2, t2, extra, image_shape, p, lac)
-    for rank in range(p.templates_per_peak - 1):
-        starts += [o[rank] for o in others if len(o) > rank]
-    return state.run(starts)
 
 
 class _LevelB:

@@ -7,7 +7,6 @@ from __future__ import annotations
 import concurrent.futures
 import math
 import threading
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numba as nb
@@ -119,19 +118,15 @@ def level_a_templates(bank: TemplateBank, intr: Intrinsics, image_shape: tuple[i
 
 def scan_level_a(dtt: DistanceTensor, tpl: LevelATemplates, scales: np.ndarray, image_shape, p: SearchParams,
                  anchor_mask: np.ndarray | None = None, deadline: Deadline = NO_DEADLINE,
-                 reserve_ms: float = 0.0, level_a_cost: Callable | None = None):
+                 reserve_ms: float = 0.0):
     """Level A's scan. ``anchor_mask``: (h, w) bool full-resolution, where the reference point may be
     placed (a region of interest): anchors elsewhere are not scanned at all. With a ``deadline`` the
     anchors are scanned in chunks of whole blocks (``_block_chunks``), the blocks with the most edge
     pixels round one of their anchors first, until it leaves
     less than ``LEVEL_A_RESERVE_FACTOR`` x ``reserve_ms``; unscanned anchors cost inf (each anchor's
-    result does not depend on the others', so a scan that finishes is the unchunked one).
-    ``level_a_cost``: (quantised DT3, tau_q) -> the (H, W, C) uint8 tensor scanned instead (a blend with
-    other evidence, ``contrast.py``); the edge count still reads the DT3."""
+    result does not depend on the others', so a scan that finishes is the unchunked one)."""
     C, hl, wl = dtt.dt.shape
     dt_q, tau_q = quantised(dtt, dtt.tau_px)
-    if level_a_cost is not None:
-        dt_q = level_a_cost(dt_q, tau_q)
     au, av = np.meshgrid(np.arange(0, wl, p.anchor_stride), np.arange(0, hl, p.anchor_stride))
     au, av = au.ravel().astype(np.int32), av.ravel().astype(np.int32)
     if anchor_mask is not None:
@@ -468,7 +463,7 @@ def distinct_templates(order: np.ndarray, axes: np.ndarray, k: int, min_deg: flo
 
 def peak_starts(bank: TemplateBank, tpl: LevelATemplates, scales: np.ndarray, dtt_a: DistanceTensor,
                 au: np.ndarray, av: np.ndarray, cost_a: np.ndarray, t_a: np.ndarray, peaks: list[int],
-                image_shape, p: SearchParams, level_a_cost: Callable | None = None) -> list[list[Hypothesis]]:
+                image_shape, p: SearchParams) -> list[list[Hypothesis]]:
     """Per level-A peak, level B's extra starts: its best ``templates_per_peak - 1`` templates distinct
     from each other and from the peak's own level-A template ``t_a[peak]`` (``distinct_templates``),
     each scored at the peak's anchor and the anchors within ``template_anchor_reach`` strides of it and
@@ -479,8 +474,6 @@ def peak_starts(bank: TemplateBank, tpl: LevelATemplates, scales: np.ndarray, dt
         return [[] for _ in peaks]
     C, hl, wl = dtt_a.dt.shape
     dt_q, tau_q = quantised(dtt_a, dtt_a.tau_px)
-    if level_a_cost is not None:  # the templates ranked as ``scan_level_a`` ranked them (``cost_a``)
-        dt_q = level_a_cost(dt_q, tau_q)
     off_u, off_v = scaled_offsets(tpl, scales)
     r = p.template_anchor_reach * p.anchor_stride
     g = np.arange(-r, r + 1, p.anchor_stride)
