@@ -35,7 +35,7 @@ DATA = ROOT.parent / "shared" / "data"
 GRID = {"tilt_step_deg": 15, "view_step_deg": 45}
 START_WAIT_S = 120
 
-from service.builder import register_upload, run_build  # noqa: E402
+from service.jobs.build import register_upload, run_build  # noqa: E402
 from service.settings import Settings  # noqa: E402
 from service.stores import open_store  # noqa: E402
 from tests.redis_server import RedisServer, free_port  # noqa: E402
