@@ -1,4 +1,4 @@
-"""Taught appearance (``service/vision/build/appearance.py``): does the part's colour, taught from a few
+"""Taught appearance (``service/vision/model/appearance.py``): does the part's colour, taught from a few
 reference photos at known poses, tell a printed or painted part at its true pose from the wrong poses?
 
 Protocol on a set with several images of the same parts (lmo_dev): ``--references N`` images, spread

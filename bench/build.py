@@ -5,7 +5,7 @@ them): the sprayer subdivided twice (266k faces, revolved) and T-LESS 6 subdivid
 faces, no symmetry: the full view sphere), both above the 100k-face budget case.
 
 Table 1 (symmetry): per model the best candidate axis, its score (mean silhouette-border
-displacement when spun, relative to the radius about the axis; see ``service.vision.build.symmetry``), the
+displacement when spun, relative to the radius about the axis; see ``service.vision.model.symmetry``), the
 runner-up,
 the threshold and the decision, and the detection time.
 
@@ -34,8 +34,8 @@ import trimesh
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.vision.build.symmetry import SYMMETRY_THRESHOLD, score_candidates  # noqa: E402
-from service.vision.build.templates import build_bank  # noqa: E402
+from service.vision.model.symmetry import SYMMETRY_THRESHOLD, score_candidates  # noqa: E402
+from service.vision.model.templates import build_bank  # noqa: E402
 
 DATA_DIR = Path(os.environ.get("POSE_DATA_DIR", ROOT.parent / "shared" / "data"))
 TARGET_S = {"sprayer": 5.0, "tless_06": 15.0}

@@ -79,9 +79,13 @@ class RestFamily:
     spins_deg: np.ndarray  # spins about +z searched for this family
 
 
-def rest_families(mesh: trimesh.Trimesh, symmetry: str = "none", *,
-                  min_probability: float = MIN_REST_PROBABILITY,
-                  spin_step_deg: float = SPIN_STEP_DEG) -> list[RestFamily]:
+def rest_families(
+    mesh: trimesh.Trimesh,
+    symmetry: str = "none",
+    *,
+    min_probability: float = MIN_REST_PROBABILITY,
+    spin_step_deg: float = SPIN_STEP_DEG,
+) -> list[RestFamily]:
     """Resting pose families of ``mesh`` on a plane, most probable first.
 
     A continuous symmetry axis (``"x" | "y" | "z"``) groups trimesh's hull-face poses by the angle
@@ -148,7 +152,7 @@ class TemplateSet:
         # balanced: a point weighs 1 / (the points of its bin, at least n / (2 N_ORI)), normalised
         cnt = np.zeros((M, N_ORI))
         for o in range(N_ORI):
-            cnt[:, o] = ((self.ori == o)).sum(axis=1)
+            cnt[:, o] = (self.ori == o).sum(axis=1)
         c = np.take_along_axis(cnt, np.maximum(self.ori, 0), axis=1)
         w = valid / np.maximum(c, self.n_pts[:, None] / (2.0 * N_ORI))
         self.w_bal = (w / w.sum(axis=1, keepdims=True)).astype(np.float32)
@@ -204,9 +208,18 @@ def _greedy_min_dist(uv, d2):  # pragma: no cover - compiled
     return out[:n]
 
 
-def template_points(V: np.ndarray, F: np.ndarray, creases_obj: np.ndarray, pose: Pose, K: np.ndarray,
-                    image_size: tuple[int, int], plane: dict, *, n_max: int = MAX_POINTS,
-                    rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, int]:
+def template_points(
+    V: np.ndarray,
+    F: np.ndarray,
+    creases_obj: np.ndarray,
+    pose: Pose,
+    K: np.ndarray,
+    image_size: tuple[int, int],
+    plane: dict,
+    *,
+    n_max: int = MAX_POINTS,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, int]:
     """Edge points of the part seen at ``pose``: (P, 2) uv float, (P,) orientation bins, #crease points.
 
     Silhouette and depth-jump pixels of the z-buffer (the table at the plane's depth behind the part),
@@ -276,8 +289,10 @@ def template_points(V: np.ndarray, F: np.ndarray, creases_obj: np.ndarray, pose:
         _, first = np.unique(key, return_index=True)
         uv_cr, th_cr = np.rint(uv_cr[first]), th_cr[first]
         # a crease pixel already on an occluding edge keeps the occluding edge's direction
-        on_sil = jump[np.clip(uv_cr[:, 1].astype(int) - v0, 0, jump.shape[0] - 1),
-                      np.clip(uv_cr[:, 0].astype(int) - u0, 0, jump.shape[1] - 1)]
+        on_sil = jump[
+            np.clip(uv_cr[:, 1].astype(int) - v0, 0, jump.shape[0] - 1),
+            np.clip(uv_cr[:, 0].astype(int) - u0, 0, jump.shape[1] - 1),
+        ]
         uv_cr, th_cr = uv_cr[~on_sil], th_cr[~on_sil]
     uv_all = np.concatenate([uv_sil, uv_cr])
     th_all = np.concatenate([th_sil, th_cr])
@@ -313,10 +328,21 @@ def auto_spin_step(radius_px: float, t: int) -> float:
     return 360.0 / math.ceil(360.0 / step)
 
 
-def plane_templates(mesh: trimesh.Trimesh, symmetry: str, K: np.ndarray, image_size: tuple[int, int],
-                    plane: dict, *, zones: int = 1, spin_step_deg: float | None = None, t: int | None = None,
-                    n_max: int = MAX_POINTS, crease_deg: float = CREASE_DEG, use_creases: bool = True,
-                    seed: int = 0) -> TemplateSet:
+def plane_templates(
+    mesh: trimesh.Trimesh,
+    symmetry: str,
+    K: np.ndarray,
+    image_size: tuple[int, int],
+    plane: dict,
+    *,
+    zones: int = 1,
+    spin_step_deg: float | None = None,
+    t: int | None = None,
+    n_max: int = MAX_POINTS,
+    crease_deg: float = CREASE_DEG,
+    use_creases: bool = True,
+    seed: int = 0,
+) -> TemplateSet:
     """Every resting family x spin, rendered at the centre of each of ``zones`` x ``zones`` image zones."""
     rng = np.random.default_rng(seed)
     r_px = part_radius_px(mesh, K, plane)
@@ -343,7 +369,9 @@ def plane_templates(mesh: trimesh.Trimesh, symmetry: str, K: np.ndarray, image_s
             for spin in fam.spins_deg:
                 Rs = A @ Rz(spin)
                 pose = Pose(Rs @ fam.R_rest_obj, p0 - Rs @ fam.s_rest_mm)
-                uv, ori, ncr = template_points(V, F, creases, pose, K, image_size, plane, n_max=n_max, rng=rng)
+                uv, ori, ncr = template_points(
+                    V, F, creases, pose, K, image_size, plane, n_max=n_max, rng=rng
+                )
                 if len(uv) < MIN_POINTS:
                     continue
                 off = np.rint(uv - auv).astype(np.int32)
@@ -357,9 +385,22 @@ def plane_templates(mesh: trimesh.Trimesh, symmetry: str, K: np.ndarray, image_s
     for k, (off, o, *_rest) in enumerate(rows):
         n = len(off)
         dx[k, :n], dy[k, :n], ori[k, :n], npts[k] = off[:, 0], off[:, 1], o, n
-    return TemplateSet(t, spin_step_deg, dx, dy, ori, npts, np.array([r[2] for r in rows], np.int32),
-                       np.array([r[3] for r in rows], float), np.array([r[4] for r in rows], np.int32),
-                       fams, rects, anchors, A, np.array([r[5] for r in rows], np.int32))
+    return TemplateSet(
+        t,
+        spin_step_deg,
+        dx,
+        dy,
+        ori,
+        npts,
+        np.array([r[2] for r in rows], np.int32),
+        np.array([r[3] for r in rows], float),
+        np.array([r[4] for r in rows], np.int32),
+        fams,
+        rects,
+        anchors,
+        A,
+        np.array([r[5] for r in rows], np.int32),
+    )
 
 
 # --- image side ---------------------------------------------------------------------------------------
@@ -386,8 +427,13 @@ def _majority(q, mask, out):  # pragma: no cover - compiled
                 out[v, u] = np.uint8(1 << best)
 
 
-def orientation_bits(image_bgr: np.ndarray, *, mag_threshold: float = MAG_THRESHOLD,
-                     blur_sigma: float = 1.0, soft_deg: float = SOFT_DEG) -> np.ndarray:
+def orientation_bits(
+    image_bgr: np.ndarray,
+    *,
+    mag_threshold: float = MAG_THRESHOLD,
+    blur_sigma: float = 1.0,
+    soft_deg: float = SOFT_DEG,
+) -> np.ndarray:
     """(h, w) uint8: bit b set where the strongest channel's gradient orientation is bin b."""
     img = image_bgr.astype(np.float32)
     if blur_sigma > 0:
@@ -413,8 +459,11 @@ def orientation_bits(image_bgr: np.ndarray, *, mag_threshold: float = MAG_THRESH
         w = soft_deg / (180.0 / N_ORI)
         lo = (frac < w) & (bits > 0)
         hi = (frac > 1 - w) & (bits > 0)
-        bits = bits | np.where(lo, (1 << ((q - 1) % N_ORI)), 0).astype(np.uint8) \
-                    | np.where(hi, (1 << ((q + 1) % N_ORI)), 0).astype(np.uint8)
+        bits = (
+            bits
+            | np.where(lo, (1 << ((q - 1) % N_ORI)), 0).astype(np.uint8)
+            | np.where(hi, (1 << ((q + 1) % N_ORI)), 0).astype(np.uint8)
+        )
     return bits
 
 
@@ -451,7 +500,7 @@ def response_maps(bits_spread: np.ndarray, *, t: int = T, pad: int = 64) -> Resp
         r = np.where(same, 4, np.where(nb, 1, 0)).astype(np.uint8)
         for ry in range(t):
             for rx in range(t):
-                lin[o, ry, rx, pad:pad + Gh, pad:pad + Gw] = r[ry::t, rx::t]
+                lin[o, ry, rx, pad : pad + Gh, pad : pad + Gw] = r[ry::t, rx::t]
     return ResponseMaps(lin, pad, (Gh, Gw), t)
 
 
@@ -512,9 +561,18 @@ class Proposal:
     pose: Pose
 
 
-def match(rm: ResponseMaps, ts: TemplateSet, K: np.ndarray, plane: dict, *, min_score: float = 0.0,
-          nms_px: float = 16.0, top_k: int = 50, rm_fine: ResponseMaps | None = None,
-          balanced: bool = True) -> list[Proposal]:
+def match(
+    rm: ResponseMaps,
+    ts: TemplateSet,
+    K: np.ndarray,
+    plane: dict,
+    *,
+    min_score: float = 0.0,
+    nms_px: float = 16.0,
+    top_k: int = 50,
+    rm_fine: ResponseMaps | None = None,
+    balanced: bool = True,
+) -> list[Proposal]:
     """Best ``top_k`` placements of the templates, each lifted to T_cam_obj on the plane.
 
     Every local maximum of the coarse search (``rm``, T = ts.t) is refined to the pixel and the
@@ -527,8 +585,9 @@ def match(rm: ResponseMaps, ts: TemplateSet, K: np.ndarray, plane: dict, *, min_
         raise ValueError(f"templates made for T = {ts.t}, response maps for T = {t}")
     if np.abs(ts.dx).max() >= (rm.pad - 1) * t or np.abs(ts.dy).max() >= (rm.pad - 1) * t:
         raise ValueError("template larger than the response maps' padding")
-    zr = np.array([[r[0] // t, r[1] // t, (r[2] + t - 1) // t, (r[3] + t - 1) // t] for r in ts.zone_rects],
-                  np.int64)
+    zr = np.array(
+        [[r[0] // t, r[1] // t, (r[2] + t - 1) // t, (r[3] + t - 1) // t] for r in ts.zone_rects], np.int64
+    )
     zr[:, 2] = np.minimum(zr[:, 2], Gw)
     zr[:, 3] = np.minimum(zr[:, 3], Gh)
     wt = ts.w_bal if balanced else ts.w_flat
@@ -545,7 +604,7 @@ def match(rm: ResponseMaps, ts: TemplateSet, K: np.ndarray, plane: dict, *, min_
         u, v, m = gx * t, gy * t, int(best_m[gy, gx])
         s = best[gy, gx]
         s, u, v, m = _refine(rm if rm_fine is None else rm_fine, ts, wt, u, v, m, t // 2)
-        if any((u - pu) ** 2 + (v - pv) ** 2 < nms_px ** 2 for _, pu, pv, _m in picked):
+        if any((u - pu) ** 2 + (v - pv) ** 2 < nms_px**2 for _, pu, pv, _m in picked):
             continue
         picked.append((s, u, v, m))
         if len(picked) >= 3 * top_k:
@@ -556,12 +615,15 @@ def match(rm: ResponseMaps, ts: TemplateSet, K: np.ndarray, plane: dict, *, min_
         fam = ts.families[ts.family[m]]
         Rs = ts.A @ Rz(ts.spin_deg[m])
         p0 = plane_point_on_ray(np.array([u, v], float), K, plane)[0]
-        out.append(Proposal(float(s), (float(u), float(v)), m, Pose(Rs @ fam.R_rest_obj, p0 - Rs @ fam.s_rest_mm)))
+        out.append(
+            Proposal(float(s), (float(u), float(v)), m, Pose(Rs @ fam.R_rest_obj, p0 - Rs @ fam.s_rest_mm))
+        )
     return out
 
 
-def _refine(rm: ResponseMaps, ts: TemplateSet, wt: np.ndarray, u: int, v: int, m: int,
-            h: int) -> tuple[float, int, int, int]:
+def _refine(
+    rm: ResponseMaps, ts: TemplateSet, wt: np.ndarray, u: int, v: int, m: int, h: int
+) -> tuple[float, int, int, int]:
     """Best pixel within +-t/2 (1 px steps) and the neighbouring spins of the same family and zone."""
     same = np.flatnonzero((ts.family == ts.family[m]) & (ts.zone == ts.zone[m]))
     spins = ts.spin_deg[same]
@@ -572,7 +634,9 @@ def _refine(rm: ResponseMaps, ts: TemplateSet, wt: np.ndarray, u: int, v: int, m
         n = int(ts.n_pts[mm])
         for dv in range(-h, h + 1):
             for du in range(-h, h + 1):
-                s = _score_at(rm.lin, rm.pad, rm.t, ts.dx[mm], ts.dy[mm], ts.ori[mm], wt[mm], n, u + du, v + dv)
+                s = _score_at(
+                    rm.lin, rm.pad, rm.t, ts.dx[mm], ts.dy[mm], ts.ori[mm], wt[mm], n, u + du, v + dv
+                )
                 if s > best[0]:
                     best = (s, u + du, v + dv, int(mm))
     return best

@@ -24,10 +24,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.lib.data import DATA_DIR  # noqa: E402
 from service.decode import TEMPLATE_FACE_BUDGET, fit_face_budget  # noqa: E402
-from service.vision.build.grid import GRID_DEFAULTS  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.frames import Pose  # noqa: E402
 from service.vision.geometry.render import render  # noqa: E402
+from service.vision.model.grid import GRID_DEFAULTS  # noqa: E402
 
 N_VIEWS = 20
 

@@ -29,7 +29,7 @@ from service.schemas import (
     validate_part,
 )
 from service.vision.bank import TemplateBank
-from service.vision.build.appearance import Appearance
+from service.vision.model.appearance import Appearance
 from service.vision.pipeline import estimate_image
 
 

@@ -3,7 +3,7 @@
 An integrator shows the part to the camera at poses it knows (a fixture, a robot holding it, or an
 estimate an operator confirmed) and posts each photo with its camera and ``T_cam_obj``
 (``POST /models/{id}/references``). The store keeps them (``refs:<id>``, at most ``MAX_REFERENCES``);
-``pipeline.teach_appearance`` turns them into the part's ``Appearance`` (``vision/build/appearance.py``),
+``pipeline.teach_appearance`` turns them into the part's ``Appearance`` (``vision/model/appearance.py``),
 which every estimate of the model is then judged on too (``verdict.APPEARANCE_WEIGHTS``).
 
 The estimate never teaches on its hot path: ``appearance_of`` keeps each model's taught appearance in a
@@ -33,10 +33,10 @@ from service.schemas import CellCamera, Options, Refined, Transform, parse_json_
 from service.stores.base import Store, references_full
 from service.vision import pipeline
 from service.vision.bank import TemplateBank
-from service.vision.build.appearance import Appearance
 from service.vision.geometry.camera import Intrinsics, project
 from service.vision.geometry.frames import Pose
 from service.vision.memo import Memo
+from service.vision.model.appearance import Appearance
 
 MAX_REFERENCES = 12  # a few views covering the part's sides teach it; more only fill the store
 MIN_IN_IMAGE = 0.5  # share of the part's projected bounding box that must lie inside the photo

@@ -59,7 +59,7 @@ class Settings(BaseSettings):
         "the first real estimate does not pay ~0.5 s of kernel loading")
     template_grid: dict[str, Any] = Field(
         default_factory=dict,
-        description="template-grid defaults (keys of service.vision.build.grid.GRID_DEFAULTS); an upload's "
+        description="template-grid defaults (keys of service.vision.model.grid.GRID_DEFAULTS); an upload's "
         "`templates` JSON overrides them key by key")
 
     @field_validator("store", mode="before")

@@ -3,7 +3,7 @@ delete, the estimate judged on the taught colours, and one test per integrator m
 
 The known answers: paper/images/0001.png with its ground-truth pose and K (paper/gt.jsonl, first row)
 is a photo of the sprayer at a known pose. Posted as a reference, it must teach exactly what
-``build.appearance.teach`` teaches from that view directly (the sprayer is revolved: from the view
+``model.appearance.teach`` teaches from that view directly (the sprayer is revolved: from the view
 turned to 12 spins about its axis, built here); the sprayer is plain grey, so the answer says so and an
 estimate of the same photo finds the part at the truth judged as untaught. The L-bracket (no symmetry)
 painted a colour per side and rendered at a known pose is taught as shot, and its estimate reads the
@@ -26,11 +26,11 @@ from service.settings import Settings
 from service.stores import open_store
 from service.stores.base import model_id
 from service.vision import pipeline
-from service.vision.build.appearance import ReferenceView, teach
 from service.vision.estimate.verdict import MIN_SCORE
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Ry, rotation_angle_deg
 from service.vision.geometry.render import render
+from service.vision.model.appearance import ReferenceView, teach
 from tests.api_helpers import wait_built
 from tests.test_api_cell import INTRINSICS as LBRACKET_CAMERA
 from tests.test_api_cell import T_CAM_OBJ as LBRACKET_T_CAM_OBJ
@@ -117,7 +117,7 @@ def estimate(client, image: bytes, camera: dict, mid: str | None = None, distanc
 
 
 def taught_directly(client, mid: str, image: bytes, camera: dict, truth: dict, spins: int = 1):
-    """What ``build.appearance.teach`` teaches from the view itself, outside the service: with
+    """What ``model.appearance.teach`` teaches from the view itself, outside the service: with
     ``spins``, from the view turned to that many spins about the model's y axis (the sprayer's, through
     its origin): T_cam_obj @ Ry(s). (No lens distortion here: the photo is the ideal camera's.)"""
     with open_store(client.cache) as store:
@@ -303,7 +303,7 @@ def test_a_pose_in_metres_or_off_the_image_is_422(untaught, frame, truth):
 
 def test_a_pose_that_shows_no_face_teaches_nothing_and_is_422(untaught, frame, truth, monkeypatch):
     """In the image but every face grazing or too small: simulated by a photo no face is taught from."""
-    from service.vision.build.appearance import Appearance
+    from service.vision.model.appearance import Appearance
 
     client, (image, camera) = untaught, frame
 

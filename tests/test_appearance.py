@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.vision.build.appearance import SPIN_VIEWS, ReferenceView, spun, teach, vertex_normals
 from service.vision.estimate.evidence import ColourFrame, evidence
 from service.vision.estimate.verdict import (
     APPEARANCE_WEIGHTS,
@@ -21,6 +20,7 @@ from service.vision.estimate.verdict import (
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz
 from service.vision.geometry.render import render
+from service.vision.model.appearance import SPIN_VIEWS, ReferenceView, spun, teach, vertex_normals
 
 # One colour per side of the box (+x, -x, +y, -y, +z, -z), BGR, far apart.
 SIDE_BGR = np.array([[200, 40, 40], [40, 200, 40], [40, 40, 200], [200, 200, 40], [200, 40, 200],

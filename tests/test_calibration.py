@@ -13,11 +13,11 @@ import pytest
 import trimesh
 
 from service.vision import pipeline
-from service.vision.build.appearance import Appearance
 from service.vision.estimate.verdict import MIN_SCORE, Verdict
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz
 from service.vision.geometry.render import render
+from service.vision.model.appearance import Appearance
 from service.vision.pipeline import teach
 from tests.test_appearance import (
     BOX,
@@ -148,7 +148,7 @@ def test_a_look_alike_in_the_reference_photos_raises_the_part_s_operating_point_
 
 
 def test_photos_that_agree_less_are_used_only_once_calibrated():
-    from service.vision.build.appearance import MIN_AGREEMENT, MIN_AGREEMENT_CALIBRATED
+    from service.vision.model.appearance import MIN_AGREEMENT, MIN_AGREEMENT_CALIBRATED
 
     faces = np.full((1, 3), 100.0, np.float32)
     between = 0.5 * (MIN_AGREEMENT + MIN_AGREEMENT_CALIBRATED)

@@ -16,7 +16,7 @@ from service.jobs.calibrations import Calibrator, lease_key
 from service.stores import open_store
 from service.stores.base import Store
 from service.vision import pipeline
-from service.vision.build.appearance import Appearance
+from service.vision.model.appearance import Appearance
 from tests.test_references import _reference
 
 WRONG = 0.97  # the wrong score the stand-in search reports

@@ -130,7 +130,7 @@ def test_the_clis_estimate_is_judged_on_the_model_s_reference_photos(tmp_path, d
     used.)"""
     from service import references
     from service.schemas import Transform
-    from service.vision.build import appearance
+    from service.vision.model import appearance
 
     monkeypatch.setattr(appearance.Appearance, "used", property(lambda self: True))
     mesh = str(data_dir / "models" / "sprayer.stl")

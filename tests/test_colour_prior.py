@@ -3,10 +3,10 @@ of two regions with the same silhouette, the one in the part's colours is propos
 
 import numpy as np
 
-from service.vision.build.appearance import Appearance
 from service.vision.estimate import colour_prior, regions, segmentation
 from service.vision.geometry.camera import project
 from service.vision.geometry.render import rasterise_roi
+from service.vision.model.appearance import Appearance
 from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM, taught_colour_density
 from tests.test_regions import H, K, W, template_pose
 

@@ -133,7 +133,7 @@ def test_the_region_and_shading_measure_alone_equals_the_whole_evidence_s(box_ph
 def box_photo():
     """The painted box at the first pose, its colours taught from that photo, and a nearer block's depth
     over part of it."""
-    from service.vision.build.appearance import ReferenceView, teach
+    from service.vision.model.appearance import ReferenceView, teach
     from tests.test_appearance import BOX, INTR, _photo
 
     image, _ = _photo(_SCORED_POSES[0])

@@ -1,4 +1,4 @@
-"""Mirror planes of a part and the outline twin they give a pose (build/mirror.py), and the estimate's
+"""Mirror planes of a part and the outline twin they give a pose (model/mirror.py), and the estimate's
 twin check, on constructed parts with known planes and rendered scenes with known poses."""
 
 from __future__ import annotations
@@ -8,12 +8,12 @@ import pytest
 import trimesh
 
 from service.vision import pipeline
-from service.vision.build.mirror import mirror_planes, twin_poses
 from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.evidence import colour_frame
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz, rotation_angle_deg
 from service.vision.geometry.render import render, render_shaded
+from service.vision.model.mirror import mirror_planes, twin_poses
 from service.vision.pipeline import PoseCandidate
 from service.vision.reference.metrics import mspd_px
 from tests.scenes import l_block

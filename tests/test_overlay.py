@@ -34,7 +34,7 @@ OTHER = Pose.from_euler_xyz_deg((-40.0, 10.0, 70.0), (-150.0, 60.0, 500.0))  # a
 
 @pytest.fixture(scope="module")
 def bank(tless06_mesh):
-    from service.vision.build.templates import build_bank
+    from service.vision.model.templates import build_bank
 
     return build_bank(tless06_mesh, symmetry="none", grid={"render_px": 100, "supersample": 1,
                                                            "view_step_deg": 60.0})

@@ -11,9 +11,9 @@ import pytest
 from service import references
 from service.stores import open_store
 from service.vision import pipeline
-from service.vision.build.appearance import Appearance
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
+from service.vision.model.appearance import Appearance
 
 INTR = Intrinsics(500.0, 500.0, 159.5, 119.5)
 SIZE = (320, 240)

@@ -51,14 +51,14 @@ TINY_GRID = {"render_px": 100, "supersample": 1}
 
 @pytest.fixture(scope="module")
 def tless_bank(tless06_mesh):
-    from service.vision.build.templates import build_bank
+    from service.vision.model.templates import build_bank
 
     return build_bank(tless06_mesh, symmetry="none", grid={**TINY_GRID, "view_step_deg": 60.0})
 
 
 @pytest.fixture(scope="module")
 def sprayer_bank(sprayer_mesh):
-    from service.vision.build.templates import build_bank
+    from service.vision.model.templates import build_bank
 
     return build_bank(sprayer_mesh, symmetry="auto", grid={**TINY_GRID, "tilt_step_deg": 30.0})
 

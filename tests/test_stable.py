@@ -1,4 +1,4 @@
-"""Stable resting poses (service/vision/build/stable.py): known answers from boxes and a prism."""
+"""Stable resting poses (service/vision/model/stable.py): known answers from boxes and a prism."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.vision.build.stable import MIN_PROBABILITY, stable_poses
+from service.vision.model.stable import MIN_PROBABILITY, stable_poses
 from tests.tolerances import STABLE_ATOL
 
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.vision.build.symmetry import SYMMETRY_THRESHOLD, detect_symmetry, score_candidates
 from service.vision.geometry.frames import R_between
+from service.vision.model.symmetry import SYMMETRY_THRESHOLD, detect_symmetry, score_candidates
 from tests.tolerances import SYMMETRY_AXIS_DEG, SYMMETRY_POINT_MM
 
 

@@ -9,17 +9,17 @@ import pytest
 import trimesh
 
 from service.vision.bank import TemplateBank
-from service.vision.build.grid import (
+from service.vision.geometry.camera import Intrinsics, project
+from service.vision.geometry.frames import Pose, R_from_rotvec, Rx, Ry, rotation_angle_deg
+from service.vision.geometry.silhouette import border_at_pose
+from service.vision.model.grid import (
     GRID_DEFAULTS,
     fibonacci_directions,
     grid_rotations,
     look_from_R,
     merge_grid,
 )
-from service.vision.build.templates import build_bank, template_camera, template_pose
-from service.vision.geometry.camera import Intrinsics, project
-from service.vision.geometry.frames import Pose, R_from_rotvec, Rx, Ry, rotation_angle_deg
-from service.vision.geometry.silhouette import border_at_pose
+from service.vision.model.templates import build_bank, template_camera, template_pose
 from tests.tolerances import (
     BACKPROJECT_PX,
     BORDER_RADIAL_PX,
@@ -285,7 +285,7 @@ def test_merge_grid_keeps_defaults_and_types():
 
 
 def test_draw_template_shows_mesh_and_border(sprayer_bank):
-    from service.vision.build.templates import draw_template
+    from service.vision.model.templates import draw_template
 
     bank, _ = sprayer_bank
     intr, (w, h) = template_camera(bank)

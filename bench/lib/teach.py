@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 
 from bench.lib.data import gt_bank, read_colour, read_gt
-from service.vision.build.appearance import Appearance
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
 from service.vision.geometry.render import rasterise_roi
+from service.vision.model.appearance import Appearance
 from service.vision.pipeline import DEFAULT_POLICY, Policy, operating_point, teach_appearance
 
 

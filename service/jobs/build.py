@@ -81,7 +81,7 @@ def register_upload(store: Store, settings: Settings, data: bytes, *, filename: 
     overrides ``settings.template_grid`` key by key; the record keeps exactly what was asked for
     (the vision code tells an explicit option from a default).
     """
-    from service.vision.build.grid import merge_grid
+    from service.vision.model.grid import merge_grid
 
     grid = {**settings.template_grid, **(templates or {})}
     try:  # bad options fail the upload now (422), not the build later

@@ -1,6 +1,6 @@
 """The template bank: everything an estimate needs about a model, as stacked arrays.
 
-Built once per model (``build/templates.build_bank``), stored as one record, loaded in milliseconds.
+Built once per model (``model/templates.build_bank``), stored as one record, loaded in milliseconds.
 Templates are camera-independent: template ``n`` is the model seen with rotation ``R_tpl_obj[n]``
 with its reference point ``centre_obj`` on the optical axis at ``reference_distance_mm``; its
 borderline points carry normalised image coordinates, an edge orientation and the 3D model point
@@ -48,10 +48,10 @@ class TemplateBank:
     symmetry_axis_obj: np.ndarray | None  # (3,) unit, object frame; None = no continuous symmetry
     symmetry_point_obj: np.ndarray | None  # (3,) mm, object frame: a point on that axis (None with it)
     grid: dict = field(default_factory=dict)  # the grid options the bank was built with (steps, ranges)
-    # --- resting on a plane (build/stable.py): one pose per family, most probable first ---
+    # --- resting on a plane (model/stable.py): one pose per family, most probable first ---
     R_rest_obj: np.ndarray | None = None  # (S, 3, 3) float64: object -> resting frame (+z up)
     rest_probability: np.ndarray | None = None  # (S,) float64; None (both): a version-1 bank
-    # --- mirror planes (build/mirror.py): each gives every pose an outline twin ---
+    # --- mirror planes (model/mirror.py): each gives every pose an outline twin ---
     mirror_normals_obj: np.ndarray | None = None  # (M, 3) unit; M = 0: none; None (both): before version 3
     mirror_point_obj: np.ndarray | None = None  # (3,) mm: a point of every plane
 

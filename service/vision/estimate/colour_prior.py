@@ -3,7 +3,7 @@
 On lmo_dev the region hierarchy (``regions.py``) holds a node matching the true part's visible pixels
 (IoU >= 0.6) on 67 queries where none of the first proposals is right: the proposals are ranked by
 silhouette fit alone, and a distractor's region fits a silhouette as well as the part's. A taught part
-(``build/appearance.py``) also says which colours it is made of: the likelihood ratio of a pixel's
+(``model/appearance.py``) also says which colours it is made of: the likelihood ratio of a pixel's
 colour under the part's colours (its taught faces, weighted by area) against the frame's own colours
 (Swain and Ballard's histogram back-projection) says how much a region looks like the part, whatever
 the pose. Colours are binned in Lab with a coarse L (the light varies across the part and the scene)

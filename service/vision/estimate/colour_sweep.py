@@ -31,10 +31,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from service.vision.build.templates import TemplateBank
 from service.vision.estimate.regions import MASK_PX, silhouettes
 from service.vision.estimate.search import Hypothesis
 from service.vision.memo import Memo
+from service.vision.model.templates import TemplateBank
 
 GRID = 16  # silhouette grid per placement (MASK_PX / 4)
 SHIFT = 1  # grid px: placements are tried this far round each blob's centre, each way

@@ -315,7 +315,7 @@ def _shading(win: _Window, inside: _Inside | None) -> tuple[float, float]:
 
 def appearance(win: _Window, fid: np.ndarray, inside: _Inside | None, face_bgr: np.ndarray
                ) -> tuple[float, float]:
-    """How well the taught face colours (``build/appearance.py``) predict the inside's colours ->
+    """How well the taught face colours (``model/appearance.py``) predict the inside's colours ->
     (correlation, share of the inside whose face colour is known).
 
     The correlation is Pearson's over the three channels pooled, after each channel's mean is removed,
@@ -401,7 +401,7 @@ def evidence(bank: TemplateBank, pose: Pose, intr: Intrinsics, frame: ColourFram
     background (left out of the outside). Touching copies otherwise look like a part on a background
     of its own colour.
 
-    ``face_bgr``: the part's taught colours (``build/appearance.Appearance.face_bgr``), if it has any:
+    ``face_bgr``: the part's taught colours (``model/appearance.Appearance.face_bgr``), if it has any:
     the evidence then includes ``appearance`` and ``appearance_known``."""
     c = _covered(bank, pose, intr, frame, others_depth_mm)
     if c is None:

@@ -1,7 +1,7 @@
 """The search on a supporting plane: stable resting pose x spin about the plane normal x position on it.
 
 A part lying on a known plane has 3 degrees of freedom left once its resting pose family is chosen
-(``build/stable.py``, stored in the bank): the spin ``psi`` about the plane's normal and its position on
+(``model/stable.py``, stored in the bank): the spin ``psi`` about the plane's normal and its position on
 the plane. With the resting frame ``rest`` (+z = the plane's normal, towards the camera),
 ``R_cam_obj = R_cam_rest @ Rz(psi) @ R_rest_obj[s]`` is fixed by (s, psi), and the pixel ``uv`` where the
 bank's reference point ``centre_obj`` is seen fixes the rest: that point lies on the viewing ray through

@@ -42,7 +42,7 @@ LOWER_IS_BETTER = ("unexplained", "generic")
 # the score), fitted by ``bench/fit_verdict.py`` on the tuning sets (120 synthetic scenes of
 # bench/synth_scenes.py, seed 11, and clutter2 / absent2); evidence it dropped has weight 0.
 WEIGHTS = {"bias": -3.935, "unexplained": -0.339, "region_global": 5.265, "shading_r2": 4.329}
-# The score of a part with taught colours (``build/appearance.py``; its evidence has ``appearance``): the
+# The score of a part with taught colours (``model/appearance.py``; its evidence has ``appearance``): the
 # untextured shading model says nothing about a printed or painted part, the taught colours do. Fitted by
 # ``bench/appearance.py`` (logistic, signs fixed) on half of lmo_dev's images (the even ones among those
 # not used as reference photos), reported on the other half. (Its teaching now hides the other annotated

@@ -10,7 +10,7 @@ the supersampling. Otherwise ``p_obj`` is the point on the viewing ray at the de
 covered sub-pixel (the paper's eq. 7). This replaces the paper's scan-line node procedure (kept, for
 reference and tests, in ``reference/scanline.py``), with the same border on the paper's cases.
 
-The bank's templates (``build/templates.py``) and the refinement (``estimate/refine.py``, through
+The bank's templates (``model/templates.py``) and the refinement (``estimate/refine.py``, through
 ``border_with_tangents``) trace their borders here.
 """
 

@@ -29,8 +29,8 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from service.vision.build.symmetry import surface_centroid_and_axes
 from service.vision.geometry.frames import Pose
+from service.vision.model.symmetry import surface_centroid_and_axes
 
 MIRROR_TOLERANCE = 0.01  # of the diameter: a tessellation's facets, not a lug or a boss
 # A quantile, not the mean: a boss on one side is a few per cent of the surface, but far off.

@@ -24,11 +24,11 @@ import trimesh
 
 from service.vision import threads
 from service.vision.bank import TemplateBank
-from service.vision.build.grid import MAX_VIEWS, count_views, grid_rotations, merge_grid
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
 from service.vision.geometry.render import rasterise_roi
 from service.vision.geometry.silhouette import extract_border, mesh_topology
+from service.vision.model.grid import MAX_VIEWS, count_views, grid_rotations, merge_grid
 
 AUTO_DISTANCE_DIAMETERS = 2.5  # the default reference distance is at least this many diameters
 MIN_DISTANCE_DIAMETERS = 1.2  # an explicit reference distance must be at least this many diameters
@@ -60,7 +60,7 @@ def _resolve_symmetry(mesh: trimesh.Trimesh, symmetry: str):
     if symmetry == "none":
         return None, None
     if symmetry == "auto":
-        from service.vision.build.symmetry import detect_symmetry
+        from service.vision.model.symmetry import detect_symmetry
 
         found = detect_symmetry(mesh)
         return (None, None) if found is None else found
@@ -135,8 +135,8 @@ def build_bank(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict | No
             done += 1
             if progress is not None:
                 progress(done / len(R_all))
-    from service.vision.build.mirror import mirror_planes
-    from service.vision.build.stable import stable_poses
+    from service.vision.model.mirror import mirror_planes
+    from service.vision.model.stable import stable_poses
 
     stable = stable_poses(mesh, axis_obj=axis, diameter_mm=diameter)
     mirrors = mirror_planes(mesh, axis_obj=axis)

@@ -15,13 +15,13 @@ def build_templates(mesh: trimesh.Trimesh, *, symmetry: str = "auto", grid: dict
                     progress: Callable[[float], None] | None = None) -> TemplateBank:
     """Mesh in mm -> template bank. ``symmetry``: "auto" | "none" | "x" | "y" | "z"."""
     threads.use_budget()
-    from service.vision.build.templates import build_bank
+    from service.vision.model.templates import build_bank
 
     return build_bank(mesh, symmetry=symmetry, grid=grid or {}, progress=progress)
 
 
 def template_picture(bank: TemplateBank, k: int) -> np.ndarray:
     """(H, W, 3) uint8 BGR picture of template k: projected mesh | extracted borderline."""
-    from service.vision.build.templates import draw_template
+    from service.vision.model.templates import draw_template
 
     return draw_template(bank, k)

@@ -12,8 +12,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from service.vision.bank import TemplateBank
-from service.vision.build.appearance import Appearance
-from service.vision.build.mirror import twin_poses
 from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.contour_region import region_contour_refine
 from service.vision.estimate.evidence import ColourFrame, evidence
@@ -22,6 +20,8 @@ from service.vision.estimate.verdict import decide
 from service.vision.geometry.camera import Intrinsics, project
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz
 from service.vision.geometry.plane import Plane, rest_gap_mm
+from service.vision.model.appearance import Appearance
+from service.vision.model.mirror import twin_poses
 from service.vision.pipeline import timing
 from service.vision.pipeline.part import mirror_planes_of
 from service.vision.pipeline.policy import DEFAULT_POLICY, Policy
@@ -195,7 +195,7 @@ class Checker:
                            edge_support=ev["edge_support"], unexplained=ev["unexplained"])
 
     def twin_checked(self, c: Checked, others_depth_mm: np.ndarray | None) -> Checked:
-        """``c``, or if it is found, it or its better-verified mirror twin (``build/mirror.py``), with
+        """``c``, or if it is found, it or its better-verified mirror twin (``model/mirror.py``), with
         ``evidence.twin_score``: the best score of the other poses (close to ``score``, the image hardly
         tells them apart). A twin whose unrefined evidence scores under ``policy.twin_unrefined_min_score``
         is not refined (that is its score); one refined back onto the found pose is that pose (no score).

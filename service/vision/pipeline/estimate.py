@@ -10,7 +10,6 @@ from dataclasses import replace
 import numpy as np
 
 from service.vision.bank import TemplateBank
-from service.vision.build.appearance import Appearance
 from service.vision.deadline import Deadline
 from service.vision.estimate.edges import to_grey_u8
 from service.vision.estimate.evidence import ColourFrame, colour_frame
@@ -19,6 +18,7 @@ from service.vision.estimate.search import SearchParams
 from service.vision.estimate.verdict import Verdict, decide
 from service.vision.geometry.camera import Intrinsics, undistort_image
 from service.vision.geometry.plane import Plane
+from service.vision.model.appearance import Appearance
 from service.vision.pipeline import timing
 from service.vision.pipeline.check import verify_candidates
 from service.vision.pipeline.instances import sort_instances, verify_instances
@@ -56,7 +56,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     ``plane``: the supporting plane (see ``propose``); a refined pose whose lowest point lies more than
     ``plane_tolerance_mm`` above or below it is not found (verdict reason "off_plane").
 
-    ``appearance``: the part's colours taught from reference photos (``build/appearance.py``): every
+    ``appearance``: the part's colours taught from reference photos (``model/appearance.py``): every
     candidate is then judged on them too (``verdict.APPEARANCE_WEIGHTS``), unless the photos show a plain
     part or disagree (``Appearance.used``).
     """

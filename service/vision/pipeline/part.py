@@ -9,8 +9,8 @@ import numpy as np
 import trimesh
 
 from service.vision.bank import TemplateBank
-from service.vision.build.mirror import MirrorPlanes, mirror_planes
 from service.vision.memo import Memo
+from service.vision.model.mirror import MirrorPlanes, mirror_planes
 
 _MADE = Memo(8)
 
@@ -20,7 +20,7 @@ def _mesh(bank: TemplateBank) -> trimesh.Trimesh:
 
 
 def mirror_planes_of(bank: TemplateBank) -> MirrorPlanes:
-    """The part's mirror planes (``build/mirror.py``); made for a bank of format version < 3."""
+    """The part's mirror planes (``model/mirror.py``); made for a bank of format version < 3."""
     if bank.mirror_normals_obj is not None:
         return MirrorPlanes(np.asarray(bank.mirror_normals_obj, float).reshape(-1, 3),
                             np.asarray(bank.mirror_point_obj, float))
@@ -34,7 +34,7 @@ def resting_rotations(bank: TemplateBank) -> np.ndarray:
         return np.asarray(bank.R_rest_obj, float).reshape(-1, 3, 3)
 
     def make() -> np.ndarray:
-        from service.vision.build.stable import stable_poses
+        from service.vision.model.stable import stable_poses
 
         return stable_poses(_mesh(bank), axis_obj=bank.symmetry_axis_obj,
                             diameter_mm=bank.diameter_mm).R_rest_obj

@@ -13,9 +13,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from service.vision.build.appearance import Appearance
 from service.vision.estimate.search import SearchParams
 from service.vision.estimate.verdict import MIN_SCORE
+from service.vision.model.appearance import Appearance
 
 DEFAULT_DISTANCE_RANGE_MM = (300.0, 1200.0)  # searched when the request gives no distance
 

@@ -16,7 +16,6 @@ import numpy as np
 
 from service.vision import threads
 from service.vision.bank import TemplateBank
-from service.vision.build.appearance import Appearance
 from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.chamfer import distance_tensor
 from service.vision.estimate.coarse import coarse_search
@@ -32,6 +31,7 @@ from service.vision.estimate.search import Hypothesis, SearchParams, poses_of
 from service.vision.geometry.camera import Intrinsics, project
 from service.vision.geometry.frames import Pose, canonical_spin
 from service.vision.geometry.plane import Plane
+from service.vision.model.appearance import Appearance
 from service.vision.pipeline import timing
 from service.vision.pipeline.part import face_areas_mm2, resting_rotations
 from service.vision.pipeline.policy import DEFAULT_DISTANCE_RANGE_MM, DEFAULT_POLICY, Policy

@@ -17,7 +17,10 @@ import cv2
 import numpy as np
 
 from service.vision.bank import TemplateBank
-from service.vision.build.appearance import (
+from service.vision.estimate.evidence import ColourFrame, colour_frame, evidence
+from service.vision.geometry.camera import Intrinsics, undistort_image
+from service.vision.geometry.frames import Pose
+from service.vision.model.appearance import (
     MIN_AGREEMENT_KNOWN,
     Appearance,
     ReferenceView,
@@ -28,9 +31,6 @@ from service.vision.build.appearance import (
     spun,
     teach,
 )
-from service.vision.estimate.evidence import ColourFrame, colour_frame, evidence
-from service.vision.geometry.camera import Intrinsics, undistort_image
-from service.vision.geometry.frames import Pose
 from service.vision.pipeline.check import NOT_POLISHED
 from service.vision.pipeline.estimate import estimate
 from service.vision.pipeline.policy import DEFAULT_POLICY, Policy
@@ -42,7 +42,7 @@ _NEVER = 2.0  # a min_score no pose reaches: every candidate is judged
 
 def teach_appearance(bank: TemplateBank, views: list[tuple], *, calibrate: bool = False,
                      policy: Policy = DEFAULT_POLICY) -> Appearance:
-    """The part's colours (``build/appearance.py``) from reference photos: each a decoded image (BGR, or
+    """The part's colours (``model/appearance.py``) from reference photos: each a decoded image (BGR, or
     grey), its camera and the part's pose in it (T_cam_obj), and optionally an (H, W) bool mask of the
     pixels where something else hides the part. A revolved part is taught per ring about its axis
     (``appearance.SPIN_VIEWS``). Whether an estimate uses them (``Appearance.used``): the untextured

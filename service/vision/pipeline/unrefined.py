@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 
 from service.vision.bank import TemplateBank
-from service.vision.build.appearance import Appearance
 from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.evidence import REGION_AND_SHADING, ColourFrame, evidence, region_and_shading
 from service.vision.estimate.verdict import APPEARANCE_WEIGHTS, WEIGHTS, verification_score
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
+from service.vision.model.appearance import Appearance
 from service.vision.pipeline import timing
 from service.vision.pipeline.types import PoseCandidate
 
