@@ -57,8 +57,8 @@ def _progress(location: str, mid: str, done: threading.Event, stream=None) -> No
 def _ensure_built(args: argparse.Namespace, settings, store) -> dict:
     """Register the mesh (idempotent) and build its templates here and now unless they are ready.
     On a terminal, a progress line on stderr while it builds."""
+    from service.form_parts import parse_json_object
     from service.jobs.build import register_upload, run_build
-    from service.schemas import parse_json_object
 
     mesh = _existing(args.mesh, "mesh", "give an STL, OBJ, PLY, OFF or GLB file")
     templates = parse_json_object(args.templates, "templates")
@@ -203,8 +203,8 @@ def _camera_text(arg: str) -> str:
 
 def cmd_estimate(args: argparse.Namespace) -> int:
     from service.cell_io import check_robot_pose, estimate_options, estimate_result, grasps_of, resolve_camera
+    from service.form_parts import parse_json_object
     from service.references import appearance_of
-    from service.schemas import parse_json_object
     from service.stores import open_store
 
     settings = _settings(args)

@@ -13,6 +13,7 @@ from service.bounds import check_apparent_size, check_plausible
 from service.cell import Grasp, base_from_cam, place_grasps, rigid
 from service.decode import decode_image, image_size
 from service.errors import UnprocessableError
+from service.form_parts import parse_json_object, parse_json_part, validate_part
 from service.schemas import (
     Camera,
     CameraRef,
@@ -24,9 +25,6 @@ from service.schemas import (
     Options,
     PlacedGraspJSON,
     PoseJSON,
-    parse_json_object,
-    parse_json_part,
-    validate_part,
 )
 from service.vision.bank import TemplateBank
 from service.vision.model.appearance import Appearance

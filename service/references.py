@@ -29,7 +29,8 @@ from service.bounds import DISTANCE_MM, check_plausible
 from service.cell_io import check_image_size
 from service.decode import decode_image
 from service.errors import NotFoundError, UnprocessableError
-from service.schemas import CellCamera, Options, Refined, Transform, parse_json_object, validate_part
+from service.form_parts import parse_json_object, validate_part
+from service.schemas import CellCamera, Options, Refined, Transform
 from service.stores.base import Store, references_full
 from service.vision import pipeline
 from service.vision.bank import TemplateBank

@@ -2,17 +2,16 @@
 
 Requests are converted to vision dataclasses once (``Camera.to_intrinsics``); results are built
 from pipeline dataclasses once (``EstimateResult.from_output``). Nothing below ``service.api``
-sees these classes. Lengths are millimetres, angles degrees, poses ``T_cam_obj`` (see API.md).
+sees these classes (``reference_schemas`` holds the reference photos' models, ``form_parts`` the
+parsing of a form part's JSON into them). Lengths are millimetres, angles degrees, poses
+``T_cam_obj`` (see API.md).
 """
 
 from __future__ import annotations
 
 import base64
-import json
-import math
-import re
 from datetime import datetime
-from typing import Annotated, Any, Literal, TypeVar
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import (
@@ -20,13 +19,11 @@ from pydantic import (
     ConfigDict,
     Field,
     PrivateAttr,
-    ValidationError,
     field_validator,
     model_validator,
 )
 
 from service.cell import extent_warnings, nearest_rotation, rigid, snap_warning, watertight_warnings
-from service.errors import UnprocessableError, validation_sentence
 from service.vision.estimate.plane import PLANE_TOLERANCE_MM
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, euler_xyz_deg_from_R, quat_xyzw_from_R
@@ -385,75 +382,6 @@ class Error(BaseModel):
     detail: str = Field(description="one sentence: what is wrong and how to fix it")
 
 
-# --- parsing a form part's JSON into a wire model -------------------------------------------------
-
-M = TypeVar("M", bound=BaseModel)
-
-
-def _finite(v: Any) -> bool:
-    if isinstance(v, float):
-        return math.isfinite(v)
-    if isinstance(v, dict):
-        return all(_finite(x) for x in v.values())
-    if isinstance(v, list):
-        return all(_finite(x) for x in v)
-    return True
-
-
-MAX_JSON_DEPTH = 16  # the deepest any part's JSON needs is 2 (distance_range_mm, dist)
-_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
-_NOT_BRACKET = re.compile(r"[^\[\]{}]+")
-_JSON_TYPES = {dict: "an object", list: "an array", str: "a string", bool: "a boolean", int: "a number",
-               float: "a number", type(None): "null"}
-
-
-def json_depth(text: str) -> int:
-    """How deeply ``text``'s arrays and objects nest (brackets inside strings do not count); linear."""
-    depth = deepest = 0
-    for ch in _NOT_BRACKET.sub("", _JSON_STRING.sub("", text)):
-        depth += 1 if ch in "[{" else -1
-        deepest = max(deepest, depth)
-    return deepest
-
-
-def parse_json_object(text: str | None, what: str) -> dict[str, Any]:
-    """A form part holding a JSON object -> dict; 422 (one sentence) on bad JSON, non-objects, NaN or
-    nesting deeper than ``MAX_JSON_DEPTH`` (checked before parsing: 100,000 brackets made json.loads
-    raise RecursionError, a 500)."""
-    if text is None or not text.strip():
-        return {}
-    if json_depth(text) > MAX_JSON_DEPTH:
-        raise UnprocessableError(f"The {what} part nests arrays or objects more than {MAX_JSON_DEPTH} levels "
-                                 "deep; send a flat JSON object such as {\"key\": value}")
-    try:
-        value = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise UnprocessableError(f"The {what} part is not valid JSON ({e.msg} at character {e.pos}); send a "
-                                 "JSON object such as {\"key\": value}") from e
-    except RecursionError as e:  # a guard behind the depth check
-        raise UnprocessableError(f"The {what} part nests too deeply; send a flat JSON object") from e
-    if not isinstance(value, dict):
-        got = _JSON_TYPES.get(type(value), type(value).__name__)
-        raise UnprocessableError(f"The {what} part must be a JSON object, not {got}; send {{\"key\": value, "
-                                 "...}} or leave the part out")
-    if not _finite(value):
-        raise UnprocessableError(f"The {what} part contains NaN or Infinity; send finite numbers only")
-    return value
-
-
-def parse_json_part(text: str | None, model: type[M], what: str) -> M:
-    """A form part holding JSON -> the wire model; 422 with one sentence naming the first problem."""
-    return validate_part(parse_json_object(text, what), model, what)
-
-
-def validate_part(value: dict[str, Any], model: type[M], what: str) -> M:
-    """A form part's parsed JSON object -> the wire model; 422 with one sentence naming the first problem."""
-    try:
-        return model.model_validate(value)
-    except ValidationError as e:
-        raise UnprocessableError(validation_sentence(e.errors(), what=what)) from e
-
-
 # --- the cell: cameras with extrinsics, robot poses, grasps (service.cell) ---------------------------
 
 CAMERA_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
@@ -602,91 +530,6 @@ class PlacedGraspJSON(BaseModel):
         "without extrinsics, the camera's viewing direction (+z): the sort key, smallest first")
     spin_deg: float = Field(description="rotation about a revolved part's symmetry axis applied to the grasp "
                             "to make it the most reachable of its equivalent ones; 0 for other parts")
-
-
-# --- reference photos (service.references) ----------------------------------------------------------
-
-class ReferencePhoto(BaseModel):
-    """One stored reference photo (without its image bytes)."""
-
-    index: int = Field(description="0-based, in the order the photos were posted")
-    camera: CellCamera = Field(description="the camera as the post gave it, resolved (a registered camera's "
-                               "intrinsics as they were then)")
-    camera_name: str | None = Field(description="the registered camera the post named, else null")
-    T_cam_obj: Transform = Field(description="the part's pose in the photo (R snapped to a rotation)")
-    width: int = Field(description="image width, pixels")
-    height: int = Field(description="image height, pixels")
-
-
-class ReferenceAdded(BaseModel):
-    """``POST /models/{id}/references``: the photo is stored and taught."""
-
-    model_id: str
-    index: int = Field(description="the new photo's index")
-    references: int = Field(description="reference photos the model has now")
-    max_references: int = Field(description="the most it keeps (DELETE them to start again)")
-    known_fraction: float = Field(description="0..1, share of the mesh's faces whose colour all the photos "
-                                  "teach")
-    faces_taught_by_this_view: int = Field(description="faces this photo alone shows well enough to teach")
-    plain: bool = Field(description="the photos show a plain part (the untextured shading model explains "
-                        "them, in shades of one colour): its taught colours are kept but not used, and "
-                        "estimates are judged as for an untaught part")
-    reference_shading_r2: float = Field(description="0..1, median over the photos of the untextured shading "
-                                        "model's fit at their poses (plain at >= 0.8 with hue_share < 0.01)")
-    hue_share: float = Field(description="0..1, share of the taught colours' variance off their main colour "
-                             "axis")
-    agreement: float | None = Field(description="-1..1, median over the photos of each one's appearance as "
-                                    "the others teach it (null with one photo): do they agree on colours?")
-    used: bool = Field(description="whether estimates are judged on the taught colours: not plain, and the "
-                       "photos agree (agreement >= 0.6, or >= 0.5 once calibrated; so at least two "
-                       "photos)")
-    calibrated: bool = Field(False, description="the part's operating point is calibrated on these photos: "
-                             "each was searched as a frame, taught by the others, and every pose found there "
-                             "away from the photo's own (MSPD >= 20 px at 640 px wide) counted as a wrong "
-                             "answer this cell can produce; a calibrated part is also searched more widely")
-    calibration_wrong_score: float | None = Field(
-        None, description="0..1, the highest verification score of such a wrong pose (null: none judged, or "
-                          "not calibrated)")
-    min_score: float | None = Field(
-        None, description="0..1, the operating point this part's estimates use when options.min_score is not "
-                          "given: above calibration_wrong_score, never under the global default (null: the "
-                          "global default, the colours not used)")
-    calibration_status: str | None = Field(
-        None, description="the calibration of the current photos: 'queued', 'running' (see "
-                          "calibration_progress), 'calibrated', 'not_requested' (posted with "
-                          "calibrate=false), 'not_calibratable' (one photo, or photos plain or disagreeing); "
-                          "it runs in the "
-                          "background after the POST answers: poll GET /models/{id}/references")
-    calibration_progress: float | None = Field(
-        None, description="0..1, the share of the stored photos searched by the running calibration (1 when "
-                          "calibrated; null when none is due)")
-    warnings: list[str] = Field(
-        default_factory=list, description="what the post was accepted with but should fix: a pose's (or the "
-        "inline camera's extrinsics') R off orthonormal by up to 0.01 (max |R R^T - I|), snapped to the "
-        "nearest rotation; empty when nothing")
-
-
-class References(BaseModel):
-    """``GET /models/{id}/references``."""
-
-    model_id: str
-    references: int = Field(description="reference photos stored (0: the part is untaught)")
-    max_references: int
-    known_fraction: float | None = Field(
-        description="0..1, share of the mesh's faces whose colour the photos teach; null while the model "
-                    "is not ready")
-    plain: bool | None = Field(None, description="as in the POST's answer; null without photos or while the "
-                               "model is not ready")
-    reference_shading_r2: float | None = None
-    hue_share: float | None = None
-    agreement: float | None = None
-    used: bool | None = None
-    calibrated: bool | None = None
-    calibration_wrong_score: float | None = None
-    min_score: float | None = None
-    calibration_status: str | None = Field(None, description="as in the POST's answer; null without photos")
-    calibration_progress: float | None = None
-    views: list[ReferencePhoto]
 
 
 Options.model_rebuild()

@@ -18,8 +18,9 @@ from service.api.deps import (
     read_upload,
 )
 from service.errors import NotFoundError
+from service.form_parts import parse_json_object
 from service.jobs.build import register_upload
-from service.schemas import ModelInfo, SymmetryOption, Units, parse_json_object
+from service.schemas import ModelInfo, SymmetryOption, Units
 from service.vision.pipeline import template_picture
 
 router = APIRouter(tags=["models"])

@@ -12,6 +12,7 @@ from starlette.concurrency import run_in_threadpool
 from service.api import error_responses
 from service.api.deps import CalibratorDep, ModelRecord, ReadyModel, SettingsDep, StoreDep, read_upload
 from service.cell_io import resolve_camera, snap_warnings
+from service.reference_schemas import ReferenceAdded, ReferencePhoto, References
 from service.references import (
     MAX_REFERENCES,
     add_reference,
@@ -19,7 +20,6 @@ from service.references import (
     calibration_state,
     parse_pose,
 )
-from service.schemas import ReferenceAdded, ReferencePhoto, References
 from service.vision.estimate.verdict import MIN_SCORE
 from service.vision.pipeline import operating_point
 
