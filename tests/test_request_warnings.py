@@ -63,3 +63,16 @@ def test_a_distance_ten_times_too_far_gets_the_sentence_through_the_api(tmp_path
     assert right["found"] and right["warnings"] == []
     assert not off["found"] and any("options.distance_mm 5000 mm" in w and "times as far" in w
                                     for w in off["warnings"]), off["warnings"]
+
+
+def test_a_frame_without_the_part_gets_no_sentence(sprayer_bank, data_dir):
+    """The probe must not blame the request for an empty scene: absent/0001 (the sprayer not in it) at a
+    plausible distance is not found, and nothing is said about the distance or the focal length."""
+    import cv2
+    import numpy as np
+
+    row = json.loads((data_dir / "absent" / "gt.jsonl").read_text().splitlines()[0])
+    image = cv2.imread(str(data_dir / "absent" / row["image"]))
+    intr = Intrinsics.from_K(np.array(row["K"]))
+    out = pipeline.estimate_image(sprayer_bank, image, intr, distance_mm=550.0)
+    assert not out.found and out.warnings == ()

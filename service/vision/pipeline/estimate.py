@@ -7,6 +7,7 @@ import math
 import time
 from dataclasses import replace
 
+import cv2
 import numpy as np
 
 from service.vision.bank import TemplateBank
@@ -210,7 +211,11 @@ def misscaled_request(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, d
     """A sentence naming ``distance_mm`` and the focal length when the part, not found at ``distance_mm``,
     is found (verified) at a depth far from it, searched nearer and farther up to
     ``policy.scale_probe_factor`` times (a focal length 10 times too large reads as the part 10 times
-    farther); else None."""
+    farther); else None. The search is ``policy``'s lighter probe (``scale_probe_search``) on the frame
+    shrunk to at most ``scale_probe_max_width``."""
+    image, intr = _shrunk(image, intr, policy.scale_probe_max_width)
+    probe_policy = replace(policy, search_params=policy.scale_probe_search,
+                           n_verify=policy.scale_probe_verify)
     h, w = image.shape[:2]
     f_diameter = max(intr.fx, intr.fy) * bank.diameter_mm
     # nearer than its radius plus this, a point of the part projects farther out than the bound allows
@@ -222,7 +227,7 @@ def misscaled_request(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, d
     nearer = _probe_bands(nearest, distance_mm / agree - radius_mm, band)
     farther = _probe_bands(distance_mm * agree + radius_mm, farthest, band)
     for lo, hi in nearer + farther:
-        probe = estimate(bank, image, intr, distance_range_mm=(lo, hi), top_k=1, policy=policy)
+        probe = estimate(bank, image, intr, distance_range_mm=(lo, hi), top_k=1, policy=probe_policy)
         if probe.found:
             z_mm = float((probe.refined or probe.coarse).pose.t_mm[2])
             return (f"The part is not found at options.distance_mm {distance_mm:g} mm but is found "
@@ -230,6 +235,17 @@ def misscaled_request(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, d
                     "in millimetres and that the camera's fx and fy are in pixels, calibrated at this "
                     "image's resolution")
     return None
+
+
+def _shrunk(image: np.ndarray, intr: Intrinsics, max_width: int) -> tuple[np.ndarray, Intrinsics]:
+    """``image`` scaled down by a whole factor to at most ``max_width`` px wide, with its intrinsics."""
+    factor = -(-image.shape[1] // max_width)
+    if factor <= 1:
+        return image, intr
+    h, w = image.shape[0] // factor, image.shape[1] // factor
+    small = cv2.resize(image[:h * factor, :w * factor], (w, h), interpolation=cv2.INTER_AREA)
+    return small, Intrinsics(intr.fx / factor, intr.fy / factor, (intr.cx + 0.5) / factor - 0.5,
+                             (intr.cy + 0.5) / factor - 0.5, intr.dist)
 
 
 def _probe_bands(lo: float, hi: float, band: float) -> list[tuple[float, float]]:
