@@ -90,7 +90,6 @@ def test_scored_region_proposals_take_the_painted_rotation_not_its_turned_twin(m
     from service.vision.geometry.frames import Pose, Rx, Ry, Rz
 
     monkeypatch.setattr(ta, "FLOOR_BGR", (30.0, 30.0, 30.0))
-    monkeypatch.setattr(regions, "LOOKALIKE_GATE", False)
     mesh = trimesh.Trimesh(ta.BOX.vertices_mm, ta.BOX.faces, process=False)
     bank = pipeline.build_templates(mesh, symmetry="none",
                                     grid={"view_step_deg": VIEW_STEP_DEG, "render_px": 160})

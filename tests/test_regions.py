@@ -213,21 +213,19 @@ def test_a_part_view_with_its_own_shape_is_not_a_look_alike(data_dir, part):
     assert own - generic > max(0.05, regions.LOOKALIKE_MARGIN)  # clearly: above any margin tried
 
 
-def test_the_gate_drops_every_region_at_an_impossible_margin(l_block_bank, monkeypatch):
+def test_the_gate_drops_every_region_at_an_impossible_margin(l_block_bank):
     """IoU is at most 1: a margin of 1 leaves no region (a generic shape always overlaps a little);
     the gate off keeps them."""
     bank = l_block_bank
     truth = Pose(Rz(25.0) @ Rx(-40.0) @ Ry(30.0), np.array([60.0, -30.0, 650.0]))
     image = checker_scene(bank, truth)
-    monkeypatch.setattr(regions, "LOOKALIKE_MARGIN", 1.0)
-    props, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=5)
+    props, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=5, lookalike_margin=1.0)
     assert props == []
-    monkeypatch.setattr(regions, "LOOKALIKE_GATE", False)
-    props, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=5)
+    props, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=5, lookalike_margin=None)
     assert props and all(np.isnan(p.lookalike_gap) for p in props)
 
 
-def test_the_gate_only_removes_proposals(l_block_bank, monkeypatch):
+def test_the_gate_only_removes_proposals(l_block_bank):
     """A region the gate drops is not refilled: at a margin no region can miss (-inf) the proposals are
     the gate-off ones, each with its gap; at a margin of 1 none is left."""
     bank = l_block_bank
@@ -237,12 +235,8 @@ def test_the_gate_only_removes_proposals(l_block_bank, monkeypatch):
     def keys(props):
         return [(p.region, p.hyp.view, round(p.hyp.phi_deg, 6), round(p.hyp.z_mm, 6)) for p in props]
 
-    monkeypatch.setattr(regions, "LOOKALIKE_GATE", False)
-    off, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=8)
-    monkeypatch.setattr(regions, "LOOKALIKE_GATE", True)
-    monkeypatch.setattr(regions, "LOOKALIKE_MARGIN", -np.inf)
-    on, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=8)
+    off, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=8, lookalike_margin=None)
+    on, _ = regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=8, lookalike_margin=-np.inf)
     assert off and keys(on) == keys(off)
     assert all(np.isfinite(p.lookalike_gap) for p in on)
-    monkeypatch.setattr(regions, "LOOKALIKE_MARGIN", 1.0)
-    assert regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=8)[0] == []
+    assert regions.propose(bank, image, K, DEFAULT_DISTANCE_RANGE_MM, n_out=8, lookalike_margin=1.0)[0] == []

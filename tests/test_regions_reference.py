@@ -81,8 +81,6 @@ def test_segment_and_proposals_match_the_reference_on_real_photos(data_dir, monk
 
     from service.vision.pipeline import build_templates
 
-    monkeypatch.setattr(regions, "LOOKALIKE_GATE", False)  # the reference has no look-alike gate
-
     for name, idx in (("clutter2", 4), ("absent2", 23), ("lmo_dev", 0)):
         set_dir = data_dir / name
         g = json.loads((set_dir / "gt.jsonl").read_text().splitlines()[idx])
@@ -94,7 +92,9 @@ def test_segment_and_proposals_match_the_reference_on_real_photos(data_dir, monk
         assert_same_regions(reg_a, reg_b)
         for n_out in (30, 5, 1):
             pa, _ = ref.propose_py(bank, img, K, DEFAULT_DISTANCE_RANGE_MM, n_out=n_out, reg=reg_a)
-            pb, _ = regions.propose(bank, img, K, DEFAULT_DISTANCE_RANGE_MM, n_out=n_out, reg=reg_b)
+            # the reference has no look-alike gate
+            pb, _ = regions.propose(bank, img, K, DEFAULT_DISTANCE_RANGE_MM, n_out=n_out, reg=reg_b,
+                                    lookalike_margin=None)
             assert 0 < len(pa) <= n_out
             assert [key(p) for p in pa] == [key(p) for p in pb]
 

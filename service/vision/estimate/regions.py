@@ -56,8 +56,7 @@ DISTANCE_SLACK = 1.25  # a given distance: the part's reference point lies withi
 # clearly better than the best of a family of generic shapes (``shapes.generic_shapes``) does: a plain
 # cylinder's or box's region is fitted by a revolved part's side view at IoU ~0.9 too, but a cylinder
 # fits it better. Regions whose best part IoU is under best generic IoU + LOOKALIKE_MARGIN propose nothing.
-LOOKALIKE_GATE = True
-LOOKALIKE_MARGIN = 0.0  # IoU (docs/detection-history.md, session 13)
+LOOKALIKE_MARGIN = 0.0  # IoU (docs/detection-history.md)
 GATE_CHUNK = 16  # regions gated per matrix product (the next ones to reach the front)
 
 
@@ -238,13 +237,14 @@ def candidate_stages(sil: Silhouettes, reg: Regions, K: np.ndarray, bank: Templa
 
 def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
             distance_range_mm: tuple[float, float], *, n_out: int = 30,
-            reg: Regions | None = None, purity: np.ndarray | None = None, per_region: int = PER_REGION
-            ) -> tuple[list[RegionProposal], Regions]:
+            reg: Regions | None = None, purity: np.ndarray | None = None, per_region: int = PER_REGION,
+            lookalike_margin: float | None = LOOKALIKE_MARGIN) -> tuple[list[RegionProposal], Regions]:
     """Region proposals, best IoU first, mutually distinct (reference points, depths or rotations apart).
 
     ``purity``: (C,) per node of ``reg`` in [0, 1], how much it looks like the part (``colour_prior``,
     for a taught part): the regions matched are then the purest, and proposals come best IoU x purity
-    first. ``per_region``: distinct fits a region may propose."""
+    first. ``per_region``: distinct fits a region may propose. ``lookalike_margin``: the look-alike gate's
+    margin (None: no gate, what the reference implementation is compared with)."""
     sil = silhouettes(bank)
     canon = canonical_templates(bank, sil)
     t_area = _CANON_AREA.get(bank, "area", lambda: canon.sum(2))  # (S, N)
@@ -327,7 +327,7 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
     nxt = [0] * len(info)  # each region's next fit to try
     survivors: list[list[RegionProposal]] = [[] for _ in info]
 
-    generic, generic_area = generic_family() if LOOKALIKE_GATE else (None, None)
+    generic, generic_area = generic_family() if lookalike_margin is not None else (None, None)
     gap = [float("nan")] * len(info)
     # regions in the order their first fits reach the front: the gate reads them in chunks of this order
     # (one product per chunk reads the family's masks once for many regions: one region at a time is
@@ -389,7 +389,7 @@ def propose(bank: TemplateBank, image_bgr: np.ndarray, K: np.ndarray,
         kept_uv[len(kept)] = r.hyp.uv
         kept.append(r)
     if generic is not None:
-        kept = [r for r in kept if r.lookalike_gap >= LOOKALIKE_MARGIN]
+        kept = [r for r in kept if r.lookalike_gap >= lookalike_margin]
     return kept, reg
 
 
