@@ -37,6 +37,10 @@ class Deadline:
         self.checks = 0  # candidates checked so far
         self._lap: float | None = None
 
+    def enter(self, stage: str) -> None:
+        """The frame moves on to ``stage`` (what ``stopped_in`` names if the deadline is hit there)."""
+        self.stage = stage
+
     def mark_hit(self) -> None:
         if not self.hit:
             self.hit, self.stopped_in = True, self.stage
@@ -130,4 +134,18 @@ class RunningMean:
         return self.value + self.HIGH_SPREADS * self.spread
 
 
-NO_DEADLINE = Deadline(None)
+class _Unbounded(Deadline):
+    """The default of functions called without a deadline: it never expires, and as one object shared by
+    every frame and thread it keeps no frame's stage or checks."""
+
+    def __init__(self) -> None:
+        super().__init__(None)
+
+    def enter(self, stage: str) -> None:
+        pass
+
+    def checked(self) -> None:
+        pass
+
+
+NO_DEADLINE = _Unbounded()

@@ -16,7 +16,7 @@ x 8), the first 5 by unrefined taught score hold one within 20 px of the truth o
 pass has one); of 200 (25 a blob) on 56 (12 new), all 200 on 67 (20 new) (a 32 x 32 grid; 16 x 16 did
 as well on the 75 queries compared). Through the whole search (``TaughtSearch.colour_sweep``, a
 calibrated part's last pass) it adds right answers (seven reference choices 279 -> 310) and, on one, a
-wrong one at the operating point's floor: it is off in the service (docs/detection-history.md, session 20).
+wrong one at the operating point's floor: it is off in the service (docs/detection-history.md).
 
 Each placement's silhouette is read on a ``GRID`` x ``GRID`` grid (the template masks pooled 4 x 4) from a
 patch warped once per (location, depth, in-plane angle) with a margin, so the shifts round the blob's

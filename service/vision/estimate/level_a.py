@@ -325,8 +325,8 @@ def _level_a_layout(dt_q, tau_q, reach, stride) -> tuple[np.ndarray, int, int, i
 def _block_chunks(au, av, tile, count, stride) -> list[np.ndarray]:
     """Level A's anchors (indices) in chunks of whole blocks (``_scan_level_a_bands``'s) of at least
     LEVEL_A_CHUNK_ANCHORS anchors, the blocks with the most edge pixels round an anchor first: chunks of
-    scattered anchors would split ``_scan_bands``' bands into many short ones (with session 23's block
-    bounds a 450 ms deadline made level A 22 -> 33 ms a paper frame that way)."""
+    scattered anchors would split ``_scan_bands``' bands into many short ones (a 450 ms deadline made
+    level A 22 -> 33 ms a paper frame that way)."""
     if len(au) == 0:
         return []
     span = stride * LEVEL_A_BLOCK_ANCHORS

@@ -11,8 +11,7 @@ on. Evidence the fit gave no weight is still reported: the reason of a rejection
 furthest from a true pose's.
 
 How closely a plain shape fits the pose's silhouette (``generic``, ``shapes.genericity``) and how far
-apart the two outlines lie (``distinct_px``) are reported and not scored (docs/detection-history.md,
-sessions 12-15).
+apart the two outlines lie (``distinct_px``) are reported and not scored (docs/detection-history.md).
 """
 
 from __future__ import annotations
@@ -50,7 +49,7 @@ WEIGHTS = {"bias": -3.935, "unexplained": -0.339, "region_global": 5.265, "shadi
 APPEARANCE_WEIGHTS = {"bias": -5.58, "appearance": 4.43, "appearance_known": 3.76, "region_global": 4.29}
 # Operating point (``options.min_score`` moves it).
 MIN_SCORE = 0.98
-# Refits on the visible part's evidence and on ``generic``: docs/detection-history.md, sessions 12-15.
+# Refits on the visible part's evidence and on ``generic``: docs/detection-history.md.
 
 # The reasons a verdict gives.
 REASONS = ("found", "no_candidate", "outside_distance_range", "outside_image", "off_plane", "low_support",
@@ -64,7 +63,7 @@ TYPICAL_RIGHT = {"edge_support": 0.9, "unexplained": 0.1, "colour_edge": 0.95, "
                  "shading_r2": 0.9, "generic": 0.88, "appearance": 0.74}
 # A pose whose outline lies more than a fifth outside the image is not checked ("outside_image"): the
 # evidence sees only its inside part, and the cut-off part is where a wrong pose on the part's own visible
-# piece would be refuted (docs/detection-history.md, session 23).
+# piece would be refuted (docs/detection-history.md).
 MIN_IN_IMAGE = 0.8
 
 

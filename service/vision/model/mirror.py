@@ -9,7 +9,7 @@ under orthographic projection). The two reflections make a proper rotation,
 
 so the twin is a real pose of the part, seen with its near and far faces swapped. A silhouette-driven
 search and refinement cannot tell the two apart (a flat L-shaped block lying on a real copy, seen
-flipped: session 14's instance and plane benchmarks); shading and region evidence can, so the estimate
+flipped, in the instance and plane benchmarks); shading and region evidence can, so the estimate
 checks the twin of a found pose and keeps whichever verifies better (``pipeline.check_candidate``).
 
 Detection: surface samples reflected through a candidate plane must land on the surface: the

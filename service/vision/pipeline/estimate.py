@@ -86,7 +86,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
         plane=plane, several=max_instances > 1, deferred=later if max_instances <= 1 else None, colour=ideal,
         policy=policy, **_taught_passes(bank, frame, intr, appearance, search, deadline, policy))
     t0 = time.perf_counter()
-    deadline.stage = "checks"
+    deadline.enter("checks")
     kw = dict(distance_mm=distance_mm, distance_range_mm=judged_range(distance_mm, distance_range_mm),
               min_score=min_score, n_channels=p.n_channels, deadline=deadline, plane=plane,
               plane_tolerance_mm=plane_tolerance_mm, appearance=appearance, policy=policy)
@@ -138,7 +138,7 @@ def _later_checks(bank: TemplateBank, checked: list[Checked], later: list[LaterP
         if (checked and checked[0].verdict.found) or not deadline.allows(timing.CHECK_MS.high):
             break
         t2 = time.perf_counter()
-        deadline.stage = "second pass"
+        deadline.enter("second pass")
         cands = later_pass()
         if search is not None and not search.order_first:
             cands = ByColours(bank, frame, intr, appearance, deadline).order(cands)
@@ -146,7 +146,7 @@ def _later_checks(bank: TemplateBank, checked: list[Checked], later: list[LaterP
         checked = sorted(checked + verify_candidates(bank, cands, grey, frame, intr, **kw),
                          key=lambda c: (c.verdict.found, c.verdict.score), reverse=True)
         more += cands
-        deadline.stage = "checks"
+        deadline.enter("checks")
     return checked, more, t_later
 
 
@@ -244,8 +244,7 @@ def _shrunk(image: np.ndarray, intr: Intrinsics, max_width: int) -> tuple[np.nda
         return image, intr
     h, w = image.shape[0] // factor, image.shape[1] // factor
     small = cv2.resize(image[:h * factor, :w * factor], (w, h), interpolation=cv2.INTER_AREA)
-    return small, Intrinsics(intr.fx / factor, intr.fy / factor, (intr.cx + 0.5) / factor - 0.5,
-                             (intr.cy + 0.5) / factor - 0.5, intr.dist)
+    return small, intr.scaled(1.0 / factor)
 
 
 def _probe_bands(lo: float, hi: float, band: float) -> list[tuple[float, float]]:

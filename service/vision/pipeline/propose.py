@@ -80,7 +80,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     t0 = time.perf_counter()
     grey = to_grey_u8(image)
     h, w = grey.shape
-    deadline.stage = "edges"
+    deadline.enter("edges")
     seg = detect_segments_in_bands(grey)
     if intr.dist is not None:
         # Straighten the edges once; everything after works in the ideal pinhole camera intr.K.
@@ -94,7 +94,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     dtt_b = distance_tensor(seg, n_channels=p.n_channels, scale=p.fine_scale)
     t_edges = timing.ms_since(t0)
     t1 = time.perf_counter()
-    deadline.stage = "search"
+    deadline.enter("search")
     search = Search(bank, intr, (h, w), p, distance_mm, rng, deadline, roi_uv, several)
     rest = resting_rotations(bank) if plane is not None else None
     if rest is not None and len(rest):
