@@ -111,8 +111,9 @@ class Builder:
                 self.submit(mid)
             else:
                 store.update(mid, status="failed", error=sentence(
-                    f"The build process died {MAX_BUILD_DEATHS} times (out of memory?); use a coarser "
-                    "template grid or a smaller mesh"))
+                    f"The build process died {MAX_BUILD_DEATHS} times (out of memory? its limit is "
+                    f"{self.memory_mb:,} MB, POSE_BUILD_MEMORY_MB); use a coarser template grid or a smaller "
+                    "mesh, or raise the limit"))
 
     def shutdown(self) -> None:
         """Stop building now: running builds go back to "queued" and resume at the next start-up."""
