@@ -20,6 +20,7 @@ not in the service (docs/detection-history.md, "Switches taken out of the servic
 
 from __future__ import annotations
 
+import functools
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
 
@@ -28,6 +29,8 @@ import numpy as np
 
 from service.vision import threads
 from service.vision.bank import TemplateBank
+from service.vision.estimate.edge_agreement import agreeing_bits
+from service.vision.estimate.gradients import orientation_bits
 from service.vision.estimate.shapes import distinct_px, genericity
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
@@ -92,6 +95,16 @@ class ColourFrame:
     @property
     def shape(self) -> tuple[int, int]:
         return self.bgr.shape[:2]
+
+    @functools.cached_property
+    def orientations(self) -> np.ndarray:
+        """(H, W) uint8 gradient orientation bits (``gradients.orientation_bits``), made once per frame."""
+        return orientation_bits(self.bgr)
+
+    @functools.cached_property
+    def agreeing(self) -> np.ndarray:
+        """The orientation bits spread over ``edge_agreement``'s tolerance, made once per frame."""
+        return agreeing_bits(self.orientations)
 
 
 @dataclass(frozen=True)

@@ -462,7 +462,8 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
                 seg: Segments | None = None, *, distance_mm: float | None = None, n_channels: int = 16,
                 score_px: float = 3.0, loss: str = "soft_l1", max_iter: int = 30, residual: str = "dt+line",
                 dt_scale: float = DT_SCALE, tau_px: float = DT_TAU_PX, f_scale_px: float = 0.5,
-                dt_f_scale_px: float = DT_F_SCALE_PX, interior_later: bool = False) -> RefineResult:
+                dt_f_scale_px: float = DT_F_SCALE_PX, interior_later: bool = False,
+                accept: Callable[[Pose], bool] | None = None) -> RefineResult:
     """Refine ``pose0`` (T_cam_obj) against the edges of ``grey`` (H, W) uint8.
 
     ``seg``: LSD segments of the image at full resolution (None: detected here on the ROI around
@@ -472,6 +473,9 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     (dt to convergence, then line for the final iterations). ``max_iter``: function evaluations
     per least-squares run. The pose returned is ``pose0`` (canonicalised) with ``converged=False``
     when the refined pose does not keep the verification score.
+
+    ``accept``: a refined pose it refuses is not kept either (``pose0`` is returned, as above): on a
+    plane, a refinement that lifts the part off it or sinks it in.
 
     ``interior_later``: the interior check (``unexplained``, running on the background pool) is not
     waited for: ``unexplained`` is nan and ``unexplained_later()`` waits for it (the caller's evidence
@@ -557,7 +561,8 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     # Both poses are judged on the same 3D border points (re-extracted at the refined pose): borders
     # sampled at different densities score a few tenths of a percent apart.
     score0, cost0, capped0 = verify(border, pose0, ideal, dtt, score_px=score_px)
-    if last is None or score1 <= 0.0 or score1 < score0 - SCORE_SLACK or capped1 > capped0 + 1e-9:
+    if last is None or score1 <= 0.0 or score1 < score0 - SCORE_SLACK or capped1 > capped0 + 1e-9 or (
+            accept is not None and not accept(reported(pose))):
         return result(pose0, cost0, score0, iterations, score0, False)
     r = np.abs(last.fun)
     inl_thr = thr if thr is not None else (score_px if kind == "dt" else 1.0)

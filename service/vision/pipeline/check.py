@@ -14,16 +14,17 @@ import numpy as np
 from service.vision.bank import TemplateBank
 from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.contour_region import region_contour_refine
+from service.vision.estimate.edge_agreement import edge_agreement
 from service.vision.estimate.evidence import ColourFrame, evidence
 from service.vision.estimate.plane import PLANE_TOLERANCE_MM
-from service.vision.estimate.verdict import decide
+from service.vision.estimate.verdict import PLANE_WEIGHTS, decide
 from service.vision.geometry.camera import Intrinsics, project
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz
 from service.vision.geometry.plane import Plane, rest_gap_mm
 from service.vision.model.appearance import Appearance
 from service.vision.model.mirror import twin_poses
 from service.vision.pipeline import timing
-from service.vision.pipeline.part import mirror_planes_of
+from service.vision.pipeline.part import crease_edges_of, mirror_planes_of
 from service.vision.pipeline.policy import DEFAULT_POLICY, Policy
 from service.vision.pipeline.types import Checked, PoseCandidate, RefinedPose
 from service.vision.pipeline.unrefined import face_bgr_of, unrefined_score
@@ -35,7 +36,8 @@ Unexplained = float | Callable[[], float]
 
 
 def refine(bank: TemplateBank, best: PoseCandidate, grey: np.ndarray, intr: Intrinsics, *,
-           distance_mm: float | None, n_channels: int) -> tuple[RefinedPose, Unexplained]:
+           distance_mm: float | None, n_channels: int, accept: Callable[[Pose], bool] | None = None
+           ) -> tuple[RefinedPose, Unexplained]:
     """Refine a candidate -> (the kept pose, a callable waiting for its unexplained-edge ratio
     ``interior.unexplained_edge_ratio``, or the ratio itself).
 
@@ -48,7 +50,7 @@ def refine(bank: TemplateBank, best: PoseCandidate, grey: np.ndarray, intr: Intr
     from service.vision.estimate.refine import refine_pose
 
     r = refine_pose(bank, best.pose, grey, intr, None, distance_mm=distance_mm, n_channels=n_channels,
-                    interior_later=True)
+                    interior_later=True, accept=accept)
     return RefinedPose(r.pose, float(r.cost), float(r.score), int(r.iterations), float(r.inlier_ratio)), \
         (r.unexplained_later if r.unexplained_later is not None else r.unexplained)
 
@@ -61,18 +63,27 @@ def judge(bank: TemplateBank, c: Checked, frame: ColourFrame, intr: Intrinsics, 
     """``c`` with the verdict on its refined pose: the evidence measured there (``evidence``; the
     refinement's ``edge_support`` and ``unexplained`` edges with it), the distance range and the
     plane. ``unexplained`` may be a callable giving it (read after the evidence is measured).
-    ``weights``: the score's weights for a part without taught colours (``Policy.verdict_weights``;
-    None: the service's)."""
+    ``weights``: the score's weights for a part without taught colours and without a plane
+    (``Policy.verdict_weights``; None: the service's); on a plane, ``verdict.PLANE_WEIGHTS``."""
     pose = c.refined.pose
     ev = evidence(bank, pose, intr, frame, others_depth_mm, face_bgr_of(appearance)).as_dict()
     ev |= {"edge_support": edge_support, "unexplained": float(unexplained() if callable(unexplained)
                                                               else unexplained)}
+    ev |= edge_agreement(bank.vertices_mm, bank.faces, crease_edges_of(bank), pose, intr, frame.agreeing)
     gap = rest_gap_mm(bank, pose, plane) if plane is not None else None
-    untaught = weights is not None and "appearance" not in ev  # taught: ``verdict.APPEARANCE_WEIGHTS``
     v = decide(ev, z_mm=float(pose.t_mm[2]), distance_range_mm=distance_range_mm, min_score=min_score,
-               weights=dict(weights) if untaught else None, plane_gap_mm=gap,
-               plane_tolerance_mm=plane_tolerance_mm)
+               weights=_weights(ev, plane, weights), plane_gap_mm=gap, plane_tolerance_mm=plane_tolerance_mm)
     return Checked(c.candidate, c.refined, v)
+
+
+def _weights(ev: dict, plane: Plane | None, weights: tuple[tuple[str, float], ...] | None) -> dict | None:
+    """The score's weights: a taught part's (``verdict.APPEARANCE_WEIGHTS``: None here), on a plane
+    ``verdict.PLANE_WEIGHTS``, else ``weights`` (None: the service's)."""
+    if "appearance" in ev:
+        return None
+    if plane is not None:
+        return PLANE_WEIGHTS
+    return dict(weights) if weights is not None else None
 
 
 def same_place(bank: TemplateBank, a: Pose, b: Pose, K: np.ndarray, px: float, n_vertices: int) -> bool:
@@ -135,13 +146,24 @@ class Checker:
         return self.distance_mm is None and self.judge_kw.get("appearance") is not None
 
     def _refined(self, cand: PoseCandidate) -> tuple[RefinedPose, Unexplained]:
-        """``refine``, held at the searched range's bound its refinement passed (``_bound_passed``)."""
+        """``refine`` (on a plane, kept only if it stays on it: ``_on_plane``), held at the searched range's
+        bound its refinement passed (``_bound_passed``)."""
         kept, unexplained = refine(self.bank, cand, self.grey, self.intr, distance_mm=self.distance_mm,
-                                   n_channels=self.n_channels)
+                                   n_channels=self.n_channels, accept=self._on_plane(cand))
         bound = self._bound_passed(kept.pose)
         if bound is None:
             return kept, unexplained
         return self._refined_at(cand, kept.pose, bound)
+
+    def _on_plane(self, cand: PoseCandidate) -> Callable[[Pose], bool] | None:
+        """With a plane, and ``cand`` resting on it: a refined pose is kept only if it rests on it too."""
+        plane = self.judge_kw.get("plane")
+        if plane is None:
+            return None
+        tolerance = self.judge_kw.get("plane_tolerance_mm", PLANE_TOLERANCE_MM)
+        if abs(rest_gap_mm(self.bank, cand.pose, plane)) > tolerance:
+            return None
+        return lambda pose: abs(rest_gap_mm(self.bank, pose, plane)) <= tolerance
 
     def _refined_at(self, cand: PoseCandidate, pose: Pose, z_mm: float) -> tuple[RefinedPose, Unexplained]:
         """``refine`` from ``pose`` moved along its line of sight to depth ``z_mm``, the depth held there."""

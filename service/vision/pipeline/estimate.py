@@ -84,7 +84,9 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
         roi_uv=roi_uv, deadline=deadline,
         reserve_ms=timing.CHECK_MS.high + policy.search_reserve_checks * timing.CHECK_MS.value,
         plane=plane, several=max_instances > 1, deferred=later if max_instances <= 1 else None, colour=ideal,
-        policy=policy, **_taught_passes(bank, frame, intr, appearance, search, deadline, policy))
+        frame=frame,
+        policy=policy, max_instances=max_instances,
+        **_taught_passes(bank, frame, intr, appearance, search, deadline, policy))
     t0 = time.perf_counter()
     deadline.enter("checks")
     kw = dict(distance_mm=distance_mm, distance_range_mm=judged_range(distance_mm, distance_range_mm),

@@ -1,4 +1,5 @@
-"""What the estimate reads of the part beyond its templates: mirror planes, resting poses, face areas.
+"""What the estimate reads of the part beyond its templates: mirror planes, resting poses, face areas,
+crease edges.
 
 Each is the bank's, or, for a bank built before banks held it, made from its mesh once per bank.
 """
@@ -10,6 +11,7 @@ import trimesh
 
 from service.vision.bank import TemplateBank
 from service.vision.memo import Memo
+from service.vision.model.edge_points import crease_edges
 from service.vision.model.mirror import MirrorPlanes, mirror_planes
 
 _MADE = Memo(8)
@@ -49,3 +51,10 @@ def face_areas_mm2(bank: TemplateBank) -> np.ndarray:
         return 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
 
     return _MADE.get(bank, "face_area", make)
+
+
+_EDGES = Memo(32)
+
+def crease_edges_of(bank: TemplateBank) -> np.ndarray:
+    """(E, 2, 3) the part's crease edges (``model/edge_points.crease_edges``), made once per bank."""
+    return _EDGES.get(bank, "creases", lambda: crease_edges(bank.vertices_mm, bank.faces))

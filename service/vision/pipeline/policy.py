@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from service.vision.estimate.plane_match import GradientSearch
 from service.vision.estimate.search import SearchParams
 from service.vision.estimate.verdict import MIN_SCORE
 from service.vision.model.appearance import Appearance
@@ -58,6 +59,9 @@ class Policy:
     # the anytime search keeps this many mean checks on top of one check's high estimate: its own last
     # unit of work overruns by a part of the mean it was judged against
     search_reserve_checks: float = 0.25
+
+    # the gradient search of a part on a plane (``estimate/plane_match.py``)
+    gradient: GradientSearch = GradientSearch()
 
     # -- several instances: more proposals (each peak costs a level-B scan, each polished hypothesis a
     # refinement and its evidence), and a later peak's placement accepted further from the best: another

@@ -1,6 +1,7 @@
-"""The proposal passes: LSD edges, their distance tensor and the coarse search (the paper's method), or the
-plane search over a part's resting poses; then, run only when the first pass's candidates all fail, the
-peaks' other templates and, for a part with taught colours, region proposals and the colour sweep."""
+"""The proposal passes: LSD edges, their distance tensor and the coarse search (the paper's method), or,
+on a plane, the gradient search of every visible CAD edge and the plane search over a part's resting
+poses; then, run only when the first pass's candidates all fail, the peaks' other templates and, for a
+part with taught colours, region proposals and the colour sweep."""
 
 from __future__ import annotations
 
@@ -22,8 +23,9 @@ from service.vision.estimate.coarse import coarse_search
 from service.vision.estimate.colour_prior import part_density
 from service.vision.estimate.colour_sweep import colour_sweep
 from service.vision.estimate.edges import detect_segments_in_bands, to_grey_u8, undistort_segments
-from service.vision.estimate.evidence import ColourFrame
-from service.vision.estimate.plane import plane_search
+from service.vision.estimate.evidence import ColourFrame, colour_frame
+from service.vision.estimate.plane import plane_search, polish
+from service.vision.estimate.plane_match import gradient_search, matches_as_hypotheses, polish_on_gradients
 from service.vision.estimate.regions import bgr_u8, region_proposals, searched_range, working_likelihood
 from service.vision.estimate.roi import crop_segments, roi_mask
 from service.vision.estimate.roi import inside as roi_inside
@@ -33,7 +35,7 @@ from service.vision.geometry.frames import Pose, canonical_spin
 from service.vision.geometry.plane import Plane
 from service.vision.model.appearance import Appearance
 from service.vision.pipeline import timing
-from service.vision.pipeline.part import face_areas_mm2, resting_rotations
+from service.vision.pipeline.part import crease_edges_of, face_areas_mm2, resting_rotations
 from service.vision.pipeline.policy import DEFAULT_DISTANCE_RANGE_MM, DEFAULT_POLICY, Policy
 from service.vision.pipeline.types import PoseCandidate
 from service.vision.pipeline.unrefined import by_unrefined_score, unrefined_score
@@ -46,9 +48,11 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
             distance_range_mm: tuple[float, float] | None = None, params: SearchParams | None = None,
             roi_uv: np.ndarray | None = None, deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0,
             plane: Plane | None = None, several: bool = False, deferred: list[LaterPass] | None = None,
-            colour: np.ndarray | None = None, n_regions: int = 0, part_colours: np.ndarray | None = None,
+            colour: np.ndarray | None = None, frame: ColourFrame | None = None, n_regions: int = 0,
+            part_colours: np.ndarray | None = None,
             order: Order | None = None, score: Callable[[PoseCandidate], float] | None = None,
-            n_scored: int = 0, sweep_colours: bool = False, policy: Policy = DEFAULT_POLICY):
+            n_scored: int = 0, sweep_colours: bool = False, policy: Policy = DEFAULT_POLICY,
+            max_instances: int = 1):
     """The first pass -> (distinct candidates, lowest chamfer cost first; full-image segments; timing_ms
     with "edges" and "coarse").
 
@@ -62,13 +66,17 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     poses x spin about the plane's normal x position on the plane (``estimate/plane.py``) instead of
     all of 6D; ``distance_mm`` is then not used. A part without stable poses is searched in 6D.
 
-    ``several``: the frame may hold several instances (``distinct_candidates``' ``by_pose``).
+    ``several``: the frame may hold several instances (``distinct_candidates``' ``by_pose``);
+    ``max_instances`` of them, for the gradient search on a plane (``Policy.gradient``).
 
     ``deferred``: a list to which the later passes are appended, each a callable returning its distinct
     candidates: the 6D search's second pass (``coarse_search``: the level-A peaks' other templates), then
     with ``colour`` (the undistorted BGR image) and no ROI ``n_regions`` region proposals
     (``regions.region_proposals``), then with ``sweep_colours`` the silhouettes swept over the part's
     colours (``colour_sweep``). Without it there is no later pass.
+
+    ``frame``: the colour image as the evidence reads it (``evidence.colour_frame``: its gradient
+    orientations, made once per frame, are the gradient search's); made from ``image`` when not given.
 
     ``part_colours``: a taught part's colour density (``taught_colour_density``): the region proposals
     are ranked by how part-coloured each region is too, and the colour sweep reads it. ``order``: the later
@@ -101,7 +109,9 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
         ph = plane_search(bank, rest, dtt_b, intr, (h, w), plane, p, distance_range_mm=rng,
                           anchor_mask=anchor_mask, deadline=deadline,
                           reserve_ms=reserve_ms) if deadline.allows_first(reserve_ms) else []
-        cands = [candidate(bank, Pose(x.R, x.t), x.cost, x.score) for x in ph]
+        by_gradient = _gradient_proposals(bank, rest, frame or colour_frame(image), intr, plane, dtt_b, p,
+                                          max_instances, deadline, reserve_ms, policy)
+        cands = [candidate(bank, Pose(x.R, x.t), x.cost, x.score) for x in by_gradient + ph]
     else:
         later: list[Callable[[], list[Hypothesis]]] = []
         hyps = coarse_search(bank, dtt_b, intr, (h, w), p, distance_mm=distance_mm, distance_range_mm=rng,
@@ -113,6 +123,22 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
                                       sweep_colours)
     return (search.distinct(cands, roi_uv, several), seg,
             {"edges": t_edges, "coarse": timing.ms_since(t1)})
+
+
+def _gradient_proposals(bank: TemplateBank, rest: np.ndarray, frame: ColourFrame, intr: Intrinsics,
+                        plane: Plane, dtt_b, p: SearchParams, max_instances: int, deadline: Deadline,
+                        reserve_ms: float, policy: Policy) -> list:
+    """The gradient search's placements on the plane (``estimate/plane_match.py``: every visible CAD edge
+    by its gradient orientation, on the colour image), polished on the same gradients to a fraction of a
+    pixel, with their chamfer cost on the edges as the plane search's own. They come first: they see
+    curved, short and inner edges that the segments miss."""
+    if not deadline.allows_first(reserve_ms):
+        return []
+    matches, tpl = gradient_search(bank, crease_edges_of(bank), rest, frame.orientations, intr, plane,
+                                   policy.gradient, max_instances=max_instances)
+    hs = polish_on_gradients(bank, tpl, rest, matches_as_hypotheses(matches, tpl, intr), intr, plane,
+                             frame.agreeing)
+    return polish(bank, rest, hs, dtt_b, intr, plane, p, max_iter=0)
 
 
 def _within_roi(bank: TemplateBank, seg, intr: Intrinsics, roi_uv: np.ndarray, shape: tuple[int, int],

@@ -1,0 +1,173 @@
+"""Gradient orientations of a colour image, spread into LINE-2D response maps, and the template scores
+read from them.
+
+Per pixel: Sobel on each channel, the strongest channel's gradient, its orientation quantised to
+``N_ORI`` bins over 180 deg (the edge's polarity is not kept: a metal part is brighter or darker than
+the table depending on the light), where the magnitude reaches ``MAG_THRESHOLD``, kept only where at
+least 5 of its 3 x 3 neighbours agree (a stable direction, not noise). Near a bin boundary the
+neighbouring bin is set too. The bits are OR-ed over ``t`` x ``t`` pixels (the matching tolerance), then
+read as response maps: 4 where a point's own orientation is present, 1 where a neighbouring one is, else
+0, stored "linearised" (one map per offset mod t) so that a template scores on the t-pixel grid with
+contiguous adds (Hinterstoisser et al., LINE-2D).
+
+A template is a set of points (offset from an anchor pixel, orientation bin, weight summing to 1): its
+score at an anchor is the weighted mean response / 4, the share of its points whose gradient agrees.
+A half-hidden part scores its visible half, and texture does not add up beyond 1.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+
+N_ORI = 8  # orientation bins over 180 deg
+MAG_THRESHOLD = 40.0  # Sobel (3 x 3) magnitude on 0..255 channels below which a pixel has no orientation
+BLUR_SIGMA = 1.0  # Gaussian blur before the gradient (px)
+SOFT_DEG = 5.0  # image orientations this close to a bin boundary also set the neighbouring bin
+MAJORITY = 5  # of the 3 x 3 neighbours that must share a bin for a pixel to keep it
+
+
+def quantise(theta_rad: np.ndarray) -> np.ndarray:
+    """Directions (rad, any range) -> orientation bins 0..N_ORI-1 over 180 deg."""
+    a = np.mod(theta_rad, np.pi)
+    return np.minimum((a / np.pi * N_ORI).astype(np.int32), N_ORI - 1)
+
+
+@numba.njit(cache=True)
+def _majority(q, mask, majority, out):  # pragma: no cover - compiled
+    h, w = q.shape
+    hist = np.zeros(8, np.int32)
+    for v in range(1, h - 1):
+        for u in range(1, w - 1):
+            if not mask[v, u]:
+                continue
+            for k in range(8):
+                hist[k] = 0
+            for dv in range(-1, 2):
+                for du in range(-1, 2):
+                    if mask[v + dv, u + du]:
+                        hist[q[v + dv, u + du]] += 1
+            best = 0
+            for k in range(1, 8):
+                if hist[k] > hist[best]:
+                    best = k
+            if hist[best] >= majority:
+                out[v, u] = np.uint8(1 << best)
+
+
+def orientation_bits(image: np.ndarray, *, mag_threshold: float = MAG_THRESHOLD) -> np.ndarray:
+    """(h, w) uint8: bit b set where the image's strongest-channel gradient orientation is bin b."""
+    img = cv2.GaussianBlur(image.astype(np.float32), (0, 0), BLUR_SIGMA)
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
+    if gx.ndim == 2:
+        gx, gy = gx[..., None], gy[..., None]
+    m2 = gx * gx + gy * gy
+    c = np.argmax(m2, axis=2)[..., None]
+    gxs = np.take_along_axis(gx, c, 2)[..., 0]
+    gys = np.take_along_axis(gy, c, 2)[..., 0]
+    mag = np.sqrt(np.take_along_axis(m2, c, 2)[..., 0])
+    theta = np.arctan2(gys, gxs)
+    q = quantise(theta)
+    bits = np.zeros(q.shape, np.uint8)
+    _majority(q, mag > mag_threshold, MAJORITY, bits)
+    # an edge at 179 deg and one at 1 deg are the same edge: near a boundary the other bin is set too
+    a = np.degrees(np.mod(theta, np.pi)) / (180.0 / N_ORI)
+    frac = a - np.floor(a)
+    soft = SOFT_DEG / (180.0 / N_ORI)
+    on = bits > 0
+    lo = np.where(on & (frac < soft), 1 << ((q - 1) % N_ORI), 0)
+    hi = np.where(on & (frac > 1 - soft), 1 << ((q + 1) % N_ORI), 0)
+    return bits | lo.astype(np.uint8) | hi.astype(np.uint8)
+
+
+def spread(bits: np.ndarray, t: int) -> np.ndarray:
+    """OR of the bits over the t x t neighbourhood centred (to within a pixel) on each pixel."""
+    h, w = bits.shape
+    out = np.zeros_like(bits)
+    lo = -(t // 2)
+    for dv in range(lo, lo + t):
+        for du in range(lo, lo + t):
+            out[max(0, -dv):h - max(0, dv), max(0, -du):w - max(0, du)] |= \
+                bits[max(0, dv):h - max(0, -dv), max(0, du):w - max(0, -du)]
+    return out
+
+
+@dataclass(frozen=True)
+class ResponseMaps:
+    """``lin[o, ry, rx, gy + pad, gx + pad]``: the response (0, 1 or 4) to orientation o at pixel
+    (v, u) = (gy * t + ry, gx * t + rx); zero outside the image."""
+
+    lin: np.ndarray  # (N_ORI, t, t, Gh + 2 pad, Gw + 2 pad) uint8
+    pad: int
+    grid_shape: tuple[int, int]  # (Gh, Gw)
+    t: int
+
+
+def response_maps(bits: np.ndarray, t: int, pad: int) -> ResponseMaps:
+    """The linearised response maps of ``bits`` spread over t x t pixels, padded by ``pad`` grid cells."""
+    b_spread = spread(bits, t)
+    h, w = bits.shape
+    gh, gw = -(-h // t), -(-w // t)
+    b = np.zeros((gh * t, gw * t), np.uint8)
+    b[:h, :w] = b_spread
+    lin = np.zeros((N_ORI, t, t, gh + 2 * pad, gw + 2 * pad), np.uint8)
+    for o in range(N_ORI):
+        same = (b & (1 << o)) != 0
+        near = (b & ((1 << ((o + 1) % N_ORI)) | (1 << ((o - 1) % N_ORI)))) != 0
+        r = np.where(same, 4, np.where(near, 1, 0)).astype(np.uint8)
+        for ry in range(t):
+            for rx in range(t):
+                lin[o, ry, rx, pad:pad + gh, pad:pad + gw] = r[ry::t, rx::t]
+    return ResponseMaps(lin, pad, (gh, gw), t)
+
+
+@numba.njit(cache=True, nogil=True)
+def score_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, best, best_m):  # pragma: no cover - compiled
+    """Every template m at every grid cell of its rectangle ``cells[m]`` = (gx0, gy0, gx1, gy1): keeps
+    the best score and its template per cell in ``best`` / ``best_m`` (Gh, Gw)."""
+    acc = np.zeros(best.shape, np.float32)
+    for m in range(dx.shape[0]):
+        g0, h0, g1, h1 = cells[m, 0], cells[m, 1], cells[m, 2], cells[m, 3]
+        for gy in range(h0, h1):
+            for gx in range(g0, g1):
+                acc[gy, gx] = 0.0
+        for p in range(npts[m]):
+            ox = dx[m, p]
+            oy = dy[m, p]
+            w = wt[m, p] * 0.25
+            rx = ox % t
+            ry = oy % t
+            cx = (ox - rx) // t + pad
+            cy = (oy - ry) // t + pad
+            plane = lin[ori[m, p], ry, rx]
+            for gy in range(h0, h1):
+                row = plane[gy + cy]
+                for gx in range(g0, g1):
+                    acc[gy, gx] += w * row[gx + cx]
+        for gy in range(h0, h1):
+            for gx in range(g0, g1):
+                if acc[gy, gx] > best[gy, gx]:
+                    best[gy, gx] = acc[gy, gx]
+                    best_m[gy, gx] = m
+
+
+@numba.njit(cache=True, nogil=True)
+def score_at(lin, pad, t, dx, dy, ori, wt, n, u, v):  # pragma: no cover - compiled
+    """One template's score at anchor pixel (u, v), any pixel; 0 for points beyond the padding."""
+    s = 0.0
+    lim_y = lin.shape[3]
+    lim_x = lin.shape[4]
+    for p in range(n):
+        pu = u + dx[p]
+        pv = v + dy[p]
+        rx = pu % t
+        ry = pv % t
+        cy = (pv - ry) // t + pad
+        cx = (pu - rx) // t + pad
+        if 0 <= cy < lim_y and 0 <= cx < lim_x:
+            s += wt[p] * lin[ori[p], ry, rx, cy, cx]
+    return s / 4.0

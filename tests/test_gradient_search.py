@@ -1,0 +1,126 @@
+"""The gradient search of a part on a plane (service/vision/estimate/gradients.py, plane_match.py,
+edge_agreement.py, model/edge_points.py): orientations of known edges, scores against brute force, edge
+points on the model's edges, and copies found at their rendered placements.
+
+Scenes: tests/scenes.py's L-shaped block resting on a plane seen 40 deg from straight down, rendered by
+the project's rasteriser at 640 x 480.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.vision.estimate.edge_agreement import agreeing_bits, edge_agreement
+from service.vision.estimate.evidence import colour_frame
+from service.vision.estimate.gradients import N_ORI, orientation_bits, response_maps, score_at
+from service.vision.estimate.plane_match import (
+    GradientSearch,
+    gradient_search,
+    matches_as_hypotheses,
+    polish_on_gradients,
+)
+from service.vision.geometry.camera import project
+from service.vision.geometry.frames import Pose
+from service.vision.model.edge_points import edge_points_at
+from service.vision.pipeline.part import crease_edges_of
+from tests.scenes import INTR, PLANE, SIZE, resting, scene
+
+# a placement's anchor (the projected centre_obj) is found to within the search grid's half step (8 px
+# for a part this large) plus a pixel, and polished to within a pixel
+FOUND_PX = 5.0
+POLISHED_PX = 1.0
+POLISHED_DEG = 2.0
+# the model's edges at the true pose agree with a clean render's gradients on most of their length
+TRUE_AGREEMENT = 0.8
+SHIFTED_AGREEMENT = 0.4  # ... and 12 px away on few
+ON_SURFACE_MM = 0.5
+
+
+@pytest.fixture(scope="module")
+def bank(l_block_bank):
+    return l_block_bank
+
+
+def test_a_square_has_the_orientations_of_its_sides():
+    img = np.zeros((60, 60), np.uint8)
+    img[20:40, 20:40] = 200
+    bits = orientation_bits(img)
+    # the left and right sides' gradient runs along u (bin 0), the top and bottom's along v (bin N/2)
+    assert bits[30, 19] & 1 and bits[30, 40] & 1
+    assert bits[19, 30] & (1 << (N_ORI // 2)) and bits[40, 30] & (1 << (N_ORI // 2))
+    assert bits[30, 30] == 0 and bits[5, 5] == 0  # flat inside and outside
+
+
+def test_a_template_scores_as_the_share_of_its_points_that_agree():
+    rng = np.random.default_rng(3)
+    bits = (1 << rng.integers(0, N_ORI, (48, 64))).astype(np.uint8) * (rng.random((48, 64)) < 0.5)
+    t = 4
+    rm = response_maps(bits, t, 8)
+    dx = rng.integers(-10, 10, 30).astype(np.int32)
+    dy = rng.integers(-10, 10, 30).astype(np.int32)
+    ori = rng.integers(0, N_ORI, 30).astype(np.int32)
+    wt = np.full(30, 1 / 30, np.float32)
+    u, v = 30, 22
+    # brute force: 1 where the point's bin is set within its t x t neighbourhood, 1/4 where a
+    # neighbouring bin is, else 0 (LINE-2D's response)
+    expected = 0.0
+    for k in range(30):
+        pu, pv = u + dx[k], v + dy[k]
+        win = bits[max(pv - t // 2, 0):max(pv - t // 2 + t, 0), max(pu - t // 2, 0):max(pu - t // 2 + t, 0)]
+        ored = int(np.bitwise_or.reduce(win.ravel())) if win.size else 0
+        near = (1 << ((ori[k] + 1) % N_ORI)) | (1 << ((ori[k] - 1) % N_ORI))
+        expected += (1.0 if ored >> ori[k] & 1 else 0.25 if ored & near else 0.0) / 30
+    assert score_at(rm.lin, rm.pad, t, dx, dy, ori, wt, 30, u, v) == pytest.approx(expected, abs=1e-6)
+
+
+def test_edge_points_lie_on_the_surface_and_crease_points_on_the_model_edges(bank):
+    # the L-block is the union of two axis-aligned boxes: a point on its surface lies in one box with a
+    # coordinate on that box's faces (the z-buffer's pixel puts it within about a pixel, ~0.3 mm here), a
+    # crease point with two
+    boxes = [((-40.0, -10.0, -20.0), (40.0, 10.0, 20.0)), ((-40.0, 10.0, -20.0), (-20.0, 50.0, 20.0))]
+    poses = [resting(bank, s, 30.0, 0.0, 0.0) for s in range(len(bank.R_rest_obj))]
+    creases = crease_edges_of(bank)
+    edges = [edge_points_at(bank.vertices_mm, bank.faces, creases, p, INTR, SIZE) for p in poses]
+    assert sum(e.crease.sum() for e in edges) > 10
+    for e in edges:
+        assert len(e.p_obj) > 50
+        faces_on = np.zeros(len(e.p_obj), int)
+        for lo, hi in boxes:
+            lo, hi = np.array(lo), np.array(hi)
+            inside = np.all((e.p_obj > lo - ON_SURFACE_MM) & (e.p_obj < hi + ON_SURFACE_MM), axis=1)
+            on = (np.abs(e.p_obj - lo) < ON_SURFACE_MM) | (np.abs(e.p_obj - hi) < ON_SURFACE_MM)
+            faces_on = np.maximum(faces_on, np.where(inside, on.sum(axis=1), 0))
+        assert (faces_on >= 1).mean() > 0.95
+        assert (faces_on[e.crease] >= 2).all()
+        np.testing.assert_allclose(np.linalg.norm(e.tangent_obj, axis=1), 1.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("s, spin, x, y", [(0, 30.0, 0.0, 0.0), (1, 200.0, 60.0, -40.0)])
+def test_a_rendered_copy_is_found_at_its_placement_and_polished(bank, s, spin, x, y):
+    pose = resting(bank, s, spin, x, y)
+    frame = colour_frame(scene(bank, [pose]))
+    rest = bank.R_rest_obj
+    matches, tpl = gradient_search(bank, crease_edges_of(bank), rest, frame.orientations, INTR, PLANE,
+                                   GradientSearch())
+    truth_uv = project(pose.apply(bank.centre_obj[None]), INTR.K)[0]
+    best = matches[0]
+    assert np.linalg.norm(np.array(best.uv) - truth_uv) < FOUND_PX
+    assert tpl.family[best.template] == s
+    polished = polish_on_gradients(bank, tpl, rest, matches_as_hypotheses(matches[:1], tpl, INTR), INTR,
+                                   PLANE, frame.agreeing)[0]
+    assert np.linalg.norm(polished.uv - truth_uv) < POLISHED_PX
+    angle = np.degrees(np.arccos(np.clip((np.trace(polished.R.T @ pose.R) - 1) / 2, -1, 1)))
+    assert angle < POLISHED_DEG
+
+
+def test_edges_agree_at_the_true_pose_and_not_beside_it(bank):
+    pose = resting(bank, 0, 30.0, 0.0, 0.0)
+    agreeing = agreeing_bits(orientation_bits(scene(bank, [pose])))
+    creases = crease_edges_of(bank)
+    at = edge_agreement(bank.vertices_mm, bank.faces, creases, pose, INTR, agreeing)
+    beside = edge_agreement(bank.vertices_mm, bank.faces, creases,
+                            Pose(pose.R, pose.t_mm + np.array([12.0 * pose.t_mm[2] / INTR.fx, 0.0, 0.0])),
+                            INTR, agreeing)
+    assert at["edge_agreement"] > TRUE_AGREEMENT and at["inner_agreement"] > TRUE_AGREEMENT
+    assert beside["edge_agreement"] < SHIFTED_AGREEMENT
