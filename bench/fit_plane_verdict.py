@@ -1,5 +1,6 @@
-"""Fit the verification score of a part on a plane (``verdict.PLANE_WEIGHTS``) on evidence that assumes no
-material, and read its operating point.
+"""What a score on evidence that assumes no material would find of parts on a plane (issue 47): the
+service reports this evidence (``edge_agreement``, ``inner_agreement``) with a plane and does not score it
+yet.
 
 Records: every candidate the estimate checks on a set's images (none found: ``min_score`` 2), with the
 table plane of the gt lines and ``max_instances`` the copies of that model (as ``bench/cell.py`` runs
@@ -9,11 +10,12 @@ wrong from ``WRONG_PX`` (between: left out of the fit). They are kept in bench/o
 
 The fit: the sign-constrained logistic regression (``bench/lib/fit.fit_monotone``) on ``FEATURES`` of the
 ``--fit`` records. The operating point: the highest score of a wrong candidate of the fit records, raised
-by ``--margin`` in logit; the printed weights put it at ``verdict.MIN_SCORE`` (0.98), so a request's
-``min_score`` keeps its meaning. Then per set (``--fit`` and ``--report``): checked candidates right /
-wrong, and right / wrong at or above the operating point::
+by ``--margin`` in logit; the printed weights put it at ``verdict.MIN_SCORE`` (0.98). Then per set
+(``--fit`` and ``--report``): checked candidates right / wrong, and right / wrong at or above the
+operating point; and per part of the fit records, how many right candidates score above that part's own
+highest wrong one (what an operating point calibrated per part could find)::
 
-    python bench/fit_plane_verdict.py --fit sygrid_synth:2:0 --report sygrid_synth:2:1,/work/gen/piles:1:0
+    python bench/fit_plane_verdict.py --fit sygrid_synth:2:0 --report sygrid_synth:2:1
 """
 
 from __future__ import annotations
@@ -108,6 +110,15 @@ def main() -> None:
         role = "fit" if spec in args.fit.split(",") else "report"
         print(f"| {spec} ({role}) | {len(ys)} | {int(ys.sum())} | {int((1 - ys).sum())} "
               f"| {int((found & (ys == 1)).sum())} | **{int((found & (ys == 0)).sum())}** |")
+    print()
+    print("| part (fit records) | right | wrong | right above the part's highest wrong |")
+    print("|---|---|---|---|")
+    for model in sorted({r["model"] for r in fit_rows}):
+        Xm, ym = design([r for r in fit_rows if r["model"] == model])
+        z = Xm @ np.array([weights.get(k, 0.0) for k in FEATURES])
+        top_wrong = z[ym == 0].max() if (ym == 0).any() else -math.inf
+        above = int((z[ym == 1] > top_wrong).sum())
+        print(f"| {model} | {int(ym.sum())} | {int((1 - ym).sum())} | {above} |")
 
 
 if __name__ == "__main__":

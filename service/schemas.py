@@ -244,13 +244,12 @@ class VerdictJSON(BaseModel):
                          "candidate when nothing is found")
     reason: str = Field(description="found | no_candidate | outside_distance_range | outside_image | "
                         "off_plane | low_support | interior_edges | region_mismatch | shading_mismatch | "
-                        "appearance_mismatch | generic_outline | edges_disagree | low_score | deadline (the "
-                        "search stopped at options.deadline_ms before finding one)")
+                        "appearance_mismatch | generic_outline | low_score | deadline (the search stopped at "
+                        "options.deadline_ms before finding one)")
     evidence: dict[str, float] = Field(description="the evidence the score was computed from: edge_support, "
                                        "unexplained, colour_edge, polarity, region, region_low, in_image, "
-                                       "generic, edge_agreement, inner_agreement (fractions; see "
-                                       "docs/API.md), distinct_px (pixels); with "
-                                       "options.plane also "
+                                       "generic (fractions; see docs/API.md), distinct_px (pixels); with "
+                                       "options.plane also edge_agreement, inner_agreement (fractions), "
                                        "plane_gap_mm, the height of the part's lowest point above the "
                                        "plane, mm; for a found part with a mirror plane also twin_score, "
                                        "the score of its mirror twin (the same outline, near and far "

@@ -13,6 +13,7 @@ import pytest
 from service.vision import pipeline
 from service.vision.estimate.evidence import colour_frame
 from service.vision.estimate.plane import _poses
+from service.vision.estimate.refine import refine_pose
 from service.vision.estimate.verdict import decide
 from service.vision.geometry.camera import project
 from service.vision.geometry.frames import Pose
@@ -279,3 +280,14 @@ def test_the_scoring_kernel_picks_the_views_scoring_poses_would(bank):
                   INTR.cy, mid, direction, views.astype(np.int64), R2, t2, 16, np.inf, False, none, 0,
                   np.zeros(3), np.zeros((1, 3)), none, none, 1)
     np.testing.assert_array_equal(score_poses(bank, R, t, dt_q, tau_q, dtt, INTR, 32), want)
+
+
+def test_a_refinement_the_plane_refuses_is_not_kept(bank):
+    truth = resting(bank, 0, 25.0, 10.0, -20.0)
+    img = scene(bank, [truth])
+    start = Pose(truth.R, truth.t_mm + np.array([2.0, -1.5, 0.0]))
+    free = refine_pose(bank, start, img[..., 0], INTR)
+    held = refine_pose(bank, start, img[..., 0], INTR, accept=lambda pose: False)
+    assert np.linalg.norm(free.pose.t_mm - truth.t_mm) < 0.5 * np.linalg.norm(start.t_mm - truth.t_mm)
+    np.testing.assert_allclose(held.pose.t_mm, start.t_mm, atol=ROUND_TRIP_ATOL)
+    np.testing.assert_allclose(held.pose.R, start.R, atol=ROUND_TRIP_ATOL)

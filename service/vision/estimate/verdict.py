@@ -29,13 +29,15 @@ FEATURES = ("edge_support", "unexplained", "colour_edge", "polarity", "region", 
             "generic", "distinct_px",
             # the taught appearance's (``evidence.appearance``): only for a part with reference photos
             "appearance", "appearance_known",
-            # gradient orientation along every visible CAD edge, and along the inner ones
-            # (``edge_agreement``): evidence that assumes no material
+            # with a plane: the gradient orientation along every visible CAD edge, and along the inner
+            # ones (``edge_agreement``): evidence that assumes no material, reported and not scored
             "edge_agreement", "inner_agreement")
 # Evidence an older record (a bench cache made before it existed) may lack: read as 0 in a feature vector.
 # Of these, reported only for a part with taught colours (scored by ``APPEARANCE_WEIGHTS`` then).
 TAUGHT_FEATURES = ("appearance", "appearance_known")
-LATER_FEATURES = ("distinct_px", *TAUGHT_FEATURES, "edge_agreement", "inner_agreement")
+# Reported only with a plane (``pipeline/check.judge``).
+PLANE_FEATURES = ("edge_agreement", "inner_agreement")
+LATER_FEATURES = ("distinct_px", *TAUGHT_FEATURES, *PLANE_FEATURES)
 # Evidence the verification score of an untaught part may use, and which of it counts against a pose.
 MODEL_FEATURES = ("edge_support", "unexplained", "colour_edge", "region_low", "region_global", "coherence",
                   "shading_r2", "generic")
@@ -50,14 +52,6 @@ WEIGHTS = {"bias": -3.935, "unexplained": -0.339, "region_global": 5.265, "shadi
 # not used as reference photos), reported on the other half. (Its teaching now hides the other annotated
 # parts' pixels through ``pipeline.teach_appearance``: the refit moves each weight by under 0.02.)
 APPEARANCE_WEIGHTS = {"bias": -5.58, "appearance": 4.43, "appearance_known": 3.76, "region_global": 4.29}
-# The score of a part on a given plane without taught colours: evidence that assumes no material (the
-# gradients along every visible CAD edge, ``edge_agreement``, with the refinement's edge support and the
-# unexplained edges), for the shading and region cues above were fitted on matte renders and read the
-# same for right and wrong poses of metal and plastic parts. Fitted by ``bench/fit_plane_verdict.py`` on
-# the even images of sygrid_synth, its bias putting the highest wrong score there, raised by a margin, at
-# ``MIN_SCORE``.
-PLANE_WEIGHTS = {"bias": -7.482, "edge_agreement": 6.878, "edge_support": 2.681, "colour_edge": 0.249,
-                 "polarity": 2.794}
 # Operating point (``options.min_score`` moves it).
 MIN_SCORE = 0.98
 # Refits on the visible part's evidence and on ``generic``: docs/detection-history.md.
@@ -65,13 +59,13 @@ MIN_SCORE = 0.98
 # The reasons a verdict gives.
 REASONS = ("found", "no_candidate", "outside_distance_range", "outside_image", "off_plane", "low_support",
            "interior_edges", "region_mismatch", "shading_mismatch", "generic_outline", "low_score",
-           "deadline", "appearance_mismatch", "edges_disagree")
+           "deadline", "appearance_mismatch")
 # "deadline": the search stopped early (``deadline_ms``) before a candidate was found; the pipeline
 # sets it (``decide`` judges one hypothesis and never returns it).
 # A rejected pose is said to fail on the evidence furthest below a true pose's typical value (medians
 # over the truth hypotheses of the tuning sets): the reason names the one a person should look at.
 TYPICAL_RIGHT = {"edge_support": 0.9, "unexplained": 0.1, "colour_edge": 0.95, "region_global": 0.85,
-                 "shading_r2": 0.9, "generic": 0.88, "appearance": 0.74, "edge_agreement": 0.75}
+                 "shading_r2": 0.9, "generic": 0.88, "appearance": 0.74}
 # A pose whose outline lies more than a fifth outside the image is not checked ("outside_image"): the
 # evidence sees only its inside part, and the cut-off part is where a wrong pose on the part's own visible
 # piece would be refuted (docs/detection-history.md).
@@ -108,15 +102,8 @@ def verification_score(ev: dict, weights: dict | None = None) -> float:
     return float(1.0 / (1.0 + np.exp(-z)))
 
 
-def rejection_reason(ev: dict, weights: dict | None = None) -> str:
-    """The evidence furthest from a true pose's: which one a person should look at (of the evidence
-    ``weights`` reads, for the plane's score)."""
-    if weights is not None and "edge_agreement" in weights:
-        gaps = {"edges_disagree": TYPICAL_RIGHT["edge_agreement"] - ev.get("edge_agreement", 0.0),
-                "low_support": TYPICAL_RIGHT["edge_support"] - ev["edge_support"],
-                "interior_edges": ev["unexplained"] - TYPICAL_RIGHT["unexplained"]}
-        reason, gap = max(gaps.items(), key=lambda kv: kv[1])
-        return reason if gap > 0 else "low_score"
+def rejection_reason(ev: dict) -> str:
+    """The evidence furthest from a true pose's: which one a person should look at."""
     gaps = {
         "low_support": TYPICAL_RIGHT["edge_support"] - ev["edge_support"],
         "interior_edges": ev["unexplained"] - TYPICAL_RIGHT["unexplained"],
@@ -158,4 +145,4 @@ def decide(ev: dict | None, *, z_mm: float | None = None,
             return Verdict(False, score, "off_plane", evidence)
     if score >= (MIN_SCORE if min_score is None else min_score):
         return Verdict(True, score, "found", evidence)
-    return Verdict(False, score, rejection_reason(evidence, weights), evidence)
+    return Verdict(False, score, rejection_reason(evidence), evidence)

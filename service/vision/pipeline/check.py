@@ -17,7 +17,7 @@ from service.vision.estimate.contour_region import region_contour_refine
 from service.vision.estimate.edge_agreement import edge_agreement
 from service.vision.estimate.evidence import ColourFrame, evidence
 from service.vision.estimate.plane import PLANE_TOLERANCE_MM
-from service.vision.estimate.verdict import PLANE_WEIGHTS, decide
+from service.vision.estimate.verdict import decide
 from service.vision.geometry.camera import Intrinsics, project
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz
 from service.vision.geometry.plane import Plane, rest_gap_mm
@@ -63,27 +63,20 @@ def judge(bank: TemplateBank, c: Checked, frame: ColourFrame, intr: Intrinsics, 
     """``c`` with the verdict on its refined pose: the evidence measured there (``evidence``; the
     refinement's ``edge_support`` and ``unexplained`` edges with it), the distance range and the
     plane. ``unexplained`` may be a callable giving it (read after the evidence is measured).
-    ``weights``: the score's weights for a part without taught colours and without a plane
-    (``Policy.verdict_weights``; None: the service's); on a plane, ``verdict.PLANE_WEIGHTS``."""
+    ``weights``: the score's weights for a part without taught colours (``Policy.verdict_weights``;
+    None: the service's). On a plane the evidence also reports ``edge_agreement``."""
     pose = c.refined.pose
     ev = evidence(bank, pose, intr, frame, others_depth_mm, face_bgr_of(appearance)).as_dict()
     ev |= {"edge_support": edge_support, "unexplained": float(unexplained() if callable(unexplained)
                                                               else unexplained)}
-    ev |= edge_agreement(bank.vertices_mm, bank.faces, crease_edges_of(bank), pose, intr, frame.agreeing)
+    if plane is not None:  # reported: the evidence a material-free score of a part on a plane will read
+        ev |= edge_agreement(bank.vertices_mm, bank.faces, crease_edges_of(bank), pose, intr, frame.agreeing)
     gap = rest_gap_mm(bank, pose, plane) if plane is not None else None
+    untaught = weights is not None and "appearance" not in ev  # taught: ``verdict.APPEARANCE_WEIGHTS``
     v = decide(ev, z_mm=float(pose.t_mm[2]), distance_range_mm=distance_range_mm, min_score=min_score,
-               weights=_weights(ev, plane, weights), plane_gap_mm=gap, plane_tolerance_mm=plane_tolerance_mm)
+               weights=dict(weights) if untaught else None, plane_gap_mm=gap,
+               plane_tolerance_mm=plane_tolerance_mm)
     return Checked(c.candidate, c.refined, v)
-
-
-def _weights(ev: dict, plane: Plane | None, weights: tuple[tuple[str, float], ...] | None) -> dict | None:
-    """The score's weights: a taught part's (``verdict.APPEARANCE_WEIGHTS``: None here), on a plane
-    ``verdict.PLANE_WEIGHTS``, else ``weights`` (None: the service's)."""
-    if "appearance" in ev:
-        return None
-    if plane is not None:
-        return PLANE_WEIGHTS
-    return dict(weights) if weights is not None else None
 
 
 def same_place(bank: TemplateBank, a: Pose, b: Pose, K: np.ndarray, px: float, n_vertices: int) -> bool:

@@ -10,11 +10,13 @@ from service.vision import memory
 from service.vision.deadline import timing_paused
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx
+from service.vision.geometry.plane import Plane
 from service.vision.pipeline.build import build_templates
 from service.vision.pipeline.estimate import estimate
 from service.vision.pipeline.types import EstimateOutput
 
 WARM_UP_POSE = Pose(Rx(60.0), np.array([5.0, -4.0, 300.0]))  # a cylinder, slightly off the optical axis
+WARM_UP_TABLE = Plane(np.array([0.0, 0.0, -1.0]), -330.0)  # a table behind it, facing the camera
 # A frame the size of a cell camera's: the first real frame then finds its big buffers' memory already
 # mapped (at 320 x 240 the first 1280 x 960 frame still cost twice a warm one).
 WARM_UP_SIZE = (1280, 960)
@@ -37,6 +39,7 @@ def _warm_up() -> EstimateOutput:
     intr = Intrinsics(1200.0, 1200.0, 639.5, 479.5)
     img = render_shaded(bank.vertices_mm, bank.faces, WARM_UP_POSE, intr.K, WARM_UP_SIZE)
     estimate(bank, img, intr)  # the unknown-distance path has kernels of its own
+    estimate(bank, img, intr, plane=WARM_UP_TABLE)  # and the plane's gradient search
     out = estimate(bank, img, intr, distance_mm=float(WARM_UP_POSE.t_mm[2]))
     memory.keep_mapped(memory.RESERVE_MB)  # with room for what is loaded after it
     return out
