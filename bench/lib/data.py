@@ -106,7 +106,7 @@ def load_model_info(set_dir: Path, model: str, meta: dict, cache: dict) -> Model
 
 VISION = ROOT / "service" / "vision"
 # The code that builds a bank: the build and geometry rooms, and the bank's own format.
-BANK_SOURCES = (*sorted((VISION / "build").glob("*.py")), *sorted((VISION / "geometry").glob("*.py")),
+BANK_SOURCES = (*sorted((VISION / "model").glob("*.py")), *sorted((VISION / "geometry").glob("*.py")),
                 VISION / "bank.py")
 
 
