@@ -656,9 +656,6 @@ def blender_main(scene_path: Path, samples: int, check_path: Path | None) -> Non
     r.resolution_x, r.resolution_y, r.resolution_percentage = w, h, 100
     r.pixel_aspect_x = r.pixel_aspect_y = 1.0
     r.dither_intensity = 0.0
-    for name in dir(r):  # no metadata (date, render time, ...) in the PNG: same scene, same bytes
-        if name.startswith("use_stamp"):
-            setattr(r, name, False)
     im = r.image_settings
     im.file_format, im.color_mode, im.color_depth = "PNG", "RGB", "8"
     cy = scene.cycles

@@ -107,7 +107,7 @@ def test_a_rendered_copy_is_found_at_its_placement_and_polished(bank, s, spin, x
     best = matches[0]
     assert np.linalg.norm(np.array(best.uv) - truth_uv) < FOUND_PX
     assert tpl.family[best.template] == s
-    polished = polish_on_gradients(bank, tpl, rest, matches_as_hypotheses(matches[:1], tpl, INTR), INTR,
+    polished = polish_on_gradients(bank, tpl, rest, matches_as_hypotheses(matches[:1], tpl), INTR,
                                    PLANE, frame.agreeing)[0]
     assert np.linalg.norm(polished.uv - truth_uv) < POLISHED_PX
     angle = np.degrees(np.arccos(np.clip((np.trace(polished.R.T @ pose.R) - 1) / 2, -1, 1)))

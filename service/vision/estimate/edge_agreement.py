@@ -17,14 +17,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.vision.estimate.gradients import N_ORI, quantise, spread
+from service.vision.estimate.gradients import balanced_weights, quantise, spread
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
 from service.vision.model.edge_points import visible_edges
 
 TOLERANCE_PX = 1  # an agreeing gradient lies within this many pixels of the projected edge
 MIN_INNER_POINTS = 20
-TANGENT_STEP_MM = 0.5
+TANGENT_STEP_MM = 0.5  # an edge's direction is read from its projection over this step
 
 
 def agreeing_bits(bits: np.ndarray) -> np.ndarray:
@@ -40,26 +40,38 @@ def edge_agreement(vertices_mm: np.ndarray, faces: np.ndarray, creases: np.ndarr
     if e is None:
         return {"edge_agreement": 0.0, "inner_agreement": 0.0}
     unit = e.tangent_cam / np.maximum(np.linalg.norm(e.tangent_cam, axis=1), 1e-9)[:, None]
-    q = e.p_cam + TANGENT_STEP_MM * unit
-    f = np.array([intr.fx, intr.fy])
-    d = (q[:, :2] / q[:, 2:3] - e.p_cam[:, :2] / e.p_cam[:, 2:3]) * f
-    ori = quantise(np.arctan2(d[:, 0], -d[:, 1]))
-    iu, iv = np.rint(e.uv[:, 0]).astype(int), np.rint(e.uv[:, 1]).astype(int)
-    inside = (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
-    agree = np.zeros(len(ori), bool)
-    agree[inside] = (agreeing[iv[inside], iu[inside]] >> ori[inside]) & 1 == 1
-    every = _weighted_share(agree[inside], ori[inside])
-    inner = inside & ~e.outline
+    ori = quantise(edge_normals_px(e.p_cam, unit, intr)[1])
+    every = share_agreeing(e.uv, ori, agreeing)
+    inner = ~e.outline & _inside(e.uv, agreeing.shape)
     return {"edge_agreement": every,
-            "inner_agreement": _weighted_share(agree[inner], ori[inner]) if inner.sum() >= MIN_INNER_POINTS
-            else every}
+            "inner_agreement": share_agreeing(e.uv[inner], ori[inner], agreeing)
+            if inner.sum() >= MIN_INNER_POINTS else every}
 
 
-def _weighted_share(agree: np.ndarray, ori: np.ndarray) -> float:
-    """The share of agreeing points, each weighing 1 / (points of its bin, at least n / (2 N_ORI))."""
-    n = len(ori)
-    if n == 0:
+def edge_normals_px(p_cam: np.ndarray, tangent_cam: np.ndarray, intr: Intrinsics
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame edge points and their unit tangents -> (P, 2) pixels and (P,) directions (rad) of the
+    projected edges' normals: the tangent is projected from both ends of a ``TANGENT_STEP_MM`` step, so a
+    point's rounding to a pixel does not turn it."""
+    f = np.array([intr.fx, intr.fy])
+    c = np.array([intr.cx, intr.cy])
+    uv = p_cam[:, :2] / p_cam[:, 2:3] * f + c
+    q = p_cam + TANGENT_STEP_MM * tangent_cam
+    d = q[:, :2] / q[:, 2:3] * f + c - uv
+    return uv, np.arctan2(d[:, 0], -d[:, 1])
+
+
+def share_agreeing(uv: np.ndarray, ori: np.ndarray, agreeing: np.ndarray) -> float:
+    """The weighted share (``gradients.balanced_weights``) of the points at pixels ``uv`` inside the image
+    whose orientation bin ``ori`` is set in ``agreeing`` (a frame's ``agreeing_bits``); 0 with none."""
+    inside = _inside(uv, agreeing.shape)
+    if not inside.any():
         return 0.0
-    count = np.bincount(ori, minlength=N_ORI).astype(float)
-    wt = 1.0 / np.maximum(count[ori], n / (2.0 * N_ORI))
-    return float((wt * agree).sum() / wt.sum())
+    iu, iv = np.rint(uv[inside, 0]).astype(int), np.rint(uv[inside, 1]).astype(int)
+    agree = (agreeing[iv, iu] >> ori[inside]) & 1
+    return float((balanced_weights(ori[inside]) * agree).sum())
+
+
+def _inside(uv: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    iu, iv = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
+    return (iu >= 0) & (iu < shape[1]) & (iv >= 0) & (iv < shape[0])

@@ -36,6 +36,14 @@ def quantise(theta_rad: np.ndarray) -> np.ndarray:
     return np.minimum((a / np.pi * N_ORI).astype(np.int32), N_ORI - 1)
 
 
+def balanced_weights(ori: np.ndarray) -> np.ndarray:
+    """Weights of points with orientation bins ``ori``: 1 / (the points of the same bin, at least
+    n / (2 N_ORI)), summing to 1: a long straight side does not outvote the rest."""
+    count = np.bincount(ori, minlength=N_ORI).astype(float)
+    w = 1.0 / np.maximum(count[ori], len(ori) / (2.0 * N_ORI))
+    return w / w.sum()
+
+
 @numba.njit(cache=True)
 def _majority(q, mask, majority, out):  # pragma: no cover - compiled
     h, w = q.shape

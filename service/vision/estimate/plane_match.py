@@ -23,9 +23,10 @@ import cv2
 import numpy as np
 
 from service.vision.bank import TemplateBank
+from service.vision.estimate.edge_agreement import edge_normals_px, share_agreeing
 from service.vision.estimate.gradients import (
-    N_ORI,
     ResponseMaps,
+    balanced_weights,
     quantise,
     response_maps,
     score_at,
@@ -38,7 +39,6 @@ from service.vision.geometry.plane import Plane, R_cam_rest, placements, rest_he
 from service.vision.memo import Memo
 from service.vision.model.edge_points import EMPTY_EDGES, EdgePoints, edge_points_at
 
-TANGENT_STEP_MM = 0.5  # a point's tangent is projected from the point to this far along it
 MIN_TEMPLATE_POINTS = 12  # a view showing fewer edge points is not searched
 
 
@@ -130,7 +130,7 @@ def plane_templates(bank: TemplateBank, creases: np.ndarray, R_rest_obj: np.ndar
             off = np.rint(uv - anchor).astype(np.int32)
             dx[k, :n], dy[k, :n] = off[:, 0], off[:, 1]
             ori[k, :n] = quantise(theta)
-            weight[k, :n] = _balanced(ori[k, :n])
+            weight[k, :n] = balanced_weights(ori[k, :n])
             n_pts[k], zone[k], cells[k], rotation[k] = n, z, c, m
             k += 1
     kept = (dx, dy, ori, weight, n_pts, zone, cells, rotation)
@@ -143,21 +143,7 @@ def plane_templates(bank: TemplateBank, creases: np.ndarray, R_rest_obj: np.ndar
 def _projected(e: EdgePoints, R: np.ndarray, t_cam: np.ndarray, intr: Intrinsics
                ) -> tuple[np.ndarray, np.ndarray]:
     """Edge points posed at (R, t) -> (P, 2) pixels and (P,) edge-normal directions (rad)."""
-    p = e.p_obj @ R.T + t_cam
-    q = p + TANGENT_STEP_MM * (e.tangent_obj @ R.T)
-    f = np.array([intr.fx, intr.fy])
-    c = np.array([intr.cx, intr.cy])
-    uv = p[:, :2] / p[:, 2:3] * f + c
-    d = q[:, :2] / q[:, 2:3] * f + c - uv
-    return uv, np.arctan2(d[:, 0], -d[:, 1])
-
-
-def _balanced(ori: np.ndarray) -> np.ndarray:
-    """Weights 1 / (points in the same bin, at least n / (2 N_ORI)), summing to 1."""
-    n = len(ori)
-    count = np.bincount(ori, minlength=N_ORI).astype(float)
-    w = 1.0 / np.maximum(count[ori], n / (2.0 * N_ORI))
-    return w / w.sum()
+    return edge_normals_px(e.p_obj @ R.T + t_cam, e.tangent_obj @ R.T, intr)
 
 
 def match(rm: ResponseMaps, tpl: PlaneTemplates, bank: TemplateBank, intr: Intrinsics, plane: Plane, *,
@@ -215,8 +201,7 @@ def lift(tpl: PlaneTemplates, m: int, uv: tuple[float, float], bank: TemplateBan
 
 
 
-def matches_as_hypotheses(matches: list[PlaneMatch], tpl: PlaneTemplates, intr: Intrinsics
-                          ) -> list[PlaneHypothesis]:
+def matches_as_hypotheses(matches: list[PlaneMatch], tpl: PlaneTemplates) -> list[PlaneHypothesis]:
     """The matches as the plane search's hypotheses (family, spin, anchor, pose), for its polish."""
     return [PlaneHypothesis(int(tpl.family[x.template]), float(tpl.psi_deg[x.template]),
                             np.array(x.uv, float), x.pose.R, x.pose.t_mm, score=x.score) for x in matches]
@@ -265,14 +250,7 @@ def agreement_on_plane(edges: EdgePoints, R: np.ndarray, t_cam: np.ndarray, intr
     """The weighted share of the family's edge points, posed at (R, t), whose image gradient agrees
     within ``edge_agreement``'s tolerance (``agreeing``: a frame's ``agreeing_bits``)."""
     uv, theta = _projected(edges, R, t_cam, intr)
-    h, w = agreeing.shape
-    iu, iv = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
-    inside = (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
-    if not inside.any():
-        return 0.0
-    ori = quantise(theta[inside])
-    agree = (agreeing[iv[inside], iu[inside]] >> ori) & 1
-    return float((_balanced(ori) * agree).sum())
+    return share_agreeing(uv, quantise(theta), agreeing)
 
 
 def polish_on_gradients(bank: TemplateBank, tpl: PlaneTemplates, R_rest_obj: np.ndarray,

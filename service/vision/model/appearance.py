@@ -54,11 +54,11 @@ PLAIN_HUE_SHARE = 0.01
 MIN_AGREEMENT = 0.6
 # ... or this much once the part's operating point is calibrated on the photos (``pipeline.
 # calibrate_appearance``): the calibration meets the wrong poses such colours let through and raises the
-# part's bar over them. Session 18, lmo_dev (calibrated): with another choice of 4 reference images
-# (offset 6) the ape, the driller and the holepuncher agree 0.57-0.60 and were left untaught; taught at
-# 0.5, right found 27 -> 50 of 286, none wrong; the one other choice of the seven with a part between
-# 0.5 and 0.6 (6 images: the duck, 0.553) 42 -> 58 of 271, none wrong; the rest unchanged. Below 0.5:
-# lmo_dev's 0.45-0.46 (the eggbox from 8 photos, the ape from another 4).
+# part's bar over them. On lmo_dev (calibrated; docs/detection-history.md): with another choice of 4
+# reference images (offset 6) the ape, the driller and the holepuncher agree 0.57-0.60 and were left
+# untaught; taught at 0.5, right found 27 -> 50 of 286, none wrong; the one other choice of the seven
+# with a part between 0.5 and 0.6 (6 images: the duck, 0.553) 42 -> 58 of 271, none wrong; the rest
+# unchanged. Below 0.5: lmo_dev's 0.45-0.46 (the eggbox from 8 photos, the ape from another 4).
 MIN_AGREEMENT_CALIBRATED = 0.5
 MIN_AGREEMENT_KNOWN = 0.5  # a photo whose inside the others teach less of is not judged
 # A revolved part looks the same at every spin about its axis, and the estimate reports one of those

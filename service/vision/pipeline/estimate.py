@@ -83,9 +83,8 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
         bank, grey, intr, distance_mm=distance_mm, distance_range_mm=distance_range_mm, params=p,
         roi_uv=roi_uv, deadline=deadline,
         reserve_ms=timing.CHECK_MS.high + policy.search_reserve_checks * timing.CHECK_MS.value,
-        plane=plane, several=max_instances > 1, deferred=later if max_instances <= 1 else None, colour=ideal,
-        frame=frame,
-        policy=policy, max_instances=max_instances,
+        plane=plane, max_instances=max_instances, deferred=later if max_instances <= 1 else None,
+        colour=ideal, frame=frame, policy=policy,
         **_taught_passes(bank, frame, intr, appearance, search, deadline, policy))
     t0 = time.perf_counter()
     deadline.enter("checks")

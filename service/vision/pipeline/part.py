@@ -55,6 +55,7 @@ def face_areas_mm2(bank: TemplateBank) -> np.ndarray:
 
 _EDGES = Memo(32)
 
+
 def crease_edges_of(bank: TemplateBank) -> np.ndarray:
     """(E, 2, 3) the part's crease edges (``model/edge_points.crease_edges``), made once per bank."""
     return _EDGES.get(bank, "creases", lambda: crease_edges(bank.vertices_mm, bank.faces))

@@ -47,7 +47,7 @@ LaterPass = Callable[[], list[PoseCandidate]]
 def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance_mm: float | None = None,
             distance_range_mm: tuple[float, float] | None = None, params: SearchParams | None = None,
             roi_uv: np.ndarray | None = None, deadline: Deadline = NO_DEADLINE, reserve_ms: float = 0.0,
-            plane: Plane | None = None, several: bool = False, deferred: list[LaterPass] | None = None,
+            plane: Plane | None = None, deferred: list[LaterPass] | None = None,
             colour: np.ndarray | None = None, frame: ColourFrame | None = None, n_regions: int = 0,
             part_colours: np.ndarray | None = None,
             order: Order | None = None, score: Callable[[PoseCandidate], float] | None = None,
@@ -66,8 +66,9 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     poses x spin about the plane's normal x position on the plane (``estimate/plane.py``) instead of
     all of 6D; ``distance_mm`` is then not used. A part without stable poses is searched in 6D.
 
-    ``several``: the frame may hold several instances (``distinct_candidates``' ``by_pose``);
-    ``max_instances`` of them, for the gradient search on a plane (``Policy.gradient``).
+    ``max_instances``: how many instances the frame may hold; more than one keeps candidates apart by
+    pose (``distinct_candidates``' ``by_pose``), and the gradient search on a plane proposes more
+    (``Policy.gradient``).
 
     ``deferred``: a list to which the later passes are appended, each a callable returning its distinct
     candidates: the 6D search's second pass (``coarse_search``: the level-A peaks' other templates), then
@@ -103,6 +104,7 @@ def propose(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distance
     t_edges = timing.ms_since(t0)
     t1 = time.perf_counter()
     deadline.enter("search")
+    several = max_instances > 1
     search = Search(bank, intr, (h, w), p, distance_mm, rng, deadline, roi_uv, several)
     rest = resting_rotations(bank) if plane is not None else None
     if rest is not None and len(rest):
@@ -136,7 +138,7 @@ def _gradient_proposals(bank: TemplateBank, rest: np.ndarray, frame: ColourFrame
         return []
     matches, tpl = gradient_search(bank, crease_edges_of(bank), rest, frame.orientations, intr, plane,
                                    policy.gradient, max_instances=max_instances)
-    hs = polish_on_gradients(bank, tpl, rest, matches_as_hypotheses(matches, tpl, intr), intr, plane,
+    hs = polish_on_gradients(bank, tpl, rest, matches_as_hypotheses(matches, tpl), intr, plane,
                              frame.agreeing)
     return polish(bank, rest, hs, dtt_b, intr, plane, p, max_iter=0)
 
