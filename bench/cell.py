@@ -38,6 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from bench.lib.calibration import plane_calibration  # noqa: E402
 from bench.lib.data import (  # noqa: E402
     FINE_PX,
     PART_NAMES,
@@ -55,6 +56,7 @@ from bench.lib.policy import add_policy_options, policy_of  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.plane import Plane  # noqa: E402
 from service.vision.pipeline import DEFAULT_POLICY, Policy, estimate  # noqa: E402
+from service.vision.pipeline.plane_calibration import SCENES  # noqa: E402
 from service.vision.reference import metrics  # noqa: E402
 
 MIN_VISIBLE = 0.7  # the targets: copies at least this share visible
@@ -108,7 +110,8 @@ def greedy_match(d: np.ndarray, scores: list[float], threshold_px: float) -> lis
 
 
 def run_query(bank, set_dir: Path, image: str, lines: list[dict], info, *, use_plane: bool,
-              max_instances: int | None, min_visible: float, policy: Policy = DEFAULT_POLICY) -> dict:
+              max_instances: int | None, min_visible: float, policy: Policy = DEFAULT_POLICY,
+              agreement_min: float | None = None) -> dict:
     """One estimate of ``image`` for the model of ``lines`` (its gt lines: the copies, or one "absent"
     line), judged against the copies -> the query's record."""
     copies = [g for g in lines if not g.get("absent", False)]
@@ -118,7 +121,7 @@ def run_query(bank, set_dir: Path, image: str, lines: list[dict], info, *, use_p
     img = read_colour(set_dir / image)
     intr = Intrinsics.from_K(np.asarray(g0["K"], float))
     t0 = time.perf_counter()
-    out = estimate(bank, img, intr, plane=plane, max_instances=n, policy=policy)
+    out = estimate(bank, img, intr, plane=plane, max_instances=n, policy=policy, agreement_min=agreement_min)
     ms = 1000.0 * (time.perf_counter() - t0)
     poses = [(inst.refined or inst.coarse).pose for inst in out.instances]
     scores = [float(inst.verdict.score) for inst in out.instances]
@@ -141,9 +144,11 @@ def run_query(bank, set_dir: Path, image: str, lines: list[dict], info, *, use_p
 
 def run_set(name: str, *, stride: int = 1, start: int = 0, models: set[str] | None = None,
             limit: int | None = None, plane: bool | None = None, max_instances: int | None = None,
-            min_visible: float = MIN_VISIBLE, policy: Policy = DEFAULT_POLICY) -> list[dict]:
+            min_visible: float = MIN_VISIBLE, policy: Policy = DEFAULT_POLICY,
+            calibration_scenes: int = SCENES) -> list[dict]:
     """Every query of the set (``queries_of``) -> their records. ``plane`` None: the plane when the gt lines
-    carry one."""
+    carry one. With a plane each part is calibrated on ``calibration_scenes`` rendered scenes, as the
+    service calibrates it at upload (0: not)."""
     set_dir = set_dir_of(name)
     meta = read_meta(set_dir)
     gts = read_gt(set_dir)
@@ -151,6 +156,7 @@ def run_set(name: str, *, stride: int = 1, start: int = 0, models: set[str] | No
     if use_plane and not all("plane" in g for g in gts):
         raise SystemExit(f"{name}: --plane asked but not every gt line carries a plane")
     banks: dict = {}
+    agreement: dict = {}
     minfo: dict = {}
     recs = []
     for image, model, lines in queries_of(gts, stride=stride, start=start, models=models, limit=limit):
@@ -161,9 +167,18 @@ def run_set(name: str, *, stride: int = 1, start: int = 0, models: set[str] | No
             print(f"{Path(name).name} bank {model}: {'loaded' if cached else 'built'} "
                   f"({banks[model].n_templates} templates) in {time.perf_counter() - t0:.1f} s",
                   file=sys.stderr)
+            agreement[model] = None
+            if use_plane and calibration_scenes:
+                cal = plane_calibration(banks[model], model, set_dir / "models" / f"{model}.stl",
+                                        calibration_scenes)
+                agreement[model] = cal.agreement_min
+                print(f"{Path(name).name} {model}: agreement_min {cal.agreement_min}, right "
+                      f"{cal.right}/{cal.right_total}, wrong max {cal.wrong_max:.3f} of {cal.wrong_total}",
+                      file=sys.stderr)
         info = load_model_info(set_dir, model, meta, minfo)
         recs.append(run_query(banks[model], set_dir, image, lines, info, use_plane=use_plane,
-                              max_instances=max_instances, min_visible=min_visible, policy=policy))
+                              max_instances=max_instances, min_visible=min_visible, policy=policy,
+                              agreement_min=agreement[model]))
         r = recs[-1]
         print(f"{Path(name).name} {image} {model}: {len(r['copies'])} copies, "
               f"{sum(i['right'] for i in r['instances'])} right / {len(r['instances'])} found, "
@@ -235,6 +250,8 @@ def main(argv=None) -> int:
     ap.add_argument("--min-visible", type=float, default=MIN_VISIBLE,
                     help="targets: the copies at least this share visible")
     ap.add_argument("--json", type=Path, default=None, help="one JSON line per query")
+    ap.add_argument("--calibration-scenes", type=int, default=SCENES,
+                    help="with a plane: each part calibrated on this many rendered scenes (0: not)")
     add_policy_options(ap)
     a = ap.parse_args(argv)
     policy = policy_of(a)
@@ -246,7 +263,8 @@ def main(argv=None) -> int:
     for name in a.sets.split(","):
         t0 = time.perf_counter()
         recs = run_set(name, stride=a.stride, start=a.start, models=models, limit=a.limit, plane=a.plane,
-                       max_instances=a.max_instances, min_visible=a.min_visible, policy=policy)
+                       max_instances=a.max_instances, min_visible=a.min_visible, policy=policy,
+                       calibration_scenes=a.calibration_scenes)
         print(f"{Path(name).name}: {len(recs)} queries in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
         for r in recs if out else []:
             out.write(json.dumps({"set": Path(name).name, **r}) + "\n")

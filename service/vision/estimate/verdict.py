@@ -16,6 +16,7 @@ apart the two outlines lie (``distinct_px``) are reported and not scored (docs/d
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -54,6 +55,10 @@ WEIGHTS = {"bias": -3.935, "unexplained": -0.339, "region_global": 5.265, "shadi
 APPEARANCE_WEIGHTS = {"bias": -5.58, "appearance": 4.43, "appearance_known": 3.76, "region_global": 4.29}
 # Operating point (``options.min_score`` moves it).
 MIN_SCORE = 0.98
+# On a plane, a part whose agreement was calibrated (``pipeline/plane_calibration``) is also scored on
+# evidence that assumes no material (``material_free``): its score reaches ``MIN_SCORE`` at the part's
+# calibrated agreement and rises this steeply (logit per unit of agreement) above it.
+AGREEMENT_SLOPE = 40.0
 # Refits on the visible part's evidence and on ``generic``: docs/detection-history.md.
 
 # The reasons a verdict gives.
@@ -102,6 +107,20 @@ def verification_score(ev: dict, weights: dict | None = None) -> float:
     return float(1.0 / (1.0 + np.exp(-z)))
 
 
+def material_free(ev: dict) -> float:
+    """The share of the pose's visible CAD edges whose image gradient agrees (``edge_agreement``), held
+    down by how consistently the outline's contrast keeps its sign (``polarity``): a pose laid across
+    other parts' straight edges agrees in orientation but flips contrast from part to part."""
+    return min(_read(ev, "edge_agreement"), float(ev.get("polarity", 0.0)))
+
+
+def agreement_score(ev: dict, agreement_min: float) -> float:
+    """The score of ``material_free(ev)`` for a part whose calibrated agreement is ``agreement_min``:
+    ``MIN_SCORE`` there."""
+    z = math.log(MIN_SCORE / (1.0 - MIN_SCORE)) + AGREEMENT_SLOPE * (material_free(ev) - agreement_min)
+    return float(1.0 / (1.0 + math.exp(-min(max(z, -50.0), 50.0))))
+
+
 def rejection_reason(ev: dict) -> str:
     """The evidence furthest from a true pose's: which one a person should look at."""
     gaps = {
@@ -123,15 +142,19 @@ def rejection_reason(ev: dict) -> str:
 def decide(ev: dict | None, *, z_mm: float | None = None,
            distance_range_mm: tuple[float, float] | None = None, min_score: float | None = None,
            weights: dict | None = None, plane_gap_mm: float | None = None,
-           plane_tolerance_mm: float | None = None) -> Verdict:
+           plane_tolerance_mm: float | None = None, agreement_min: float | None = None) -> Verdict:
     """The verdict on one refined hypothesis's evidence (``None``: there was no hypothesis).
 
     ``plane_gap_mm``: with a supporting plane, the height of the posed part's lowest point above it
     (negative: through it); beyond +-``plane_tolerance_mm`` the pose does not rest on the plane and is
-    not found ("off_plane", the gap in the evidence as ``plane_gap_mm``)."""
+    not found ("off_plane", the gap in the evidence as ``plane_gap_mm``). ``agreement_min``: with a
+    plane, the part's calibrated agreement: the score is then the higher of the verification score and
+    ``agreement_score``."""
     if ev is None:
         return Verdict(False, 0.0, "no_candidate")
     score = verification_score(ev, weights)
+    if plane_gap_mm is not None and agreement_min is not None and "edge_agreement" in ev:
+        score = max(score, agreement_score(ev, agreement_min))
     # (a part without taught colours lacks their evidence: reported as given)
     evidence = {k: float(ev[k]) for k in FEATURES if k in ev} | {"in_image": float(ev.get("in_image", 1.0))}
     if distance_range_mm is not None and z_mm is not None and not (

@@ -1,0 +1,95 @@
+"""A part's operating point on a plane, calibrated on rendered scenes of it (``model/calibration_scenes``).
+
+On a plane the verdict may also find a pose by the share of its visible CAD edges whose image gradient
+agrees (``verdict.material_free``): evidence that assumes no material. How high a wrong pose of a part
+reads there depends on the part: a tube's circles agree with any cylinder's end, a clamp's outline with
+nothing else. So each part's agreement to reach is the highest a wrong pose reached in its calibration
+scenes (every candidate judged, as a request on a plane judges them), raised by a margin: the rendered
+scenes are cleaner than a cell's photos, where wrong poses read a little higher.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.vision.bank import TemplateBank
+from service.vision.estimate.verdict import material_free
+from service.vision.pipeline.calibration_scenes import scene
+from service.vision.pipeline.estimate import estimate
+from service.vision.pipeline.policy import DEFAULT_POLICY, Policy
+from service.vision.reference.metrics import mspd_px, symmetry_rotations
+
+_NEVER = 2.0  # a min_score no candidate reaches: every proposal is checked and judged
+WRONG_PX = 20.0  # a judged pose this far (MSPD, 640 px wide) from every copy is wrong
+RIGHT_PX = 5.0  # and this close to one, right
+# Poses refused for where they lie, not how they look: a request refuses them the same way.
+REFUSED_FOR_PLACE = ("outside_distance_range", "outside_image", "off_plane")
+SCENES = 12  # about a minute a part on 2 cores
+MARGIN = 0.06  # agreement above the highest wrong candidate's
+# Fewer wrong candidates than this say too little of how high a wrong pose reads: not calibrated.
+MIN_WRONG = 20
+
+
+@dataclass(frozen=True)
+class PlaneRecord:
+    agreement: float  # the candidate's ``edge_agreement``
+    error_px: float  # MSPD to the nearest copy, 640 px wide
+    reason: str
+    evidence: dict
+
+
+def plane_records(bank: TemplateBank, n_scenes: int, seed: int = 0,
+                  progress: Callable[[int, int], None] | None = None, *,
+                  policy: Policy = DEFAULT_POLICY) -> list[PlaneRecord]:
+    """Every candidate judged on ``n_scenes`` calibration scenes of ``bank``'s part, with its error."""
+    out: list[PlaneRecord] = []
+    v = np.asarray(bank.vertices_mm, float)
+    v = v[:: max(1, len(v) // policy.calibration_points)]
+    syms = None if bank.symmetry_axis_obj is None else symmetry_rotations(
+        bank.symmetry_axis_obj, bank.symmetry_point_obj, n=72)
+    for i in range(n_scenes):
+        if progress is not None:
+            progress(i, n_scenes)
+        sc = scene(bank, np.random.default_rng([seed, i]))
+        est = estimate(bank, sc.bgr, sc.intr, plane=sc.plane, max_instances=max(1, len(sc.poses)),
+                       min_score=_NEVER, policy=policy)
+        w = sc.bgr.shape[1]
+        for c in est.checked:
+            p = c.refined.pose
+            err = min((mspd_px(p.R, p.t_mm, q.R, q.t_mm, sc.intr.K, v, syms) * 640.0 / w for q in sc.poses),
+                      default=math.inf)
+            ev = c.verdict.evidence
+            out.append(PlaneRecord(float(ev.get("edge_agreement", 0.0)), float(err), c.verdict.reason, ev))
+    return out
+
+
+@dataclass(frozen=True)
+class PlaneCalibration:
+    agreement_min: float | None  # the material-free score a pose must reach; None: not calibrated
+    wrong_max: float  # the highest a wrong candidate read
+    right: int  # right candidates at or above ``agreement_min``, of ``right_total``
+    right_total: int
+    wrong_total: int
+    scenes: int
+
+
+def calibrated(records: list[PlaneRecord], scenes: int, margin: float = MARGIN) -> PlaneCalibration:
+    """The agreement a part's pose must reach: ``margin`` above the highest wrong candidate's."""
+    wrong = [material_free(r.evidence) for r in records
+             if r.error_px >= WRONG_PX and r.reason not in REFUSED_FOR_PLACE]
+    right = [material_free(r.evidence) for r in records if r.error_px < RIGHT_PX]
+    top = max(wrong, default=0.0)
+    agreement_min = top + margin if len(wrong) >= MIN_WRONG else None
+    reached = sum(a >= agreement_min for a in right) if agreement_min is not None else 0
+    return PlaneCalibration(agreement_min, top, reached, len(right), len(wrong), scenes)
+
+
+def calibrate_plane(bank: TemplateBank, n_scenes: int = SCENES, seed: int = 0,
+                    progress: Callable[[int, int], None] | None = None, *,
+                    policy: Policy = DEFAULT_POLICY) -> PlaneCalibration:
+    """``bank``'s part calibrated on ``n_scenes`` rendered scenes (``plane_records``, ``calibrated``)."""
+    return calibrated(plane_records(bank, n_scenes, seed, progress, policy=policy), n_scenes)

@@ -1,0 +1,98 @@
+"""A part's agreement calibrated on rendered scenes (service/vision/pipeline/calibration_scenes.py,
+plane_calibration.py) and the verdict that reads it (estimate/verdict.py: material_free,
+agreement_score, decide).
+
+Scenes: the L-shaped block of tests/conftest.py among look-alike shapes, drawn by the project's rasteriser.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from service.vision.estimate.verdict import MIN_SCORE, agreement_score, decide, material_free
+from service.vision.geometry.camera import project
+from service.vision.geometry.plane import rest_gap_mm
+from service.vision.pipeline import estimate
+from service.vision.pipeline.calibration_scenes import scene
+from service.vision.pipeline.plane_calibration import (
+    MARGIN,
+    MIN_WRONG,
+    RIGHT_PX,
+    PlaneRecord,
+    calibrated,
+    plane_records,
+)
+
+RESTING_MM = 1e-6  # a copy's lowest point lies on the table
+CONTRAST_GREY = 4.0  # a copy's pixels differ from the table's around it by more than the noise
+
+
+@pytest.fixture(scope="module")
+def bank(l_block_bank):
+    return l_block_bank
+
+
+def test_a_scene_is_drawn_again_from_the_same_seed(bank):
+    a, b = scene(bank, np.random.default_rng([4, 2])), scene(bank, np.random.default_rng([4, 2]))
+    assert np.array_equal(a.bgr, b.bgr) and len(a.poses) == len(b.poses) >= 2
+    assert not np.array_equal(a.bgr, scene(bank, np.random.default_rng([4, 3])).bgr)
+
+
+def test_copies_rest_on_the_table_and_show_where_their_truth_projects(bank):
+    sc = scene(bank, np.random.default_rng([1, 0]))
+    assert sc.bgr.shape == (480, 640, 3)
+    for pose, visible in zip(sc.poses, sc.visible, strict=True):
+        assert abs(rest_gap_mm(bank, pose, sc.plane)) < RESTING_MM
+        assert 0.0 < visible <= 1.05  # (the whole silhouette is rendered once, without supersampling)
+        uv = project(pose.apply(np.asarray(bank.centre_obj, float)[None]), sc.intr.K)[0]
+        assert 0 <= uv[0] < 640 and 0 <= uv[1] < 480
+    # the plane is the one the copies rest on, seen from above: its normal faces the camera
+    assert sc.plane.d_mm < 0 and sc.plane.normal[2] < 0
+
+
+def test_the_agreement_to_reach_lies_a_margin_above_the_highest_wrong_candidates():
+    def rec(agreement, error_px, reason="low_score"):
+        return PlaneRecord(agreement, error_px, reason, {"edge_agreement": agreement, "polarity": 1.0})
+
+    wrong = [rec(0.3 + 0.01 * k, 50.0) for k in range(MIN_WRONG)]
+    records = [*wrong, rec(0.9, 100.0, "off_plane"), rec(0.8, 2.0), rec(0.4, 1.0)]
+    cal = calibrated(records, scenes=3)
+    top = 0.3 + 0.01 * (MIN_WRONG - 1)  # the refused-for-its-place 0.9 does not count
+    assert cal.agreement_min == pytest.approx(top + MARGIN) and cal.wrong_max == pytest.approx(top)
+    assert (cal.right, cal.right_total, cal.wrong_total) == (1, 2, MIN_WRONG)
+    assert calibrated(records[1:], scenes=3).agreement_min is None  # too few wrong candidates
+
+
+def test_the_material_free_score_is_held_down_by_polarity_and_reaches_the_operating_point_at_its_agreement():
+    ev = {"edge_agreement": 0.8, "polarity": 0.6}
+    assert material_free(ev) == 0.6
+    assert agreement_score({"edge_agreement": 0.7, "polarity": 1.0}, 0.7) == pytest.approx(MIN_SCORE)
+    assert agreement_score({"edge_agreement": 0.72, "polarity": 1.0}, 0.7) > MIN_SCORE
+    assert agreement_score({"edge_agreement": 0.68, "polarity": 1.0}, 0.7) < MIN_SCORE
+
+
+def test_a_calibrated_part_on_a_plane_is_found_on_its_agreement_and_only_there():
+    ev = {"edge_support": 0.5, "unexplained": 0.3, "colour_edge": 0.9, "polarity": 0.95, "region": 0.5,
+          "region_low": 0.5, "region_global": 0.3, "coherence": 0.5, "shading_r2": 0.2, "shading_std": 9.0,
+          "generic": 0.5, "edge_agreement": 0.9, "inner_agreement": 0.8}
+    assert not decide(ev, plane_gap_mm=0.0, plane_tolerance_mm=5.0).found  # the material-bound score
+    found = decide(ev, plane_gap_mm=0.0, plane_tolerance_mm=5.0, agreement_min=0.85)
+    assert found.found and found.reason == "found" and found.score > MIN_SCORE
+    assert not decide(ev, plane_gap_mm=0.0, plane_tolerance_mm=5.0, agreement_min=0.95).found
+    assert decide(ev, plane_gap_mm=9.0, plane_tolerance_mm=5.0, agreement_min=0.85).reason == "off_plane"
+    assert not decide(ev, agreement_min=0.85).found  # without a plane it is not read
+
+
+def test_calibration_records_the_copies_it_finds_as_right_and_the_estimate_reads_its_agreement(bank):
+    records = plane_records(bank, n_scenes=1, seed=7)
+    assert records and all(math.isfinite(r.error_px) for r in records)
+    right = [r for r in records if r.error_px < RIGHT_PX]
+    assert right, "the calibration scene's copies are among the checked candidates"
+    # the same scene, estimated with the lowest agreement a right candidate read: it is found there
+    sc = scene(bank, np.random.default_rng([7, 0]))
+    a = min(material_free(r.evidence) for r in right)
+    out = estimate(bank, sc.bgr, sc.intr, plane=sc.plane, max_instances=len(sc.poses), agreement_min=a)
+    assert out.found
