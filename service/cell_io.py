@@ -14,6 +14,7 @@ from service.cell import Grasp, base_from_cam, place_grasps, rigid
 from service.decode import decode_image, image_size
 from service.errors import UnprocessableError
 from service.form_parts import parse_json_object, parse_json_part, validate_part
+from service.plane_calibrations import agreement_min_of, plane_calibration_warning
 from service.schemas import (
     Camera,
     CameraRef,
@@ -155,7 +156,9 @@ def estimate_result(record: dict[str, Any], bank: TemplateBank, data: bytes, cam
     size is checked too and the result gains the robot-frame poses and the placed ``grasps``.
     ``default_deadline_ms`` (the service's setting; None or 0: none) applies when ``opts`` give none.
     ``appearance``: the model's colours taught from its reference photos (``references.appearance_of``),
-    which every candidate is then judged on too."""
+    which every candidate is then judged on too. On a plane, a part calibrated for one
+    (``service/plane_calibrations``) is also judged on its visible edges' agreement; one not calibrated
+    yet is answered with a warning saying so."""
     cell = isinstance(cam, CellCamera)
     if cell:
         size = image_size(data)
@@ -173,9 +176,13 @@ def estimate_result(record: dict[str, Any], bank: TemplateBank, data: bytes, cam
     if kwargs["deadline_ms"] is None:
         kwargs["deadline_ms"] = default_deadline_ms or None
     kwargs["appearance"] = appearance
+    on_plane = kwargs.get("plane") is not None
+    kwargs["agreement_min"] = agreement_min_of(record) if on_plane else None
     out = estimate_image(bank, image, cam.to_intrinsics(), started_at=started_at, **kwargs)
     result = EstimateResult.from_output(record["id"], out)
-    result.warnings = ModelInfo.from_record(record).warnings + snap_warnings(cam, opts) + result.warnings
+    uncalibrated = plane_calibration_warning(record) if on_plane else None
+    result.warnings = (ModelInfo.from_record(record).warnings + snap_warnings(cam, opts) + result.warnings
+                       + ([uncalibrated] if uncalibrated else []))
     if cell:
         result = add_cell_frames(result, bank, cam, opts, grasps or [], camera_name)
     return result

@@ -112,7 +112,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             settings.cache_dir.mkdir(parents=True, exist_ok=True)
         store = open_store(settings.store_location, bank_cache_mb=settings.bank_cache_mb)
         builder = make_builder(settings)
-        calibrator = Calibrator(store, settings.build_lease_s)
+        calibrator = Calibrator(store, settings.build_lease_s, settings.plane_calibration_scenes)
         app.state.store, app.state.builder, app.state.calibrator = store, builder, calibrator
         builder.resume(store)
         calibrator.resume()  # calibrations a stop or crash ended

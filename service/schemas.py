@@ -24,6 +24,7 @@ from pydantic import (
 )
 
 from service.cell import extent_warnings, nearest_rotation, rigid, snap_warning, watertight_warnings
+from service.plane_calibrations import plane_calibration_info
 from service.vision.estimate.plane import PLANE_TOLERANCE_MM
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, euler_xyz_deg_from_R, quat_xyzw_from_R
@@ -336,6 +337,20 @@ class Symmetry(BaseModel):
     axis: Vec3 | None = Field(description="unit axis in the model frame (continuous symmetry), else null")
 
 
+class PlaneCalibrationInfo(BaseModel):
+    status: Literal["queued", "running", "calibrated", "not_requested"] = Field(
+        description="the part's calibration for parts on a plane (rendered scenes of it among look-alike "
+        "shapes, in the background once it is ready): queued, running (see progress), calibrated, or "
+        "not_requested (POSE_PLANE_CALIBRATION_SCENES=0)")
+    progress: float = Field(description="0..1, the share of its scenes judged")
+    agreement_min: float | None = Field(
+        description="the agreement of the visible edges' gradients (min of evidence edge_agreement and "
+        "polarity) a pose on a plane must reach to be found on it; null until calibrated, or when no "
+        "agreement kept the wrong poses of its scenes out (a plain shape among look-alikes)")
+    wrong_max: float | None = Field(description="the highest agreement a wrong pose reached in its scenes")
+    scenes: int | None = Field(description="rendered scenes it was calibrated on (null until calibrated)")
+
+
 class ModelInfo(BaseModel):
     id: str
     name: str
@@ -353,11 +368,16 @@ class ModelInfo(BaseModel):
         "wrong units (largest side outside 1 mm .. 3 m); empty when nothing does")
     references: int = Field(0, description="reference photos the part's colours are taught from "
                             "(POST /models/{id}/references); 0: untaught")
+    plane_calibration: PlaneCalibrationInfo | None = Field(
+        None, description="how far the part's calibration for parts on a plane is (null until it is ready)")
 
     @classmethod
-    def from_record(cls, record: dict[str, Any]) -> ModelInfo:
-        fields = {k: record.get(k) for k in cls.model_fields if k not in ("warnings", "references")}
+    def from_record(cls, record: dict[str, Any], plane_scenes: int | None = None) -> ModelInfo:
+        """``plane_scenes``: the service's ``plane_calibration_scenes`` (None: not known to the caller)."""
+        fields = {k: record.get(k) for k in cls.model_fields
+                  if k not in ("warnings", "references", "plane_calibration")}
         return cls.model_validate({**fields, "references": int(record.get("references") or 0),
+                                   "plane_calibration": plane_calibration_info(record, plane_scenes),
                                    "warnings": extent_warnings(record.get("extents_mm") or [],
                                                                record.get("units") or "mm")
                                    + watertight_warnings(record.get("watertight"),

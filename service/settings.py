@@ -57,6 +57,10 @@ class Settings(BaseSettings):
     warm_up: bool = Field(
         True, description="at start-up, run the pipeline once on a synthetic scene in the background so "
         "the first real estimate does not pay ~0.5 s of kernel loading")
+    plane_calibration_scenes: int = Field(
+        12, ge=0, description="rendered scenes each ready part is calibrated on, in the background, for "
+        "parts on a plane (its visible edges' agreement; about a minute a part on 2 cores); 0: none, parts "
+        "on a plane are judged on shading and region alone")
     template_grid: dict[str, Any] = Field(
         default_factory=dict,
         description="template-grid defaults (keys of service.vision.model.grid.GRID_DEFAULTS); an upload's "

@@ -14,6 +14,8 @@ MODELS_DIR = DATA_DIR / "models"
 # In-process apps (TestClient) skip the start-up warm-up: dozens of them would each run the pipeline
 # once; the served processes (tests/test_serve.py builds their environment itself) keep it on.
 os.environ.setdefault("POSE_WARM_UP", "false")
+# a server's parts are calibrated on a plane only where a test asks for it: a minute of CPU a part
+os.environ.setdefault("POSE_PLANE_CALIBRATION_SCENES", "0")
 # Tests judge answers, not a loaded machine's speed: no default deadline (tests of it set their own).
 os.environ.setdefault("POSE_DEADLINE_MS", "0")
 

@@ -52,6 +52,7 @@ class Serve:
                        if not k.startswith("POSE_") and k != "PROMETHEUS_MULTIPROC_DIR"}
         environment.update({"POSE_CACHE_DIR": str(tmp / "cache"), "POSE_TEMPLATE_GRID": json.dumps(GRID),
                             "POSE_BUILD_LEASE_S": str(LEASE_S), "POSE_PORT": str(self.port),
+                            "POSE_PLANE_CALIBRATION_SCENES": "0",
                             "POSE_WORKERS": str(workers), **(env or {})})
         with open(self.log_path, "wb") as log:
             self.proc = subprocess.Popen([sys.executable, "-m", "service", "serve"], cwd=ROOT,

@@ -9,7 +9,7 @@ from starlette.concurrency import run_in_threadpool
 
 from service import monitoring
 from service.api import error_responses
-from service.api.deps import Loaded, ReadyModel, SettingsDep, StoreDep, read_upload
+from service.api.deps import CalibratorDep, Loaded, ReadyModel, SettingsDep, StoreDep, read_upload
 from service.cell import Grasp
 from service.cell_io import check_robot_pose, estimate_options, estimate_result, grasps_of, resolve_camera
 from service.references import appearance_of
@@ -35,6 +35,7 @@ async def estimate(
     model: ReadyModel,
     settings: SettingsDep,
     store: StoreDep,
+    calibrator: CalibratorDep,
     image: Annotated[UploadFile, File(description="PNG, JPEG, BMP or TIFF; 8- or 16-bit; grey or colour")],
     camera: Annotated[str, Form(
         description='JSON intrinsics {"fx", "fy", "cx", "cy", optional "dist", "width", "height", '
@@ -50,6 +51,8 @@ async def estimate(
     cam, camera_name = resolve_camera(camera, store)
     opts = estimate_options(options, cam, camera_name, store)
     check_robot_pose(cam, opts, camera_name)
+    if opts.plane is not None:  # a part estimated on a plane is calibrated for one, if it is not yet
+        calibrator.submit_plane(model.record)
     grasps = grasps_of(store.grasps(model.id))
     result = await run_in_threadpool(run_estimate, model, data, cam, opts, settings, store,
                                      camera_name=camera_name, grasps=grasps)

@@ -11,6 +11,7 @@ from starlette.concurrency import run_in_threadpool
 from service.api import error_responses
 from service.api.deps import (
     BuilderDep,
+    CalibratorDep,
     ModelRecord,
     ReadyModel,
     SettingsDep,
@@ -72,13 +73,18 @@ async def _read_mesh(file: UploadFile, limit: int) -> bytes:
 
 
 @router.get("/models", response_model=list[ModelInfo])
-def list_models(store: StoreDep) -> list[ModelInfo]:
-    return [ModelInfo.from_record(r) for r in store.records()]
+def list_models(store: StoreDep, settings: SettingsDep, calibrator: CalibratorDep) -> list[ModelInfo]:
+    records = store.records()
+    for r in records:
+        calibrator.submit_plane(r)
+    return [ModelInfo.from_record(r, settings.plane_calibration_scenes) for r in records]
 
 
 @router.get("/models/{model_id}", response_model=ModelInfo, responses=error_responses(404, 422))
-def get_model(record: ModelRecord) -> ModelInfo:
-    return ModelInfo.from_record(record)
+def get_model(record: ModelRecord, settings: SettingsDep, calibrator: CalibratorDep) -> ModelInfo:
+    """The model's record; a ready part's plane calibration, if due, is queued (``submit_plane``)."""
+    calibrator.submit_plane(record)
+    return ModelInfo.from_record(record, settings.plane_calibration_scenes)
 
 
 @router.delete("/models/{model_id}", status_code=204, response_class=Response,

@@ -1,4 +1,5 @@
-"""Calibrations of taught parts' operating points, in the background of the API process.
+"""Calibrations of parts' operating points, in the background of the API process: a taught part's on its
+reference photos, and every part's on a plane on rendered scenes of it (``service/plane_calibrations``).
 
 ``POST /models/{id}/references`` stores a photo and marks the record ``calibration_wanted``; calibrating
 (``references.calibrate_stored``: a search per stored photo, seconds each) would hold the request for half
@@ -16,6 +17,10 @@ calibration lease (the store's build lease under ``<id>:calibration``, ``Setting
 renewed before every photo) lets one process calibrate a set; another process's job for it looks again
 every half lease while the set is still due, so a calibration whose process was killed is taken over
 once its lease runs out.
+
+A part's plane calibration is due once its templates are ready (``plane_calibration_due``): ``GET
+/models``, ``GET /models/{id}`` and an estimate of the part queue it (``submit_plane``), as every start-up
+does; it keeps its progress and result in the record, under its own lease (``<id>:plane_calibration``).
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ import logging
 import threading
 from typing import Any
 
+from service.plane_calibrations import calibrate_plane_stored, plane_calibration_due
 from service.references import calibrate_stored, calibration_due
 from service.stores.base import Store
 
@@ -41,11 +47,16 @@ def lease_key(mid: str) -> str:
     return f"{mid}:calibration"
 
 
+def plane_lease_key(mid: str) -> str:
+    return f"{mid}:plane_calibration"
+
+
 class Calibrator:
     """One background thread calibrating the models handed to it, one at a time, in order."""
 
-    def __init__(self, store: Store, lease_s: float) -> None:
+    def __init__(self, store: Store, lease_s: float, plane_scenes: int = 0) -> None:
         self.store, self.lease_s = store, float(lease_s)  # a photo's search takes seconds: well under it
+        self.plane_scenes = int(plane_scenes)  # rendered scenes a plane calibration judges (0: none)
         self._retries: dict[str, threading.Timer] = {}
         self._cv = threading.Condition()
         self._queue: collections.deque[str] = collections.deque()
@@ -61,9 +72,15 @@ class Calibrator:
                 self._queue.append(mid)
                 self._cv.notify_all()
 
+    def submit_plane(self, record: dict[str, Any]) -> None:
+        """Queue the record's plane calibration if it is due (``plane_calibration_due``)."""
+        if plane_calibration_due(record, self.plane_scenes):
+            self.submit(record["id"])
+
     def resume(self) -> list[str]:
         """Queue every model whose record wants a calibration it does not hold (a stop or crash ended it)."""
-        due = [r["id"] for r in self.store.records() if r.get("status") == "ready" and calibration_due(r)]
+        due = [r["id"] for r in self.store.records() if r.get("status") == "ready" and (
+            calibration_due(r) or plane_calibration_due(r, self.plane_scenes))]
         for mid in due:
             log.info("resuming the calibration of model %s", mid)
             self.submit(mid)
@@ -101,6 +118,35 @@ class Calibrator:
                     self._cv.notify_all()
 
     def _calibrate(self, mid: str) -> None:
+        self._calibrate_references(mid)
+        self._calibrate_plane(mid)
+
+    def _calibrate_plane(self, mid: str) -> None:
+        record = self.store.get(mid)
+        if record is None or not plane_calibration_due(record, self.plane_scenes):
+            return
+        token = self.store.try_lock(plane_lease_key(mid), self.lease_s)
+        if token is None:
+            self._retry_later(mid)
+            return
+        try:
+            bank = self.store.bank(mid)
+            if bank is None:
+                return
+
+            def progress(done: int, total: int) -> None:
+                if self._closing or self.store.get(mid) is None:
+                    raise _StoppedError
+                self.store.renew(plane_lease_key(mid), token, self.lease_s)
+
+            calibrate_plane_stored(self.store, mid, bank, self.plane_scenes, progress)
+            log.info("calibrated model %s on a plane (%d rendered scenes)", mid, self.plane_scenes)
+        except _StoppedError:
+            log.info("the plane calibration of model %s stopped (deleted or service stopping)", mid)
+        finally:
+            self.store.unlock(plane_lease_key(mid), token)
+
+    def _calibrate_references(self, mid: str) -> None:
         record = self.store.get(mid)
         if record is None or record.get("status") != "ready" or not calibration_due(record):
             return

@@ -1,7 +1,8 @@
 """Scenes of a part resting on a table among look-alike shapes, drawn by the project's rasteriser, with
 their exact truth: what a part's plane operating point is calibrated on (``pipeline/plane_calibration``).
 
-A scene: a camera 20-50 deg from straight down, its distance putting the part's diameter at 70-170 px;
+A scene: a camera 20-50 deg from straight down, its distance putting the part's diameter at 70-170 px
+(held inside the distance range a request without one searches, so a small part appears smaller);
 2-5 copies of the part in its resting poses (the bank's families, by their probability), any spin,
 and 3-7 distractors (cylinders, bars, rings, discs and plates sized like the part) on a plain, noisy,
 grained or checked table. Each object has its own material: matte or shiny (Blinn-Phong highlights with
@@ -21,11 +22,14 @@ from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rz
 from service.vision.geometry.plane import Plane
 from service.vision.geometry.render import render
+from service.vision.pipeline.policy import DEFAULT_DISTANCE_RANGE_MM
 
 SIZE = (640, 480)
 INTR = Intrinsics(600.0, 600.0, 319.5, 239.5)
 TILT_DEG = (20.0, 50.0)
 PART_PX = (70.0, 170.0)  # the part's diameter in the image at the scene's centre
+# the scene's centre lies this far in, from each end of the default range: copies lie nearer and farther
+DISTANCE_MM = (1.1 * DEFAULT_DISTANCE_RANGE_MM[0], 0.8 * DEFAULT_DISTANCE_RANGE_MM[1])
 COPIES = (2, 5)
 DISTRACTORS = (3, 7)
 SHINY_SHARE = 0.5
@@ -149,7 +153,7 @@ def scene(bank, rng: np.random.Generator) -> Scene:
     V = np.asarray(bank.vertices_mm, float)
     F = np.asarray(bank.faces, np.int64)
     diameter = float(bank.diameter_mm)
-    distance = INTR.fx * diameter / rng.uniform(*PART_PX)
+    distance = float(np.clip(INTR.fx * diameter / rng.uniform(*PART_PX), *DISTANCE_MM))
     R_cw, t_cw = _camera(rng, distance)
     spread = 0.35 * distance  # about the middle two thirds of the image at the axis' foot point
     prob = np.asarray(bank.rest_probability, float)

@@ -1,0 +1,93 @@
+"""A part's plane calibration (``vision/pipeline/plane_calibration.py``) kept in its record.
+
+Once a part's templates are ready, the process's ``Calibrator`` renders scenes of it among look-alike
+shapes and sets the agreement of visible edges a pose on a plane must reach (about a minute a part). The
+record holds it as ``plane_calibration``::
+
+    {"version": 1, "status": "running", "done": 3, "total": 12}
+    {"version": 1, "status": "calibrated", "agreement_min": 0.71, "wrong_max": 0.65, "scenes": 12, ...}
+
+A calibration of an older method (``version``), or one a stop or a crash ended, is due again: every
+start-up re-queues it. Until a part is calibrated, a request on a plane judges it on the material-bound
+score alone, and says so in its warnings.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from service.vision.bank import TemplateBank
+from service.vision.pipeline.plane_calibration import calibrate_plane
+
+if TYPE_CHECKING:
+    from service.stores.base import Store
+
+# The calibration's method: a calibration of another is made again.
+VERSION = 1
+KEY = "plane_calibration"
+
+
+def plane_calibration_due(record: dict[str, Any], scenes: int) -> bool:
+    """Whether the record's part is ready and lacks a finished calibration of this method."""
+    cal = record.get(KEY) or {}
+    return (scenes > 0 and record.get("status") == "ready"
+            and not (cal.get("version") == VERSION and cal.get("status") == "calibrated"))
+
+
+def agreement_min_of(record: dict[str, Any]) -> float | None:
+    """The agreement a pose of the part on a plane must reach; None until calibrated (or not calibratable)."""
+    cal = record.get(KEY) or {}
+    if cal.get("version") != VERSION or cal.get("status") != "calibrated":
+        return None
+    a = cal.get("agreement_min")
+    return None if a is None else float(a)
+
+
+def plane_calibration_warning(record: dict[str, Any]) -> str | None:
+    """A request's warning when the part on a plane is not judged on its visible edges' agreement."""
+    cal = record.get(KEY) or {}
+    if agreement_min_of(record) is not None:
+        return None
+    if cal.get("version") == VERSION and cal.get("status") == "calibrated":
+        return ("The part's plane calibration found no agreement that keeps wrong poses out (its shape is "
+                "too plain among look-alikes): on a plane it is judged on shading and region alone, which "
+                "miss most shiny or plastic parts; teach it from reference photos")
+    done, total = int(cal.get("done") or 0), int(cal.get("total") or 0)
+    state = f"running ({done} of {total} scenes)" if cal.get("status") == "running" else "not done"
+    return (f"The part's plane calibration is {state}: until it is, parts on a plane are judged on shading "
+            "and region alone, which miss most shiny or plastic parts; GET /models/{id} shows its progress "
+            "(none runs with POSE_PLANE_CALIBRATION_SCENES=0)")
+
+
+def plane_calibration_info(record: dict[str, Any], scenes: int | None) -> dict[str, Any] | None:
+    """What ``GET /models/{id}`` shows of it (null before the part is ready). ``scenes``: the service's
+    ``plane_calibration_scenes`` (0: none is made; None: not known here)."""
+    if record.get("status") != "ready":
+        return None
+    cal = record.get(KEY) or {}
+    current = cal.get("version") == VERSION
+    status = cal.get("status") if current else ("not_requested" if scenes == 0 else "queued")
+    total = int(cal.get("total") or cal.get("scenes") or 0)
+    progress = 1.0 if status == "calibrated" else (int(cal.get("done") or 0) / total if total else 0.0)
+    return {"status": status, "progress": progress,
+            "agreement_min": agreement_min_of(record),
+            "wrong_max": cal.get("wrong_max") if current else None,
+            "scenes": int(cal.get("scenes") or 0) if status == "calibrated" else None}
+
+
+def calibrate_plane_stored(store: Store, mid: str, bank: TemplateBank, scenes: int,
+                           progress: Callable[[int, int], None] | None = None) -> dict[str, Any] | None:
+    """``bank``'s part calibrated on ``scenes`` rendered scenes, kept in record ``mid``: the record then
+    (None if it was deleted). ``progress(done, total)`` is told before each scene and may raise to stop."""
+
+    def told(done: int, total: int) -> None:
+        if progress is not None:
+            progress(done, total)
+        store.update(mid, **{KEY: {"version": VERSION, "status": "running", "done": done, "total": total}})
+
+    cal = calibrate_plane(bank, scenes, progress=told)
+    kept = {"version": VERSION, "status": "calibrated", "agreement_min": cal.agreement_min,
+            "wrong_max": float(cal.wrong_max), "right": cal.right, "right_total": cal.right_total,
+            "wrong_total": cal.wrong_total, "scenes": cal.scenes}
+    return store.update(mid, **{KEY: kept})
