@@ -3,13 +3,14 @@ records kept in bench/out/plane_calibration/ per (bank, scenes) and made again o
 
 from __future__ import annotations
 
+import hashlib
 import json
 import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
 
-from bench.lib.data import OUT_DIR, bank_path
+from bench.lib.data import OUT_DIR, ROOT, bank_path
 from service.vision.bank import TemplateBank
 from service.vision.pipeline.plane_calibration import (
     MARGIN,
@@ -20,9 +21,18 @@ from service.vision.pipeline.plane_calibration import (
 )
 
 
+def _method() -> str:
+    """A hash of the calibration's scenes and records: a change makes them again."""
+    h = hashlib.sha1()
+    for src in sorted((ROOT / "service" / "vision" / "pipeline").glob("*calibration*.py")):
+        h.update(src.read_bytes())
+    return h.hexdigest()[:8]
+
+
 def plane_calibration(bank: TemplateBank, model: str, mesh_path: Path, scenes: int,
                       margin: float = MARGIN) -> PlaneCalibration:
-    path = OUT_DIR / "plane_calibration" / f"{bank_path(model, mesh_path, None).stem}-{scenes}.jsonl"
+    name = f"{bank_path(model, mesh_path, None).stem}-{scenes}-{_method()}.jsonl"
+    path = OUT_DIR / "plane_calibration" / name
     if path.exists():
         records = [PlaneRecord(**json.loads(s)) for s in path.read_text().splitlines() if s.strip()]
     else:

@@ -4,10 +4,11 @@ their exact truth: what a part's plane operating point is calibrated on (``pipel
 A scene: a camera 20-50 deg from straight down, its distance putting the part's diameter at 70-170 px
 (held inside the distance range a request without one searches, so a small part appears smaller);
 2-5 copies of the part in its resting poses (the bank's families, by their probability), any spin,
-and 3-7 distractors (cylinders, bars, rings, discs and plates sized like the part) on a plain, noisy,
-grained or checked table. Each object has its own material: matte or shiny (Blinn-Phong highlights with
-a reflected sky gradient for metal), any colour, one light. Copies and distractors may touch and hide
-each other; none rests on another. Everything is drawn from the ``rng`` given.
+and 3-7 distractors on a plain, noisy, grained or checked table: cylinders, bars, rings, discs and plates
+sized like the part, and the part itself scaled or stretched (a short screw's wrong poses lie on long
+ones, a nozzle's on larger nozzles). Each object has its own material: matte or shiny (Blinn-Phong
+highlights with a reflected sky gradient for metal), any colour, one light. Copies and distractors may
+touch and hide each other; none rests on another. Everything is drawn from the ``rng`` given.
 """
 
 from __future__ import annotations
@@ -31,7 +32,12 @@ PART_PX = (70.0, 170.0)  # the part's diameter in the image at the scene's centr
 # the scene's centre lies this far in, from each end of the default range: copies lie nearer and farther
 DISTANCE_MM = (1.1 * DEFAULT_DISTANCE_RANGE_MM[0], 0.8 * DEFAULT_DISTANCE_RANGE_MM[1])
 COPIES = (2, 5)
-DISTRACTORS = (3, 7)
+DISTRACTORS = (3, 8)
+# objects lie within this many part diameters (times the square root of their number) of the scene's
+# centre, a pile's density, and within the image's middle two thirds
+SPREAD_DIAMETERS = 1.0
+# two objects' footprint circles may overlap by this share of their radii: touching, hiding each other
+OVERLAP = 0.3
 SHINY_SHARE = 0.5
 
 
@@ -50,10 +56,13 @@ class _Solid:
     faces: np.ndarray
 
 
-def _distractor(rng: np.random.Generator, diameter_mm: float) -> _Solid:
+def _distractor(rng: np.random.Generator, bank) -> _Solid:
     """A look-alike shape about the part's size, resting on the plane (z up)."""
-    d = diameter_mm * rng.uniform(0.3, 1.0)
-    kind = rng.choice(["cylinder_lying", "cylinder_standing", "bar", "ring", "disc", "plate"])
+    d = float(bank.diameter_mm) * rng.uniform(0.3, 1.0)
+    kind = rng.choice(["cylinder_lying", "cylinder_standing", "bar", "ring", "disc", "plate", "scaled_part",
+                       "stretched_part"])
+    if kind in ("scaled_part", "stretched_part"):
+        return _part_alike(rng, bank, kind == "stretched_part")
     if kind == "cylinder_lying":
         m = trimesh.creation.cylinder(radius=d * rng.uniform(0.04, 0.2), height=d, sections=32)
         m.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
@@ -75,6 +84,23 @@ def _distractor(rng: np.random.Generator, diameter_mm: float) -> _Solid:
     return _Solid(V, np.asarray(m.faces, np.int64))
 
 
+def _part_alike(rng: np.random.Generator, bank, stretched: bool) -> _Solid:
+    """The part in one of its resting poses, scaled by 0.6-0.8 or 1.25-1.6 (or along one of its axes only,
+    by 0.5-0.75 or 1.3-2): a look-alike no true pose of it explains."""
+    low, high = ((0.5, 0.75), (1.3, 2.0)) if stretched else ((0.6, 0.8), (1.25, 1.6))
+    s = rng.uniform(*(low if rng.uniform() < 0.5 else high))
+    scale = np.ones(3)
+    if stretched:
+        scale[int(rng.integers(0, 3))] = s
+    else:
+        scale[:] = s
+    prob = np.asarray(bank.rest_probability, float)
+    R_rest = np.asarray(bank.R_rest_obj[int(rng.choice(len(prob), p=prob / prob.sum()))], float)
+    V = (np.asarray(bank.vertices_mm, float) * scale) @ R_rest.T
+    V -= np.array([*V[:, :2].mean(axis=0), V[:, 2].min()])
+    return _Solid(V, np.asarray(bank.faces, np.int64))
+
+
 def _camera(rng: np.random.Generator, distance_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """(R_cam_world, t_cam_world): world = the table (z up, z = 0), the optical axis meeting its origin."""
     a = np.radians(rng.uniform(*TILT_DEG))
@@ -91,7 +117,7 @@ def _placed(rng: np.random.Generator, V_rest: np.ndarray, spread_mm: float, take
     r = float(np.linalg.norm(V_rest[:, :2] - V_rest[:, :2].mean(axis=0), axis=1).max())
     for _ in range(60):
         xy = rng.uniform(-spread_mm, spread_mm, 2)
-        if all(np.hypot(*(xy - c[:2])) > 0.8 * (r + c[2]) for c in taken):
+        if all(np.hypot(*(xy - c[:2])) > (1.0 - OVERLAP) * (r + c[2]) for c in taken):
             taken.append(np.array([xy[0], xy[1], r]))
             spin = Rz(rng.uniform(0.0, 360.0))
             c = V_rest @ spin.T
@@ -155,13 +181,15 @@ def scene(bank, rng: np.random.Generator) -> Scene:
     diameter = float(bank.diameter_mm)
     distance = float(np.clip(INTR.fx * diameter / rng.uniform(*PART_PX), *DISTANCE_MM))
     R_cw, t_cw = _camera(rng, distance)
-    spread = 0.35 * distance  # about the middle two thirds of the image at the axis' foot point
+    n_copies = int(rng.integers(COPIES[0], COPIES[1] + 1))
+    n_distractors = int(rng.integers(DISTRACTORS[0], DISTRACTORS[1] + 1))
+    spread = min(0.35 * distance, SPREAD_DIAMETERS * diameter * np.sqrt(n_copies + n_distractors))
     prob = np.asarray(bank.rest_probability, float)
     prob = prob / prob.sum()
     taken: list[np.ndarray] = []
     solids: list[tuple[np.ndarray, np.ndarray, bool]] = []  # (V_cam, F, is_copy)
     poses: list[Pose] = []
-    for _ in range(int(rng.integers(COPIES[0], COPIES[1] + 1))):
+    for _ in range(n_copies):
         R_rest = np.asarray(bank.R_rest_obj[int(rng.choice(len(prob), p=prob))], float)
         placed = _placed(rng, V @ R_rest.T, spread, taken)
         if placed is not None:
@@ -169,8 +197,8 @@ def scene(bank, rng: np.random.Generator) -> Scene:
             pose = Pose(R_cw @ spin @ R_rest, R_cw @ t_w + t_cw)
             poses.append(pose)
             solids.append((pose.apply(V), F, True))
-    for _ in range(int(rng.integers(DISTRACTORS[0], DISTRACTORS[1] + 1))):
-        d = _distractor(rng, diameter)
+    for _ in range(n_distractors):
+        d = _distractor(rng, bank)
         placed = _placed(rng, d.vertices_mm, spread, taken)
         if placed is not None:
             spin, t_w = placed
