@@ -55,35 +55,43 @@ def test_copies_rest_on_the_table_and_show_where_their_truth_projects(bank):
 
 def test_the_agreement_to_reach_lies_a_margin_above_the_highest_wrong_candidates():
     def rec(agreement, error_px, reason="low_score"):
-        return PlaneRecord(agreement, error_px, reason, {"edge_agreement": agreement, "polarity": 1.0})
+        return PlaneRecord(agreement, error_px, reason, {"edge_agreement": agreement, "polarity": 1.0,
+                                                         "distinct_px": 2.0})
 
     wrong = [rec(0.3 + 0.01 * k, 50.0) for k in range(MIN_WRONG)]
-    records = [*wrong, rec(0.9, 100.0, "off_plane"), rec(0.8, 2.0), rec(0.4, 1.0)]
+    plain = PlaneRecord(0.95, 60.0, "low_score",
+                        {"edge_agreement": 0.95, "polarity": 1.0, "distinct_px": 0.5})
+    records = [*wrong, rec(0.9, 100.0, "off_plane"), plain, rec(0.8, 2.0), rec(0.4, 1.0)]
     cal = calibrated(records, scenes=3)
-    top = 0.3 + 0.01 * (MIN_WRONG - 1)  # the refused-for-its-place 0.9 does not count
+    top = 0.3 + 0.01 * (MIN_WRONG - 1)  # the refused-for-its-place 0.9 and the plain outline's 0.95 do not
     assert cal.agreement_min == pytest.approx(top + MARGIN) and cal.wrong_max == pytest.approx(top)
     assert (cal.right, cal.right_total, cal.wrong_total) == (1, 2, MIN_WRONG)
     assert calibrated(records[1:], scenes=3).agreement_min is None  # too few wrong candidates
 
 
 def test_the_material_free_score_is_held_down_by_polarity_and_reaches_the_operating_point_at_its_agreement():
-    ev = {"edge_agreement": 0.8, "polarity": 0.6}
-    assert material_free(ev) == 0.6
-    assert agreement_score({"edge_agreement": 0.7, "polarity": 1.0}, 0.7) == pytest.approx(MIN_SCORE)
-    assert agreement_score({"edge_agreement": 0.72, "polarity": 1.0}, 0.7) > MIN_SCORE
-    assert agreement_score({"edge_agreement": 0.68, "polarity": 1.0}, 0.7) < MIN_SCORE
+    assert material_free({"edge_agreement": 0.8, "polarity": 0.6}) == 0.6
+    def ev(agreement, distinct_px=2.0):
+        return {"edge_agreement": agreement, "polarity": 1.0, "distinct_px": distinct_px}
+
+    assert agreement_score(ev(0.7), 0.7) == pytest.approx(MIN_SCORE)
+    assert agreement_score(ev(0.72), 0.7) > MIN_SCORE
+    assert agreement_score(ev(0.68), 0.7) < MIN_SCORE
+    assert agreement_score(ev(0.99, distinct_px=0.9), 0.7) == 0.0
 
 
 def test_a_calibrated_part_on_a_plane_is_found_on_its_agreement_and_only_there():
     ev = {"edge_support": 0.5, "unexplained": 0.3, "colour_edge": 0.9, "polarity": 0.95, "region": 0.5,
           "region_low": 0.5, "region_global": 0.3, "coherence": 0.5, "shading_r2": 0.2, "shading_std": 9.0,
-          "generic": 0.5, "edge_agreement": 0.9, "inner_agreement": 0.8}
+          "generic": 0.5, "distinct_px": 2.0, "edge_agreement": 0.9, "inner_agreement": 0.8}
     assert not decide(ev, plane_gap_mm=0.0, plane_tolerance_mm=5.0).found  # the material-bound score
     found = decide(ev, plane_gap_mm=0.0, plane_tolerance_mm=5.0, agreement_min=0.85)
     assert found.found and found.reason == "found" and found.score > MIN_SCORE
     assert not decide(ev, plane_gap_mm=0.0, plane_tolerance_mm=5.0, agreement_min=0.95).found
     assert decide(ev, plane_gap_mm=9.0, plane_tolerance_mm=5.0, agreement_min=0.85).reason == "off_plane"
     assert not decide(ev, agreement_min=0.85).found  # without a plane it is not read
+    plain = ev | {"distinct_px": 0.5}  # an outline a plain shape has too: edges alone do not tell
+    assert not decide(plain, plane_gap_mm=0.0, plane_tolerance_mm=5.0, agreement_min=0.85).found
 
 
 def test_calibration_records_the_copies_it_finds_as_right_and_the_estimate_reads_its_agreement(bank):

@@ -59,6 +59,11 @@ MIN_SCORE = 0.98
 # evidence that assumes no material (``material_free``): its score reaches ``MIN_SCORE`` at the part's
 # calibrated agreement and rises this steeply (logit per unit of agreement) above it.
 AGREEMENT_SLOPE = 40.0
+# ... where its outline lies at least this far (image pixels, ``distinct_px``) from the nearest plain
+# shape's: nearer, no image tells the part from a plain object of that outline (a screw standing on its
+# head is a small circle, as is a nut, a hole, a nozzle standing on either end), and edges alone cannot
+# tell the part's pose from another pose of that outline
+MIN_DISTINCT_PX = 1.0
 # Refits on the visible part's evidence and on ``generic``: docs/detection-history.md.
 
 # The reasons a verdict gives.
@@ -107,6 +112,11 @@ def verification_score(ev: dict, weights: dict | None = None) -> float:
     return float(1.0 / (1.0 + np.exp(-z)))
 
 
+def distinct(ev: dict) -> bool:
+    """The pose's outline lies at least ``MIN_DISTINCT_PX`` from the nearest plain shape's."""
+    return _read(ev, "distinct_px") >= MIN_DISTINCT_PX
+
+
 def material_free(ev: dict) -> float:
     """The share of the pose's visible CAD edges whose image gradient agrees (``edge_agreement``), held
     down by how consistently the outline's contrast keeps its sign (``polarity``): a pose laid across
@@ -116,7 +126,9 @@ def material_free(ev: dict) -> float:
 
 def agreement_score(ev: dict, agreement_min: float) -> float:
     """The score of ``material_free(ev)`` for a part whose calibrated agreement is ``agreement_min``:
-    ``MIN_SCORE`` there."""
+    ``MIN_SCORE`` there; 0 for an outline a plain shape has too (``MIN_DISTINCT_PX``)."""
+    if not distinct(ev):
+        return 0.0
     z = math.log(MIN_SCORE / (1.0 - MIN_SCORE)) + AGREEMENT_SLOPE * (material_free(ev) - agreement_min)
     return float(1.0 / (1.0 + math.exp(-min(max(z, -50.0), 50.0))))
 

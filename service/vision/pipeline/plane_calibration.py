@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.vision.bank import TemplateBank
-from service.vision.estimate.verdict import material_free
+from service.vision.estimate.verdict import distinct, material_free
 from service.vision.pipeline.calibration_scenes import scene
 from service.vision.pipeline.estimate import estimate
 from service.vision.pipeline.policy import DEFAULT_POLICY, Policy
@@ -79,9 +79,10 @@ class PlaneCalibration:
 
 def calibrated(records: list[PlaneRecord], scenes: int, margin: float = MARGIN) -> PlaneCalibration:
     """The agreement a part's pose must reach: ``margin`` above the highest wrong candidate's."""
+    # (a pose whose outline a plain shape has too is never found on agreement: ``verdict.distinct``)
     wrong = [material_free(r.evidence) for r in records
-             if r.error_px >= WRONG_PX and r.reason not in REFUSED_FOR_PLACE]
-    right = [material_free(r.evidence) for r in records if r.error_px < RIGHT_PX]
+             if r.error_px >= WRONG_PX and r.reason not in REFUSED_FOR_PLACE and distinct(r.evidence)]
+    right = [material_free(r.evidence) for r in records if r.error_px < RIGHT_PX and distinct(r.evidence)]
     top = max(wrong, default=0.0)
     agreement_min = top + margin if len(wrong) >= MIN_WRONG else None
     reached = sum(a >= agreement_min for a in right) if agreement_min is not None else 0
