@@ -41,11 +41,13 @@ def test_a_scene_is_drawn_again_from_the_same_seed(bank):
     assert not np.array_equal(a.bgr, scene(bank, np.random.default_rng([4, 3])).bgr)
 
 
-def test_copies_rest_on_the_table_and_show_where_their_truth_projects(bank):
+def test_copies_rest_on_the_table_or_on_objects_and_show_where_their_truth_projects(bank):
     sc = scene(bank, np.random.default_rng([1, 0]))
     assert sc.bgr.shape == (480, 640, 3)
+    gaps = [rest_gap_mm(bank, pose, sc.plane) for pose in sc.poses]
+    assert sum(abs(g) < RESTING_MM for g in gaps) >= 2  # on the table; any others lie on top of objects
+    assert all(abs(g) < RESTING_MM or g > 0.0 for g in gaps)
     for pose, visible in zip(sc.poses, sc.visible, strict=True):
-        assert abs(rest_gap_mm(bank, pose, sc.plane)) < RESTING_MM
         assert 0.0 < visible <= 1.05  # (the whole silhouette is rendered once, without supersampling)
         uv = project(pose.apply(np.asarray(bank.centre_obj, float)[None]), sc.intr.K)[0]
         assert 0 <= uv[0] < 640 and 0 <= uv[1] < 480

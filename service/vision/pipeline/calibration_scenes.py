@@ -6,9 +6,10 @@ A scene: a camera 20-50 deg from straight down, its distance putting the part's 
 2-5 copies of the part in its resting poses (the bank's families, by their probability), any spin,
 and 3-7 distractors on a plain, noisy, grained or checked table: cylinders, bars, rings, discs and plates
 sized like the part, and the part itself scaled or stretched (a short screw's wrong poses lie on long
-ones, a nozzle's on larger nozzles). Each object has its own material: matte or shiny (Blinn-Phong
-highlights with a reflected sky gradient for metal), any colour, one light. Copies and distractors may
-touch and hide each other; none rests on another. Everything is drawn from the ``rng`` given.
+ones, a nozzle's on larger nozzles); and 0-2 more copies lying tilted on top of those objects (a pose
+on the table fits a stacked copy's outline at the wrong height and turn). Each object has its own
+material: matte or shiny (Blinn-Phong highlights with a reflected sky gradient for metal), any colour,
+one light. Copies and distractors may touch and hide each other. Everything is drawn from the ``rng`` given.
 """
 
 from __future__ import annotations
@@ -38,6 +39,9 @@ DISTRACTORS = (3, 8)
 SPREAD_DIAMETERS = 1.0
 # two objects' footprint circles may overlap by this share of their radii: touching, hiding each other
 OVERLAP = 0.3
+STACKED = (0, 2)  # copies lying on top of another object
+STACKED_TILT_DEG = (5.0, 25.0)
+STACKED_SINK = (0.5, 0.9)  # the stacked copy's lowest point at this share of the object's height under it
 SHINY_SHARE = 0.5
 
 
@@ -203,7 +207,27 @@ def scene(bank, rng: np.random.Generator) -> Scene:
         if placed is not None:
             spin, t_w = placed
             solids.append(((d.vertices_mm @ spin.T + t_w) @ R_cw.T + t_cw, d.faces, False))
+    for _ in range(int(rng.integers(STACKED[0], STACKED[1] + 1))):
+        under = (solids[int(rng.integers(0, len(solids)))][0] - t_cw) @ R_cw  # table frame
+        R_wo = _tilt(rng) @ Rz(rng.uniform(0.0, 360.0)) @ np.asarray(
+            bank.R_rest_obj[int(rng.choice(len(prob), p=prob))], float)
+        q = V @ R_wo.T
+        top = float(under[:, 2].max()) * rng.uniform(*STACKED_SINK)
+        xy = under[:, :2].mean(axis=0) + rng.uniform(-0.2, 0.2, 2) * float(np.ptp(under[:, :2], axis=0).max())
+        t_w = np.array([*xy, top]) - np.array([*q[:, :2].mean(axis=0), q[:, 2].min()])
+        pose = Pose(R_cw @ R_wo, R_cw @ t_w + t_cw)
+        poses.append(pose)
+        solids.append((pose.apply(V), F, True))
     return _drawn(rng, solids, poses, V, F, R_cw, t_cw)
+
+
+def _tilt(rng: np.random.Generator) -> np.ndarray:
+    """A turn by ``STACKED_TILT_DEG`` about a random horizontal axis (Rodrigues)."""
+    a = rng.uniform(0.0, 2.0 * np.pi)
+    k = np.array([np.cos(a), np.sin(a), 0.0])
+    th = np.radians(rng.uniform(*STACKED_TILT_DEG))
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(th) * K + (1.0 - np.cos(th)) * K @ K
 
 
 def _drawn(rng, solids, poses, V, F, R_cw, t_cw) -> Scene:
