@@ -12,7 +12,8 @@ so perspective-foreshortened). Every scene is drawn from ``np.random.default_rng
 
 Each scene is estimated with ``max_instances`` = the number of copies: without a plane (distance range
 300-700 mm), with the plane, and with the plane and an ROI (the copies' bounding box grown by 40 px); and
-one copy's scene without a plane, for the cost ratio.
+one copy's scene without a plane, for the cost ratio. On the plane the block is judged as calibrated for
+one, as the service calibrates it (``--calibration-scenes``, records kept in bench/out/plane_calibration).
 
 Columns: scenes; targets (copies at least 70 % visible: pixels in the image not hidden by another copy /
 pixels of the copy's whole silhouette, in the image or not); recall (targets matched by a found instance
@@ -37,11 +38,13 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench.instances import INTR, RIGHT_MSPD_PX, SIZE, nearest_copies, roi_of  # noqa: E402
+from bench.lib.calibration import plane_calibration  # noqa: E402
 from bench.lib.scenes import l_block_bank  # noqa: E402
 from service.vision import pipeline  # noqa: E402
 from service.vision.geometry.frames import Pose, Rz  # noqa: E402
 from service.vision.geometry.plane import Plane  # noqa: E402
 from service.vision.geometry.render import render, render_shaded  # noqa: E402
+from service.vision.pipeline.plane_calibration import SCENES  # noqa: E402
 
 RANGE = (300.0, 700.0)
 WRONG_MSPD_PX = 20.0
@@ -149,11 +152,16 @@ def main() -> None:
     ap.add_argument("--no-baseline", action="store_true", help="skip the searches without a plane")
     ap.add_argument("--cost-scenes", type=int, default=0, help="only the cost of 5 copies on the plane "
                     "against one copy without it: this many scenes of each, CPU and wall time")
+    ap.add_argument("--calibration-scenes", type=int, default=SCENES,
+                    help="the part calibrated for a plane on this many rendered scenes (0: not)")
     ap.add_argument("--min-score", type=float, default=None, help="the verdict's operating point (default: "
                     "the pipeline's)")
     args = ap.parse_args()
     lo, hi = (int(x) for x in args.parts.split("-"))
     bank = l_block_bank()
+    # the part calibrated for a plane as the service calibrates it once it is ready
+    agreement_min = plane_calibration(bank, "l_block", None, args.calibration_scenes).agreement_min \
+        if args.calibration_scenes else None
     pts = bank.vertices_mm.astype(float)
     if args.cost_scenes:
         return five_copies_cost(bank, args.seed, args.cost_scenes, pts)
@@ -171,7 +179,7 @@ def main() -> None:
                 if mode == "no plane":
                     kw["distance_range_mm"] = RANGE
                 else:
-                    kw["plane"] = plane
+                    kw["plane"], kw["agreement_min"] = plane, agreement_min
                 if mode == "plane + ROI":
                     kw["roi_uv"] = roi_of(truth, bank)
                 t0 = time.perf_counter()

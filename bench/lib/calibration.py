@@ -27,9 +27,13 @@ def _method() -> str:
     return hashlib.sha1((ROOT / "service/vision/pipeline/calibration_scenes.py").read_bytes()).hexdigest()[:8]
 
 
-def plane_calibration(bank: TemplateBank, model: str, mesh_path: Path, scenes: int,
+def plane_calibration(bank: TemplateBank, model: str, mesh_path: Path | None, scenes: int,
                       margin: float = MARGIN) -> PlaneCalibration:
-    name = f"{bank_path(model, mesh_path, None).stem}-{scenes}-{_method()}.jsonl"
+    """``bank``'s calibration on ``scenes`` scenes; its records kept under the bank's cache name (a bank
+    made without a mesh file, ``mesh_path`` None: under ``model`` and a hash of its vertices)."""
+    stem = bank_path(model, mesh_path, None).stem if mesh_path is not None else \
+        f"{model}-{hashlib.sha1(bank.vertices_mm.tobytes()).hexdigest()[:12]}"
+    name = f"{stem}-{scenes}-{_method()}.jsonl"
     path = OUT_DIR / "plane_calibration" / name
     if path.exists():
         records = [PlaneRecord(**json.loads(s)) for s in path.read_text().splitlines() if s.strip()]
