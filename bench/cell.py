@@ -53,10 +53,11 @@ from bench.lib.data import (  # noqa: E402
     symmetry_axis,
 )
 from bench.lib.policy import add_policy_options, policy_of  # noqa: E402
+from service.vision.estimate.verdict import distinct, material_free, verification_score  # noqa: E402
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.plane import Plane  # noqa: E402
 from service.vision.pipeline import DEFAULT_POLICY, Policy, estimate  # noqa: E402
-from service.vision.pipeline.plane_calibration import SCENES  # noqa: E402
+from service.vision.pipeline.plane_calibration import MARGIN, SCENES  # noqa: E402
 from service.vision.reference import metrics  # noqa: E402
 
 MIN_VISIBLE = 0.7  # the targets: copies at least this share visible
@@ -136,6 +137,9 @@ def run_query(bank, set_dir: Path, image: str, lines: list[dict], info, *, use_p
                     "mspd640": float(d[:, c].min()) if len(poses) else None,
                     "right": c in m20, "fine": c in m5} for c, g in enumerate(copies)],
         "instances": [{"score": s, "reason": inst.verdict.reason,
+                       "material_free": material_free(inst.verdict.evidence),
+                       "distinct": distinct(inst.verdict.evidence),
+                       "material_bound": verification_score(inst.verdict.evidence),
                        "mspd640": float(d[i].min()) if len(copies) else None,
                        "copy": m20[i], "right": m20[i] is not None}
                       for i, (s, inst) in enumerate(zip(scores, out.instances, strict=True))],
@@ -145,7 +149,7 @@ def run_query(bank, set_dir: Path, image: str, lines: list[dict], info, *, use_p
 def run_set(name: str, *, stride: int = 1, start: int = 0, models: set[str] | None = None,
             limit: int | None = None, plane: bool | None = None, max_instances: int | None = None,
             min_visible: float = MIN_VISIBLE, policy: Policy = DEFAULT_POLICY,
-            calibration_scenes: int = SCENES) -> list[dict]:
+            calibration_scenes: int = SCENES, calibration_margin: float = MARGIN) -> list[dict]:
     """Every query of the set (``queries_of``) -> their records. ``plane`` None: the plane when the gt lines
     carry one. With a plane each part is calibrated on ``calibration_scenes`` rendered scenes, as the
     service calibrates it at upload (0: not)."""
@@ -170,7 +174,7 @@ def run_set(name: str, *, stride: int = 1, start: int = 0, models: set[str] | No
             agreement[model] = None
             if use_plane and calibration_scenes:
                 cal = plane_calibration(banks[model], model, set_dir / "models" / f"{model}.stl",
-                                        calibration_scenes)
+                                        calibration_scenes, calibration_margin)
                 agreement[model] = cal.agreement_min
                 print(f"{Path(name).name} {model}: agreement_min {cal.agreement_min}, right "
                       f"{cal.right}/{cal.right_total}, wrong max {cal.wrong_max:.3f} of {cal.wrong_total}",
@@ -252,6 +256,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, default=None, help="one JSON line per query")
     ap.add_argument("--calibration-scenes", type=int, default=SCENES,
                     help="with a plane: each part calibrated on this many rendered scenes (0: not)")
+    ap.add_argument("--calibration-margin", type=float, default=MARGIN,
+                    help="its agreement this far above the highest wrong one's (default: the service's)")
     add_policy_options(ap)
     a = ap.parse_args(argv)
     policy = policy_of(a)
@@ -264,7 +270,7 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         recs = run_set(name, stride=a.stride, start=a.start, models=models, limit=a.limit, plane=a.plane,
                        max_instances=a.max_instances, min_visible=a.min_visible, policy=policy,
-                       calibration_scenes=a.calibration_scenes)
+                       calibration_scenes=a.calibration_scenes, calibration_margin=a.calibration_margin)
         print(f"{Path(name).name}: {len(recs)} queries in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
         for r in recs if out else []:
             out.write(json.dumps({"set": Path(name).name, **r}) + "\n")

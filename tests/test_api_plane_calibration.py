@@ -23,7 +23,7 @@ from service.plane_calibrations import KEY
 from service.settings import Settings
 from service.stores import open_store
 from service.vision.pipeline.calibration_scenes import scene
-from service.vision.pipeline.plane_calibration import MARGIN, MIN_WRONG
+from service.vision.pipeline.plane_calibration import MARGIN, MIN_WRONG_PER_SCENE
 from tests.api_helpers import wait_built
 from tests.scenes import L_BLOCK_GRID, l_block
 
@@ -84,7 +84,7 @@ def test_a_ready_part_is_calibrated_in_the_background_and_an_estimate_on_a_plane
     with open_store(str(cache)) as store:
         kept = store.get(mid)[KEY]
     assert kept["status"] == "calibrated" and kept["scenes"] == SCENES
-    if kept["wrong_total"] >= MIN_WRONG:
+    if kept["wrong_total"] >= MIN_WRONG_PER_SCENE * SCENES:
         assert info["agreement_min"] == pytest.approx(kept["wrong_max"] + MARGIN)
     else:  # too few wrong candidates to say how high a wrong one reads: not calibrated
         assert info["agreement_min"] is None

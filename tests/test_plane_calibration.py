@@ -19,7 +19,7 @@ from service.vision.pipeline import estimate
 from service.vision.pipeline.calibration_scenes import scene
 from service.vision.pipeline.plane_calibration import (
     MARGIN,
-    MIN_WRONG,
+    MIN_WRONG_PER_SCENE,
     RIGHT_PX,
     PlaneRecord,
     calibrated,
@@ -60,14 +60,14 @@ def test_the_agreement_to_reach_lies_a_margin_above_the_highest_wrong_candidates
         return PlaneRecord(agreement, error_px, reason, {"edge_agreement": agreement, "polarity": 1.0,
                                                          "distinct_px": 2.0})
 
-    wrong = [rec(0.3 + 0.01 * k, 50.0) for k in range(MIN_WRONG)]
+    wrong = [rec(0.3 + 0.001 * k, 50.0) for k in range(3 * MIN_WRONG_PER_SCENE)]
     plain = PlaneRecord(0.95, 60.0, "low_score",
                         {"edge_agreement": 0.95, "polarity": 1.0, "distinct_px": 0.5})
-    records = [*wrong, rec(0.9, 100.0, "off_plane"), plain, rec(0.8, 2.0), rec(0.4, 1.0)]
+    records = [*wrong, rec(0.9, 100.0, "off_plane"), plain, rec(0.8, 2.0), rec(0.35, 1.0)]
     cal = calibrated(records, scenes=3)
-    top = 0.3 + 0.01 * (MIN_WRONG - 1)  # the refused-for-its-place 0.9 and the plain outline's 0.95 do not
+    top = 0.3 + 0.001 * (3 * MIN_WRONG_PER_SCENE - 1)  # not the refused-for-its-place 0.9 nor the plain 0.95
     assert cal.agreement_min == pytest.approx(top + MARGIN) and cal.wrong_max == pytest.approx(top)
-    assert (cal.right, cal.right_total, cal.wrong_total) == (1, 2, MIN_WRONG)
+    assert (cal.right, cal.right_total, cal.wrong_total) == (1, 2, 3 * MIN_WRONG_PER_SCENE)
     assert calibrated(records[1:], scenes=3).agreement_min is None  # too few wrong candidates
 
 

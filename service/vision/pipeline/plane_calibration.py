@@ -30,8 +30,9 @@ RIGHT_PX = 5.0  # and this close to one, right
 REFUSED_FOR_PLACE = ("outside_distance_range", "outside_image", "off_plane")
 SCENES = 12  # about a minute a part on 2 cores
 MARGIN = 0.06  # agreement above the highest wrong candidate's
-# Fewer wrong candidates than this say too little of how high a wrong pose reads: not calibrated.
-MIN_WRONG = 20
+# Fewer wrong candidates than this a scene say too little of how high a wrong pose reads: not calibrated
+# (a part's scenes give 12-19 a scene where its outlines are distinct; a long spanner, 2)
+MIN_WRONG_PER_SCENE = 8
 
 
 @dataclass(frozen=True)
@@ -84,7 +85,7 @@ def calibrated(records: list[PlaneRecord], scenes: int, margin: float = MARGIN) 
              if r.error_px >= WRONG_PX and r.reason not in REFUSED_FOR_PLACE and distinct(r.evidence)]
     right = [material_free(r.evidence) for r in records if r.error_px < RIGHT_PX and distinct(r.evidence)]
     top = max(wrong, default=0.0)
-    agreement_min = top + margin if len(wrong) >= MIN_WRONG else None
+    agreement_min = top + margin if len(wrong) >= MIN_WRONG_PER_SCENE * scenes else None
     reached = sum(a >= agreement_min for a in right) if agreement_min is not None else 0
     return PlaneCalibration(agreement_min, top, reached, len(right), len(wrong), scenes)
 
