@@ -256,7 +256,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, default=None, help="one JSON line per query")
     ap.add_argument("--calibration-scenes", type=int, default=SCENES,
                     help="with a plane: each part calibrated on this many rendered scenes (0: not)")
-    ap.add_argument("--calibration-margin", type=float, default=MARGIN,
+    ap.add_argument("--agreement-margin", type=float, default=MARGIN,
                     help="its agreement this far above the highest wrong one's (default: the service's)")
     add_policy_options(ap)
     a = ap.parse_args(argv)
@@ -270,7 +270,7 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         recs = run_set(name, stride=a.stride, start=a.start, models=models, limit=a.limit, plane=a.plane,
                        max_instances=a.max_instances, min_visible=a.min_visible, policy=policy,
-                       calibration_scenes=a.calibration_scenes, calibration_margin=a.calibration_margin)
+                       calibration_scenes=a.calibration_scenes, calibration_margin=a.agreement_margin)
         print(f"{Path(name).name}: {len(recs)} queries in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
         for r in recs if out else []:
             out.write(json.dumps({"set": Path(name).name, **r}) + "\n")
