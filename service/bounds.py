@@ -31,6 +31,7 @@ from service.errors import UnprocessableError
 from service.schemas import Camera, Options
 from service.vision.bank import TemplateBank
 from service.vision.estimate.search import SearchParams
+from service.vision.geometry.plane import depths_in_view_mm
 from service.vision.pipeline import DEFAULT_DISTANCE_RANGE_MM
 
 DISTANCE_MM = (10.0, 20_000.0)
@@ -164,14 +165,9 @@ def _depth_for(size_px: float, radius_mm: float, cam: Camera, image_size: tuple[
 
 
 def _plane_depths_mm(opts: Options, cam: Camera, w: int, h: int) -> tuple[float, float]:
-    """Depths, mm, of the plane's nearest and farthest points in view (inf: its horizon is in view). Both
-    are at image corners: the depth along a pixel's ray is -d / (n . ray), and n . ray is linear in the
-    pixel (``check_plausible``'s ``_plane`` has made sure some pixel sees the plane)."""
-    n = np.asarray(opts.plane.normal, float)
-    u, v = np.array([-0.5, w - 0.5, w - 0.5, -0.5]), np.array([-0.5, -0.5, h - 0.5, h - 0.5])
-    facing = -(np.column_stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones(4)]) @ n)
-    height = -opts.plane.d_mm
-    return float(height / facing.max()), float(height / facing.min()) if facing.min() > 0 else math.inf
+    """Depths, mm, of the plane's nearest and farthest points in view (inf: its horizon is in view;
+    ``check_plausible``'s ``_plane`` has made sure some pixel sees the plane)."""
+    return depths_in_view_mm(opts.plane.to_plane(), cam.to_intrinsics(), (w, h))
 
 
 def check_apparent_size(bank: TemplateBank, cam: Camera, opts: Options, image_size: tuple[int, int], *,

@@ -7,6 +7,8 @@ looking down 40 deg from straight down, rendered with the project's rasteriser a
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -15,10 +17,25 @@ from service.vision.estimate.evidence import colour_frame
 from service.vision.estimate.plane import _poses
 from service.vision.estimate.refine import refine_pose
 from service.vision.estimate.verdict import decide
-from service.vision.geometry.camera import project
+from service.vision.geometry.camera import Intrinsics, project
 from service.vision.geometry.frames import Pose
-from service.vision.geometry.plane import R_cam_rest, centre_height_mm, rest_gap_mm, rest_heights_mm
-from service.vision.pipeline import Checked, PoseCandidate, RefinedPose, sort_instances
+from service.vision.geometry.plane import (
+    Plane,
+    R_cam_rest,
+    centre_height_mm,
+    depths_in_view_mm,
+    rest_gap_mm,
+    rest_heights_mm,
+)
+from service.vision.pipeline import (
+    DEFAULT_DISTANCE_RANGE_MM,
+    DEFAULT_POLICY,
+    Checked,
+    PoseCandidate,
+    RefinedPose,
+    sort_instances,
+)
+from service.vision.pipeline.estimate import plane_range
 from service.vision.pipeline.instances import paint_depth
 from tests.scenes import (
     AXIS_DIST_MM,
@@ -291,3 +308,30 @@ def test_a_refinement_the_plane_refuses_is_not_kept(bank):
     assert np.linalg.norm(free.pose.t_mm - truth.t_mm) < 0.5 * np.linalg.norm(start.t_mm - truth.t_mm)
     np.testing.assert_allclose(held.pose.t_mm, start.t_mm, atol=ROUND_TRIP_ATOL)
     np.testing.assert_allclose(held.pose.R, start.R, atol=ROUND_TRIP_ATOL)
+
+
+def test_the_plane_s_depths_in_view_are_where_the_corner_rays_meet_it():
+    intr = Intrinsics(600.0, 600.0, 319.5, 239.5)
+    n = np.array([0.0, np.sin(np.radians(50.0)), -np.cos(np.radians(50.0))])  # tilted 50 deg
+    plane = Plane(n, -400.0)
+    near, far = depths_in_view_mm(plane, intr, (640, 480))
+    corners = np.array([[-0.5, -0.5], [639.5, -0.5], [639.5, 479.5], [-0.5, 479.5]])
+    rays = np.column_stack([(corners - [intr.cx, intr.cy]) / [intr.fx, intr.fy], np.ones(4)])
+    depths = plane.d_mm / (rays @ n)  # z of each corner ray's point on the plane (its ray has z = 1)
+    assert near == pytest.approx(depths.min()) and far == pytest.approx(depths.max())
+    # tilted so far that the horizon is in view: the plane reaches infinitely far
+    steep = Plane(np.array([0.0, np.sin(np.radians(80.0)), -np.cos(np.radians(80.0))]), -400.0)
+    assert depths_in_view_mm(steep, intr, (640, 480))[1] == math.inf
+
+
+def test_a_plane_without_a_range_is_searched_to_its_far_end_in_view(l_block_bank):
+    intr = Intrinsics(600.0, 600.0, 319.5, 239.5)
+    top_down = Plane(np.array([0.0, 0.0, -1.0]), -500.0)
+    assert plane_range(l_block_bank, top_down, intr, (640, 480)) == DEFAULT_DISTANCE_RANGE_MM
+    oblique = Plane(np.array([0.0, np.sin(np.radians(50.0)), -np.cos(np.radians(50.0))]), -700.0)
+    far = depths_in_view_mm(oblique, intr, (640, 480))[1]
+    assert far > DEFAULT_DISTANCE_RANGE_MM[1]
+    assert plane_range(l_block_bank, oblique, intr, (640, 480)) == (DEFAULT_DISTANCE_RANGE_MM[0], far)
+    steep = Plane(np.array([0.0, np.sin(np.radians(80.0)), -np.cos(np.radians(80.0))]), -400.0)
+    smallest = intr.fx * l_block_bank.diameter_mm / DEFAULT_POLICY.plane_smallest_part_px
+    assert plane_range(l_block_bank, steep, intr, (640, 480))[1] == pytest.approx(smallest)

@@ -6,6 +6,7 @@ Frames: camera (OpenCV), mm. The plane: points p with ``n . p = d_mm``, ``n`` un
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -77,3 +78,16 @@ def placements(R: np.ndarray, h_mm: np.ndarray, uv: np.ndarray, bank: Part, intr
     ok &= lam > 0
     c_cam = lam[:, None] * r
     return c_cam - R @ np.asarray(bank.centre_obj, float), ok
+
+
+def depths_in_view_mm(plane: Plane, intr: Intrinsics, image_size: tuple[int, int]) -> tuple[float, float]:
+    """Depths, mm, of the plane's nearest and farthest points in the image of ``image_size`` (w, h) (inf:
+    its horizon is in view; nan, nan: it is not in view). Both lie at image corners: a pixel ray's depth
+    to the plane is d / (n . ray), and n . ray is linear in the pixel."""
+    w, h = image_size
+    u, v = np.array([-0.5, w - 0.5, w - 0.5, -0.5]), np.array([-0.5, -0.5, h - 0.5, h - 0.5])
+    facing = -(np.column_stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones(4)]) @ plane.normal)
+    if facing.max() <= 0:
+        return math.nan, math.nan
+    height = -plane.d_mm
+    return float(height / facing.max()), float(height / facing.min()) if facing.min() > 0 else math.inf

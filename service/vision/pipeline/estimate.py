@@ -18,7 +18,7 @@ from service.vision.estimate.plane import PLANE_TOLERANCE_MM
 from service.vision.estimate.search import SearchParams
 from service.vision.estimate.verdict import Verdict, decide
 from service.vision.geometry.camera import Intrinsics, undistort_image
-from service.vision.geometry.plane import Plane
+from service.vision.geometry.plane import Plane, depths_in_view_mm
 from service.vision.model.appearance import Appearance
 from service.vision.pipeline import timing
 from service.vision.pipeline.check import verify_candidates
@@ -77,6 +77,8 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     deadline = Deadline(deadline_ms, start=t_start)
     grey = to_grey_u8(image)
     h, w = grey.shape
+    if plane is not None and distance_range_mm is None:
+        distance_range_mm = plane_range(bank, plane, intr, (w, h), policy)
     # The evidence reads pixels where the ideal camera projects the model: undistort the frame once.
     ideal = undistort_image(image, intr)
     frame = colour_frame(ideal)
@@ -191,6 +193,19 @@ def appearance_in_use(appearance: Appearance | None) -> Appearance | None:
     """``appearance`` if estimates are judged on it, else None: a plain part's colours, or photos that
     disagree, are kept and not used (``Appearance.used``)."""
     return appearance if appearance is not None and appearance.used else None
+
+
+def plane_range(bank: TemplateBank, plane: Plane, intr: Intrinsics, image_size: tuple[int, int],
+                policy: Policy = DEFAULT_POLICY) -> tuple[float, float]:
+    """The distances searched on a plane when the request gives no range: the default range, its far end
+    moved out to the plane's farthest point in view (where a cell looks across a table: the plane bounds
+    where a part can lie), no farther than where the part would span ``policy.plane_smallest_part_px``."""
+    lo, hi = DEFAULT_DISTANCE_RANGE_MM
+    _, far = depths_in_view_mm(plane, intr, image_size)
+    if math.isnan(far):
+        return lo, hi
+    smallest = intr.fx * float(bank.diameter_mm) / policy.plane_smallest_part_px
+    return lo, max(hi, min(far, smallest))
 
 
 def judged_range(distance_mm: float | None, distance_range_mm: tuple[float, float] | None

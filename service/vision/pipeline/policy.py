@@ -62,6 +62,9 @@ class Policy:
 
     # the gradient search of a part on a plane (``estimate/plane_match.py``)
     gradient: GradientSearch = GradientSearch()
+    # a plane is searched out to where the part spans this many pixels (``estimate.plane_range``): the
+    # gradient templates' smallest spread cell is 4 px, a part under 3 cells across has no shape left
+    plane_smallest_part_px: float = 12.0
 
     # -- several instances: more proposals (each peak costs a level-B scan, each polished hypothesis a
     # refinement and its evidence), and a later peak's placement accepted further from the best: another
