@@ -29,10 +29,16 @@ KEY = "plane_calibration"
 
 
 def plane_calibration_due(record: dict[str, Any], scenes: int) -> bool:
-    """Whether the record's part is ready and lacks a finished calibration of this method."""
+    """Whether the record's part is ready and lacks a calibration of this method that ended (calibrated,
+    or failed: it would fail again)."""
     cal = record.get(KEY) or {}
     return (scenes > 0 and record.get("status") == "ready"
-            and not (cal.get("version") == VERSION and cal.get("status") == "calibrated"))
+            and not (cal.get("version") == VERSION and cal.get("status") in ("calibrated", "failed")))
+
+
+def plane_calibration_failed(store: Store, mid: str, error: str) -> None:
+    """Keep in record ``mid`` that its calibration failed (``error``: why), so it is not tried again."""
+    store.update(mid, **{KEY: {"version": VERSION, "status": "failed", "error": error}})
 
 
 def agreement_min_of(record: dict[str, Any]) -> float | None:
@@ -49,6 +55,9 @@ def plane_calibration_warning(record: dict[str, Any]) -> str | None:
     cal = record.get(KEY) or {}
     if agreement_min_of(record) is not None:
         return None
+    if cal.get("version") == VERSION and cal.get("status") == "failed":
+        return (f"The part's plane calibration failed ({cal.get('error')}): on a plane it is judged on "
+                "shading and region alone, which miss most shiny or plastic parts")
     if cal.get("version") == VERSION and cal.get("status") == "calibrated":
         return ("The part's plane calibration found no agreement that keeps wrong poses out (its shape is "
                 "too plain among look-alikes): on a plane it is judged on shading and region alone, which "
@@ -73,7 +82,8 @@ def plane_calibration_info(record: dict[str, Any], scenes: int | None) -> dict[s
     return {"status": status, "progress": progress,
             "agreement_min": agreement_min_of(record),
             "wrong_max": cal.get("wrong_max") if current else None,
-            "scenes": int(cal.get("scenes") or 0) if status == "calibrated" else None}
+            "scenes": int(cal.get("scenes") or 0) if status == "calibrated" else None,
+            "error": cal.get("error") if status == "failed" else None}
 
 
 def calibrate_plane_stored(store: Store, mid: str, bank: TemplateBank, scenes: int,

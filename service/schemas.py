@@ -338,10 +338,10 @@ class Symmetry(BaseModel):
 
 
 class PlaneCalibrationInfo(BaseModel):
-    status: Literal["queued", "running", "calibrated", "not_requested"] = Field(
+    status: Literal["queued", "running", "calibrated", "failed", "not_requested"] = Field(
         description="the part's calibration for parts on a plane (rendered scenes of it among look-alike "
-        "shapes, in the background once it is ready): queued, running (see progress), calibrated, or "
-        "not_requested (POSE_PLANE_CALIBRATION_SCENES=0)")
+        "shapes, in the background once it is ready): queued, running (see progress), calibrated, failed "
+        "(see error; not tried again), or not_requested (POSE_PLANE_CALIBRATION_SCENES=0)")
     progress: float = Field(description="0..1, the share of its scenes judged")
     agreement_min: float | None = Field(
         description="the agreement of the visible edges' gradients (min of evidence edge_agreement and "
@@ -349,6 +349,7 @@ class PlaneCalibrationInfo(BaseModel):
         "agreement kept the wrong poses of its scenes out (a plain shape among look-alikes)")
     wrong_max: float | None = Field(description="the highest agreement a wrong pose reached in its scenes")
     scenes: int | None = Field(description="rendered scenes it was calibrated on (null until calibrated)")
+    error: str | None = Field(None, description="why it failed (status failed), else null")
 
 
 class ModelInfo(BaseModel):

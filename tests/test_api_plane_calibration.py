@@ -103,4 +103,4 @@ def test_without_scenes_no_calibration_is_made_and_get_says_not_requested(tmp_pa
         wait_built(c, r.json()["id"])
         info = c.get(f"/models/{r.json()['id']}").json()["plane_calibration"]
         assert info == {"status": "not_requested", "progress": 0.0, "agreement_min": None, "wrong_max": None,
-                        "scenes": None}
+                        "scenes": None, "error": None}

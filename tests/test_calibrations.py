@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from service import references
+from service import plane_calibrations, references
 from service.jobs.calibrations import Calibrator, lease_key
 from service.stores import open_store
 from service.stores.base import Store
@@ -209,3 +209,28 @@ def test_a_calibration_whose_process_was_killed_is_taken_over_once_its_lease_run
             calibrator.shutdown()
         assert search.calls == 1
         assert store.get("m")["calibration"]["references_version"] == record["references_version"]
+
+
+def test_a_plane_calibration_that_fails_is_kept_as_failed_and_not_tried_again(location, l_block_bank,
+                                                                              monkeypatch):
+    def broken(bank, scenes, progress=None):
+        progress(0, scenes)
+        raise RuntimeError("the rasteriser ran out of faces.")
+
+    monkeypatch.setattr(plane_calibrations, "calibrate_plane", broken)
+    with open_store(location) as store:
+        store.create({"id": "m", "name": "part", "status": "ready", "created_at": "2024-01-01"}, b"mesh")
+        store.put_bank("m", l_block_bank)
+        assert plane_calibrations.plane_calibration_due(store.get("m"), 2)
+        calibrator = Calibrator(store, LEASE_S, plane_scenes=2)
+        try:
+            calibrator.submit_plane(store.get("m"))
+            assert calibrator.wait("m", STEP_S)
+        finally:
+            calibrator.shutdown()
+        record = store.get("m")
+        assert record["plane_calibration"]["status"] == "failed"
+        assert record["plane_calibration"]["error"] == "the rasteriser ran out of faces"
+        assert not plane_calibrations.plane_calibration_due(record, 2)  # resume and GET leave it
+        warning = plane_calibrations.plane_calibration_warning(record)
+        assert "failed (the rasteriser ran out of faces)" in warning

@@ -30,7 +30,8 @@ import logging
 import threading
 from typing import Any
 
-from service.plane_calibrations import calibrate_plane_stored, plane_calibration_due
+from service.errors import clause
+from service.plane_calibrations import calibrate_plane_stored, plane_calibration_due, plane_calibration_failed
 from service.references import calibrate_stored, calibration_due
 from service.stores.base import Store
 
@@ -143,6 +144,9 @@ class Calibrator:
             log.info("calibrated model %s on a plane (%d rendered scenes)", mid, self.plane_scenes)
         except _StoppedError:
             log.info("the plane calibration of model %s stopped (deleted or service stopping)", mid)
+        except Exception as e:  # kept as failed: the part is judged without it, and not tried again
+            log.exception("the plane calibration of model %s failed", mid)
+            plane_calibration_failed(self.store, mid, clause(str(e)) or type(e).__name__)
         finally:
             self.store.unlock(plane_lease_key(mid), token)
 

@@ -46,8 +46,11 @@ class PlaneRecord:
 def plane_records(bank: TemplateBank, n_scenes: int, seed: int = 0,
                   progress: Callable[[int, int], None] | None = None, *,
                   policy: Policy = DEFAULT_POLICY) -> list[PlaneRecord]:
-    """Every candidate judged on ``n_scenes`` calibration scenes of ``bank``'s part, with its error."""
+    """Every candidate judged on ``n_scenes`` calibration scenes of ``bank``'s part, with its error (none for
+    a bank made before resting poses were: it is never searched on a plane)."""
     out: list[PlaneRecord] = []
+    if bank.R_rest_obj is None or not len(bank.R_rest_obj):
+        return out
     v = np.asarray(bank.vertices_mm, float)
     v = v[:: max(1, len(v) // policy.calibration_points)]
     syms = None if bank.symmetry_axis_obj is None else symmetry_rotations(
