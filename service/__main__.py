@@ -183,13 +183,23 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 
 def cmd_build(args: argparse.Namespace) -> int:
+    """Build the mesh's templates, then calibrate it for a plane (``POSE_PLANE_CALIBRATION_SCENES``), as
+    the service does in the background; print its ModelInfo."""
+    from service.plane_calibrations import calibrate_plane_stored, plane_calibration_due
     from service.schemas import ModelInfo
     from service.stores import open_store
 
     settings = _settings(args)
+    scenes = settings.plane_calibration_scenes
     with open_store(settings.store_location) as store:
         record = _ensure_built(args, settings, store)
-    print(ModelInfo.from_record(record).model_dump_json(indent=2))
+        if plane_calibration_due(record, scenes):
+            def told(done: int, total: int) -> None:
+                print(f"calibrating for a plane: scene {done + 1} of {total}", file=sys.stderr, flush=True)
+
+            record = calibrate_plane_stored(store, record["id"], store.ready_bank(record), scenes, told) \
+                or record
+    print(ModelInfo.from_record(record, scenes).model_dump_json(indent=2))
     return 0 if record["status"] == "ready" else 1
 
 
@@ -264,7 +274,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=None)
     p.set_defaults(func=cmd_serve)
 
-    p = sub.add_parser("build", help="build a mesh's templates in this process; print its ModelInfo JSON")
+    p = sub.add_parser("build", help="build a mesh's templates in this process, calibrate it for a plane "
+                       "(POSE_PLANE_CALIBRATION_SCENES); print its ModelInfo JSON")
     _mesh_args(p)
     p.set_defaults(func=cmd_build)
 

@@ -16,6 +16,7 @@ import pytest
 from service.__main__ import _progress, main
 from service.schemas import CellCamera
 from service.stores import open_store
+from tests.scenes import L_BLOCK_GRID, l_block
 from tests.tolerances import COARSE_XY_MM
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -151,3 +152,17 @@ def test_the_clis_estimate_is_judged_on_the_model_s_reference_photos(tmp_path, d
     assert main(args) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["found"] and out["verdict"]["evidence"]["appearance"] > 0
+
+
+def test_build_calibrates_the_part_for_a_plane_as_the_service_does(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("POSE_PLANE_CALIBRATION_SCENES", "1")
+    mesh = tmp_path / "l_block.stl"
+    l_block().export(mesh)
+    assert main(["--cache-dir", str(tmp_path / "cache"), "build", str(mesh), "--symmetry", "none",
+                 "--templates", json.dumps(L_BLOCK_GRID)]) == 0
+    out = capsys.readouterr()
+    assert "calibrating for a plane: scene 1 of 1" in out.err
+    info = json.loads(out.out)["plane_calibration"]
+    assert info["status"] == "calibrated" and info["scenes"] == 1 and info["progress"] == 1.0
+    with open_store(tmp_path / "cache") as store:  # kept: a second build finds it done
+        assert store.get(json.loads(out.out)["id"])["plane_calibration"]["status"] == "calibrated"
