@@ -164,12 +164,6 @@ def _depth_for(size_px: float, radius_mm: float, cam: Camera, image_size: tuple[
     return hi
 
 
-def _plane_depths_mm(opts: Options, cam: Camera, w: int, h: int) -> tuple[float, float]:
-    """Depths, mm, of the plane's nearest and farthest points in view (inf: its horizon is in view;
-    ``check_plausible``'s ``_plane`` has made sure some pixel sees the plane)."""
-    return depths_in_view_mm(opts.plane.to_plane(), cam.to_intrinsics(), (w, h))
-
-
 def check_apparent_size(bank: TemplateBank, cam: Camera, opts: Options, image_size: tuple[int, int], *,
                         units: str = "mm") -> None:
     """422 when the part, at the nearest distance the search places it, would reach the camera or appear
@@ -193,7 +187,9 @@ def check_apparent_size(bank: TemplateBank, cam: Camera, opts: Options, image_si
         depth = (opts.distance_range_mm or DEFAULT_DISTANCE_RANGE_MM)[0]
         where = (f"the low end of options.distance_range_mm ({depth:g} mm)" if opts.distance_range_mm else
                  f"the low end of the default distance range ({depth:g} mm)")
-        near, far = _plane_depths_mm(opts, cam, w, h) if opts.plane is not None else (-math.inf, math.inf)
+        # (``check_plausible``'s ``_plane`` has made sure some pixel sees the plane)
+        near, far = depths_in_view_mm(opts.plane.to_plane(), cam.to_intrinsics(), (w, h)) \
+            if opts.plane is not None else (-math.inf, math.inf)
         if far < depth:  # a resting part's centre is nearer than the plane under it: nothing is searched
             raise UnprocessableError(
                 f"The options field plane is at most {far:.0f} mm from the camera in this image, nearer than "

@@ -176,11 +176,10 @@ def estimate_result(record: dict[str, Any], bank: TemplateBank, data: bytes, cam
     if kwargs["deadline_ms"] is None:
         kwargs["deadline_ms"] = default_deadline_ms or None
     kwargs["appearance"] = appearance
-    on_plane = kwargs.get("plane") is not None
-    kwargs["agreement_min"] = agreement_min_of(record) if on_plane else None
+    kwargs["agreement_min"] = agreement_min_of(record)  # read on a plane only
     out = estimate_image(bank, image, cam.to_intrinsics(), started_at=started_at, **kwargs)
     result = EstimateResult.from_output(record["id"], out)
-    uncalibrated = plane_calibration_warning(record) if on_plane else None
+    uncalibrated = plane_calibration_warning(record) if kwargs.get("plane") is not None else None
     result.warnings = (ModelInfo.from_record(record).warnings + snap_warnings(cam, opts) + result.warnings
                        + ([uncalibrated] if uncalibrated else []))
     if cell:

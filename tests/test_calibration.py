@@ -49,7 +49,7 @@ def test_the_error_of_a_pose_moved_sideways_is_the_nearest_corner_s_image_shift(
     moved = Pose(truth.R, truth.t_mm + np.array([dx, 0.0, 0.0]))
     z_near = truth.apply(part.vertices_mm)[:, 2].min()
     expected = 800.0 * dx / z_near * 640.0 / 1280
-    assert abs(teach._error_px(part, moved, truth, intr, 1280) - expected) < PX_TOL
+    assert abs(teach.pose_error_px(part, moved, truth, intr, 1280) - expected) < PX_TOL
 
 
 def test_a_revolved_part_spun_about_its_axis_is_not_an_error_and_tilted_it_is():
@@ -59,8 +59,8 @@ def test_a_revolved_part_spun_about_its_axis_is_not_an_error_and_tilted_it_is():
     truth = Pose(Rx(60.0) @ Ry(10.0), np.array([0.0, 0.0, 500.0]))
     spun = Pose(truth.R @ Rz(35.0), truth.t_mm)  # a multiple of the 5 degree spins the error tries
     tilted = Pose(truth.R @ Rx(35.0), truth.t_mm)
-    assert teach._error_px(part, spun, truth, intr, 640) < 1e-6
-    assert teach._error_px(part, tilted, truth, intr, 640) > pipeline.DEFAULT_POLICY.calibration_wrong_px
+    assert teach.pose_error_px(part, spun, truth, intr, 640) < 1e-6
+    assert teach.pose_error_px(part, tilted, truth, intr, 640) > pipeline.DEFAULT_POLICY.calibration_wrong_px
 
 
 def _checked(reason: str, in_image: float = 1.0) -> pipeline.Checked:

@@ -57,12 +57,11 @@ def test_copies_rest_on_the_table_or_on_objects_and_show_where_their_truth_proje
 
 def test_the_agreement_to_reach_lies_a_margin_above_the_highest_wrong_candidates():
     def rec(agreement, error_px, reason="low_score"):
-        return PlaneRecord(agreement, error_px, reason, {"edge_agreement": agreement, "polarity": 1.0,
-                                                         "distinct_px": 2.0})
+        ev = {"edge_agreement": agreement, "polarity": 1.0, "distinct_px": 2.0}
+        return PlaneRecord(error_px, reason, ev)
 
     wrong = [rec(0.3 + 0.001 * k, 50.0) for k in range(3 * MIN_WRONG_PER_SCENE)]
-    plain = PlaneRecord(0.95, 60.0, "low_score",
-                        {"edge_agreement": 0.95, "polarity": 1.0, "distinct_px": 0.5})
+    plain = PlaneRecord(60.0, "low_score", {"edge_agreement": 0.95, "polarity": 1.0, "distinct_px": 0.5})
     records = [*wrong, rec(0.9, 100.0, "off_plane"), plain, rec(0.8, 2.0), rec(0.35, 1.0)]
     cal = calibrated(records, scenes=3)
     top = 0.3 + 0.001 * (3 * MIN_WRONG_PER_SCENE - 1)  # not the refused-for-its-place 0.9 nor the plain 0.95

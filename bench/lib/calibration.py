@@ -27,6 +27,11 @@ def _method() -> str:
     return hashlib.sha1((ROOT / "service/vision/pipeline/calibration_scenes.py").read_bytes()).hexdigest()[:8]
 
 
+def _record(row: dict) -> PlaneRecord:
+    """A kept row (rows kept before the record lost its ``agreement``, the evidence's, carry it too)."""
+    return PlaneRecord(row["error_px"], row["reason"], row["evidence"])
+
+
 def plane_calibration(bank: TemplateBank, model: str, mesh_path: Path | None, scenes: int,
                       margin: float = MARGIN) -> PlaneCalibration:
     """``bank``'s calibration on ``scenes`` scenes; its records kept under the bank's cache name (a bank
@@ -36,7 +41,7 @@ def plane_calibration(bank: TemplateBank, model: str, mesh_path: Path | None, sc
     name = f"{stem}-{scenes}-{_method()}.jsonl"
     path = OUT_DIR / "plane_calibration" / name
     if path.exists():
-        records = [PlaneRecord(**json.loads(s)) for s in path.read_text().splitlines() if s.strip()]
+        records = [_record(json.loads(s)) for s in path.read_text().splitlines() if s.strip()]
     else:
         t0 = time.perf_counter()
         records = plane_records(bank, scenes)

@@ -97,7 +97,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     kw = dict(distance_mm=distance_mm, distance_range_mm=judged_range(distance_mm, distance_range_mm),
               min_score=min_score, n_channels=p.n_channels, deadline=deadline, plane=plane,
               plane_tolerance_mm=plane_tolerance_mm, appearance=appearance, policy=policy,
-              agreement_min=agreement_min if plane is not None else None)
+              agreement_min=agreement_min)
     if max_instances <= 1:
         checked = verify_candidates(bank, cands, grey, frame, intr, **kw)
         checked, more, t_later = _later_checks(bank, checked, later, grey, frame, intr, search, appearance,

@@ -21,7 +21,7 @@ from service.vision.estimate.verdict import distinct, material_free
 from service.vision.pipeline.calibration_scenes import scene
 from service.vision.pipeline.estimate import estimate
 from service.vision.pipeline.policy import DEFAULT_POLICY, Policy
-from service.vision.reference.metrics import mspd_px, symmetry_rotations
+from service.vision.pipeline.teach import pose_error_px
 
 _NEVER = 2.0  # a min_score no candidate reaches: every proposal is checked and judged
 WRONG_PX = 20.0  # a judged pose this far (MSPD, 640 px wide) from every copy is wrong
@@ -39,7 +39,6 @@ MIN_WRONG_PER_SCENE = 8
 
 @dataclass(frozen=True)
 class PlaneRecord:
-    agreement: float  # the candidate's ``edge_agreement``
     error_px: float  # MSPD to the nearest copy, 640 px wide
     reason: str
     evidence: dict
@@ -53,23 +52,16 @@ def plane_records(bank: TemplateBank, n_scenes: int, seed: int = 0,
     out: list[PlaneRecord] = []
     if bank.R_rest_obj is None or not len(bank.R_rest_obj):
         return out
-    v = np.asarray(bank.vertices_mm, float)
-    v = v[:: max(1, len(v) // policy.calibration_points)]
-    syms = None if bank.symmetry_axis_obj is None else symmetry_rotations(
-        bank.symmetry_axis_obj, bank.symmetry_point_obj, n=72)
     for i in range(n_scenes):
         if progress is not None:
             progress(i, n_scenes)
         sc = scene(bank, np.random.default_rng([seed, i]))
         est = estimate(bank, sc.bgr, sc.intr, plane=sc.plane, max_instances=max(1, len(sc.poses)),
                        min_score=_NEVER, policy=policy)
-        w = sc.bgr.shape[1]
         for c in est.checked:
-            p = c.refined.pose
-            err = min((mspd_px(p.R, p.t_mm, q.R, q.t_mm, sc.intr.K, v, syms) * 640.0 / w for q in sc.poses),
-                      default=math.inf)
-            ev = c.verdict.evidence
-            out.append(PlaneRecord(float(ev.get("edge_agreement", 0.0)), float(err), c.verdict.reason, ev))
+            err = min((pose_error_px(bank, c.refined.pose, q, sc.intr, sc.bgr.shape[1], policy)
+                       for q in sc.poses), default=math.inf)
+            out.append(PlaneRecord(float(err), c.verdict.reason, c.verdict.evidence))
     return out
 
 
