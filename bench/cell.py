@@ -174,7 +174,7 @@ def run_set(name: str, *, stride: int = 1, start: int = 0, models: set[str] | No
             agreement[model] = None
             if use_plane and calibration_scenes:
                 cal = plane_calibration(banks[model], model, set_dir / "models" / f"{model}.stl",
-                                        calibration_scenes, calibration_margin)
+                                        calibration_scenes, calibration_margin, policy)
                 agreement[model] = cal.agreement_min
                 print(f"{Path(name).name} {model}: agreement_min {cal.agreement_min}, right "
                       f"{cal.right}/{cal.right_total}, wrong max {cal.wrong_max:.3f} of {cal.wrong_total}",

@@ -39,6 +39,7 @@ if str(ROOT) not in sys.path:
 
 from bench.instances import INTR, RIGHT_MSPD_PX, SIZE, nearest_copies, roi_of  # noqa: E402
 from bench.lib.calibration import plane_calibration  # noqa: E402
+from bench.lib.policy import add_policy_options, policy_of  # noqa: E402
 from bench.lib.scenes import l_block_bank  # noqa: E402
 from service.vision import pipeline  # noqa: E402
 from service.vision.geometry.frames import Pose, Rz  # noqa: E402
@@ -156,12 +157,14 @@ def main() -> None:
                     help="the part calibrated for a plane on this many rendered scenes (0: not)")
     ap.add_argument("--min-score", type=float, default=None, help="the verdict's operating point (default: "
                     "the pipeline's)")
+    add_policy_options(ap)
     args = ap.parse_args()
+    policy = policy_of(args)
     lo, hi = (int(x) for x in args.parts.split("-"))
     bank = l_block_bank()
     # the part calibrated for a plane as the service calibrates it once it is ready
-    agreement_min = plane_calibration(bank, "l_block", None, args.calibration_scenes).agreement_min \
-        if args.calibration_scenes else None
+    agreement_min = plane_calibration(bank, "l_block", None, args.calibration_scenes,
+                                      policy=policy).agreement_min if args.calibration_scenes else None
     pts = bank.vertices_mm.astype(float)
     if args.cost_scenes:
         return five_copies_cost(bank, args.seed, args.cost_scenes, pts)
@@ -175,7 +178,7 @@ def main() -> None:
             n = int(rng.integers(lo, hi + 1))
             img, truth, visible, plane = scene(rng, bank, n, textured)
             for mode in modes:
-                kw = {"max_instances": n, "min_score": args.min_score}
+                kw = {"max_instances": n, "min_score": args.min_score, "policy": policy}
                 if mode == "no plane":
                     kw["distance_range_mm"] = RANGE
                 else:

@@ -19,12 +19,15 @@ from service.vision.pipeline.plane_calibration import (
     calibrated,
     plane_records,
 )
+from service.vision.pipeline.policy import DEFAULT_POLICY, Policy
 
 
-def _method() -> str:
-    """A hash of the calibration's scenes: a change makes the records again (the operating point is
-    derived from them at every load: ``calibrated``)."""
-    return hashlib.sha1((ROOT / "service/vision/pipeline/calibration_scenes.py").read_bytes()).hexdigest()[:8]
+def _method(policy: Policy) -> str:
+    """A hash of the calibration's scenes and of the gradient search that proposes on them: a change
+    makes the records again (the operating point is derived from them at every load: ``calibrated``)."""
+    scenes = (ROOT / "service/vision/pipeline/calibration_scenes.py").read_bytes()
+    search = repr(policy.gradient).encode()
+    return f"{hashlib.sha1(scenes).hexdigest()[:8]}-g{hashlib.sha1(search).hexdigest()[:6]}"
 
 
 def _record(row: dict) -> PlaneRecord:
@@ -33,18 +36,18 @@ def _record(row: dict) -> PlaneRecord:
 
 
 def plane_calibration(bank: TemplateBank, model: str, mesh_path: Path | None, scenes: int,
-                      margin: float = MARGIN) -> PlaneCalibration:
+                      margin: float = MARGIN, policy: Policy = DEFAULT_POLICY) -> PlaneCalibration:
     """``bank``'s calibration on ``scenes`` scenes; its records kept under the bank's cache name (a bank
     made without a mesh file, ``mesh_path`` None: under ``model`` and a hash of its vertices)."""
     stem = bank_path(model, mesh_path, None).stem if mesh_path is not None else \
         f"{model}-{hashlib.sha1(bank.vertices_mm.tobytes()).hexdigest()[:12]}"
-    name = f"{stem}-{scenes}-{_method()}.jsonl"
+    name = f"{stem}-{scenes}-{_method(policy)}.jsonl"
     path = OUT_DIR / "plane_calibration" / name
     if path.exists():
         records = [_record(json.loads(s)) for s in path.read_text().splitlines() if s.strip()]
     else:
         t0 = time.perf_counter()
-        records = plane_records(bank, scenes)
+        records = plane_records(bank, scenes, policy=policy)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text("".join(json.dumps(asdict(r)) + "\n" for r in records))
         print(f"calibrated {model} on {scenes} scenes in {time.perf_counter() - t0:.0f} s", file=sys.stderr)

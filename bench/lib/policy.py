@@ -23,6 +23,11 @@ POLICY_OPTIONS: dict[str, tuple[str, type, str]] = {
                          "at its bound (0: none)"),
     "--calibration-margin": ("calibration_margin", float, "logit margin over the highest wrong score"),
 }
+# ... and the gradient search on a plane (``Policy.gradient``): option -> (field, type, help).
+GRADIENT_OPTIONS: dict[str, tuple[str, type, str]] = {
+    "--rivals": ("rivals", int, "other rotations proposed at each gradient match's place (0: none)"),
+    "--rival-margin": ("rival_margin", float, "a rival scores within this of the match"),
+}
 # ... and the taught search of a part not calibrated (``Policy.taught_search``): option -> field.
 TAUGHT_OPTIONS = {"--colour-prior": "colour_prior", "--scored-fits": "scored_fits",
                   "--order-first": "order_first", "--polish-from": "polish_from"}
@@ -32,6 +37,9 @@ def add_policy_options(ap: argparse.ArgumentParser) -> None:
     for option, (field, kind, text) in POLICY_OPTIONS.items():
         ap.add_argument(option, type=kind, default=None,
                         help=f"{text} (Policy.{field}; default: the service's)")
+    for option, (field, kind, text) in GRADIENT_OPTIONS.items():
+        ap.add_argument(option, type=kind, default=None,
+                        help=f"{text} (Policy.gradient.{field}; default: the service's)")
     ap.add_argument("--colour-prior", action="store_true",
                     help="taught parts not calibrated: region proposals ranked by the colour prior")
     ap.add_argument("--scored-fits", type=int, default=None,
@@ -66,4 +74,6 @@ def policy_of(a: argparse.Namespace) -> Policy:
     if given("--weights") is not None:
         fields["verdict_weights"] = verdict_weights(given("--weights"))
     taught = {f: given(o) for o, f in TAUGHT_OPTIONS.items() if given(o) is not None}
-    return replace(DEFAULT_POLICY, **fields, taught_search=replace(DEFAULT_POLICY.taught_search, **taught))
+    gradient = {f: given(o) for o, (f, _, _) in GRADIENT_OPTIONS.items() if given(o) is not None}
+    return replace(DEFAULT_POLICY, **fields, taught_search=replace(DEFAULT_POLICY.taught_search, **taught),
+                   gradient=replace(DEFAULT_POLICY.gradient, **gradient))

@@ -179,3 +179,29 @@ def score_at(lin, pad, t, dx, dy, ori, wt, n, u, v):  # pragma: no cover - compi
         if 0 <= cy < lim_y and 0 <= cx < lim_x:
             s += wt[p] * lin[ori[p], ry, rx, cy, cx]
     return s / 4.0
+
+
+@numba.njit(cache=True, nogil=True)
+def best_in_window(lin, pad, t, dx, dy, ori, wt, npts, ids, g0, h0, g1, h1):  # pragma: no cover - compiled
+    """Each template ``ids[k]``'s best score over the grid cells [g0, g1) x [h0, h1) -> ((K,) scores,
+    (K, 2) its cell (gx, gy))."""
+    scores = np.full(ids.shape[0], -1.0, np.float32)
+    at = np.zeros((ids.shape[0], 2), np.int64)
+    for k in range(ids.shape[0]):
+        m = ids[k]
+        for gy in range(h0, h1):
+            for gx in range(g0, g1):
+                s = 0.0
+                for p in range(npts[m]):
+                    ox = dx[m, p]
+                    oy = dy[m, p]
+                    rx = ox % t
+                    ry = oy % t
+                    cy = gy + (oy - ry) // t + pad
+                    s += wt[m, p] * lin[ori[m, p], ry, rx, cy, gx + (ox - rx) // t + pad]
+                s *= 0.25
+                if s > scores[k]:
+                    scores[k] = s
+                    at[k, 0] = gx
+                    at[k, 1] = gy
+    return scores, at

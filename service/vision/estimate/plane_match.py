@@ -27,6 +27,7 @@ from service.vision.estimate.edge_agreement import edge_normals_px, share_agreei
 from service.vision.estimate.gradients import (
     ResponseMaps,
     balanced_weights,
+    best_in_window,
     quantise,
     response_maps,
     score_at,
@@ -69,6 +70,7 @@ class PlaneMatch:
     uv: tuple[float, float]  # the anchor: where centre_obj projects
     template: int
     pose: Pose
+    place: int = 0  # matches of one place: the best there and its rivals (``rivals``)
 
 
 def radius_px(bank: TemplateBank, intr: Intrinsics, plane: Plane, image_size: tuple[int, int]) -> float:
@@ -147,8 +149,11 @@ def _projected(e: EdgePoints, R: np.ndarray, t_cam: np.ndarray, intr: Intrinsics
 
 
 def match(rm: ResponseMaps, tpl: PlaneTemplates, bank: TemplateBank, intr: Intrinsics, plane: Plane, *,
-          top_k: int, nms_px: float, min_score: float = 0.0) -> list[PlaneMatch]:
-    """The best ``top_k`` placements, at least ``nms_px`` apart, each lifted to T_cam_obj on the plane."""
+          top_k: int, nms_px: float, min_score: float = 0.0, n_rivals: int = 0,
+          rival_margin: float = 0.0) -> list[PlaneMatch]:
+    """The best ``top_k`` placements, at least ``nms_px`` apart, each followed by up to ``n_rivals``
+    other rotations scoring within ``rival_margin`` of it within ``nms_px`` (``rivals``), each lifted to
+    T_cam_obj on the plane."""
     t = rm.t
     gh, gw = rm.grid_shape
     reach = max(int(np.abs(tpl.dx).max()), int(np.abs(tpl.dy).max()))
@@ -171,8 +176,55 @@ def match(rm: ResponseMaps, tpl: PlaneTemplates, bank: TemplateBank, intr: Intri
         if len(picked) >= 3 * top_k:
             break
     picked.sort(key=lambda x: -x[0])
-    return [PlaneMatch(s, (float(u), float(v)), m, lift(tpl, m, (u, v), bank, intr, plane))
-            for s, u, v, m in picked[:top_k]]
+    out = []
+    for place, (s, u, v, m) in enumerate(picked[:top_k]):
+        here = [(s, u, v, m)]
+        if n_rivals:
+            here += rivals(rm, tpl, u, v, m, reach_px=nms_px, min_score=s - rival_margin, n=n_rivals)
+        out += [PlaneMatch(s2, (float(u2), float(v2)), m2, lift(tpl, m2, (u2, v2), bank, intr, plane), place)
+                for s2, u2, v2, m2 in here]
+    return out
+
+
+def rivals(rm: ResponseMaps, tpl: PlaneTemplates, u: int, v: int, m: int, *, reach_px: float,
+           min_score: float, n: int) -> list[tuple[float, int, int, int]]:
+    """Up to ``n`` (score, u, v, template) of other rotations than template m's (another family, or a
+    spin more than two steps from it) scoring at least ``min_score`` within ``reach_px`` of (u, v),
+    best first, no two of one family within two spin steps (the best ``3 n`` on the grid's cells, refined
+    to the pixel: ``refine_placement``). A block lying on its side and the same block standing can show
+    one outline: which of the two the grid scores best is a toss, the edges inside it tell them apart
+    (``polish_on_gradients``)."""
+    same = np.flatnonzero(tpl.zone == tpl.zone[m])
+    other = np.array([k for k in same if not _same_rotation(tpl, k, m)], np.int64)
+    if not len(other):
+        return []
+    t = rm.t
+    gh, gw = rm.grid_shape
+    r = int(math.ceil(reach_px / t))
+    g0, h0 = max(u // t - r, 0), max(v // t - r, 0)
+    g1, h1 = min(u // t + r + 1, gw), min(v // t + r + 1, gh)
+    scores, at = best_in_window(rm.lin, rm.pad, t, tpl.dx, tpl.dy, tpl.ori, tpl.weight, tpl.n_pts, other,
+                                g0, h0, g1, h1)
+    # the grid's cells are a step apart: the best few rotations by it are refined, then judged
+    tried: list[tuple[float, int, int, int]] = []
+    for k in np.argsort(-scores, kind="stable"):
+        if len(tried) >= 3 * n:
+            break
+        mm = int(other[k])
+        if not any(_same_rotation(tpl, mm, o) for *_, o in tried):
+            tried.append(refine_placement(rm, tpl, int(at[k, 0]) * t, int(at[k, 1]) * t, mm, t // 2))
+    tried.sort(key=lambda x: -x[0])
+    return [x for x in tried if x[0] >= min_score][:n]
+
+
+def _same_rotation(tpl: PlaneTemplates, a: int, b: int) -> bool:
+    """Templates a and b show one family within two spin steps."""
+    return bool(tpl.family[a] == tpl.family[b]
+                and _spin_gap(tpl.psi_deg[a], tpl.psi_deg[b]) <= 2 * tpl.spin_step_deg + 1e-6)
+
+
+def _spin_gap(a_deg, b_deg):
+    return np.abs((np.asarray(a_deg) - b_deg + 180.0) % 360.0 - 180.0)
 
 
 def refine_placement(rm: ResponseMaps, tpl: PlaneTemplates, u: int, v: int, m: int, reach_px: int
@@ -180,7 +232,7 @@ def refine_placement(rm: ResponseMaps, tpl: PlaneTemplates, u: int, v: int, m: i
     """The best (score, u, v, template) within ``reach_px`` of (u, v) over template m and its
     neighbouring spins (same family and zone)."""
     same = np.flatnonzero((tpl.family == tpl.family[m]) & (tpl.zone == tpl.zone[m]))
-    dpsi = np.abs((tpl.psi_deg[same] - tpl.psi_deg[m] + 180.0) % 360.0 - 180.0)
+    dpsi = _spin_gap(tpl.psi_deg[same], tpl.psi_deg[m])
     best = (-1.0, u, v, m)
     for mm in same[dpsi <= tpl.spin_step_deg + 1e-6]:
         n = int(tpl.n_pts[mm])
@@ -207,6 +259,17 @@ def matches_as_hypotheses(matches: list[PlaneMatch], tpl: PlaneTemplates) -> lis
                             np.array(x.uv, float), x.pose.R, x.pose.t_mm, score=x.score) for x in matches]
 
 
+def best_at_each_place(hs: list[PlaneHypothesis], places: list[int], margin: float) -> list[PlaneHypothesis]:
+    """The polished hypotheses place by place (in the order the places come), each place's best first,
+    without those more than ``margin`` below its best: a rival that explains the edges there clearly
+    better leaves the worse rotation nothing to be found on."""
+    out = []
+    for place in dict.fromkeys(places):
+        here = sorted((h for h, p in zip(hs, places, strict=True) if p == place), key=lambda h: -h.score)
+        out += [h for h in here if h.score >= here[0].score - margin]
+    return out
+
+
 @dataclass(frozen=True)
 class GradientSearch:
     """The gradient search's settings (``pipeline/policy.Policy.gradient``)."""
@@ -219,6 +282,8 @@ class GradientSearch:
     nms_px: float = 16.0  # two matches closer than this are one
     proposals: int = 4  # matches proposed for one instance
     proposals_per_instance: int = 2  # and for each further instance
+    rivals: int = 2  # other rotations proposed at each match's place (``rivals``)
+    rival_margin: float = 0.05  # scoring within this of the match
 
 
 _TEMPLATES = Memo(16)
@@ -242,7 +307,8 @@ def gradient_search(bank: TemplateBank, creases: np.ndarray, R_rest_obj: np.ndar
     reach = max(int(np.abs(tpl.dx).max()), int(np.abs(tpl.dy).max()))
     rm = response_maps(orientations, t, reach // t + 2)
     top_k = settings.proposals + settings.proposals_per_instance * (max_instances - 1)
-    return match(rm, tpl, bank, intr, plane, top_k=top_k, nms_px=settings.nms_px), tpl
+    return match(rm, tpl, bank, intr, plane, top_k=top_k, nms_px=settings.nms_px, n_rivals=settings.rivals,
+                 rival_margin=settings.rival_margin), tpl
 
 
 def agreement_on_plane(edges: EdgePoints, R: np.ndarray, t_cam: np.ndarray, intr: Intrinsics,

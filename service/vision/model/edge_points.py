@@ -144,7 +144,8 @@ def _visible_creases(creases: np.ndarray, pose: Pose, intr: Intrinsics, depth: n
     length = np.linalg.norm(P[:, 1] - P[:, 0], axis=1)
     k = np.maximum(1, np.ceil(length / step_mm).astype(int))
     seg = np.repeat(np.arange(len(P)), k)
-    frac = np.concatenate([(np.arange(n) + 0.5) / n for n in k])
+    first_of = np.repeat(np.cumsum(k) - k, k)
+    frac = (np.arange(len(seg)) - first_of + 0.5) / np.repeat(k, k)
     pts = P[seg, 0] + (P[seg, 1] - P[seg, 0]) * frac[:, None]
     uv = np.stack([pts[:, 0] / pts[:, 2] * intr.fx + intr.cx, pts[:, 1] / pts[:, 2] * intr.fy + intr.cy], 1)
     h, w = depth.shape

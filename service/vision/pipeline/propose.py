@@ -25,7 +25,12 @@ from service.vision.estimate.colour_sweep import colour_sweep
 from service.vision.estimate.edges import detect_segments_in_bands, to_grey_u8, undistort_segments
 from service.vision.estimate.evidence import ColourFrame, colour_frame
 from service.vision.estimate.plane import plane_search, polish
-from service.vision.estimate.plane_match import gradient_search, matches_as_hypotheses, polish_on_gradients
+from service.vision.estimate.plane_match import (
+    best_at_each_place,
+    gradient_search,
+    matches_as_hypotheses,
+    polish_on_gradients,
+)
 from service.vision.estimate.regions import bgr_u8, region_proposals, searched_range, working_likelihood
 from service.vision.estimate.roi import crop_segments, roi_mask
 from service.vision.estimate.roi import inside as roi_inside
@@ -140,6 +145,7 @@ def _gradient_proposals(bank: TemplateBank, rest: np.ndarray, frame: ColourFrame
                                    policy.gradient, max_instances=max_instances)
     hs = polish_on_gradients(bank, tpl, rest, matches_as_hypotheses(matches, tpl), intr, plane,
                              frame.agreeing)
+    hs = best_at_each_place(hs, [x.place for x in matches], policy.gradient.rival_margin)
     return polish(bank, rest, hs, dtt_b, intr, plane, p, max_iter=0)
 
 
