@@ -22,9 +22,9 @@ from service.vision.estimate.plane_match import (
     matches_as_hypotheses,
     polish_on_gradients,
 )
-from service.vision.geometry.camera import project
+from service.vision.geometry.camera import Intrinsics, project
 from service.vision.geometry.frames import Pose
-from service.vision.model.edge_points import edge_points_at
+from service.vision.model.edge_points import edge_points_at, visible_edges
 from service.vision.pipeline.part import crease_edges_of
 from tests.scenes import INTR, PLANE, SIZE, resting, scene
 
@@ -187,3 +187,18 @@ def test_each_place_comes_best_first_without_those_far_below_its_best():
     places = [0, 0, 1, 0, 1, 2]
     out = best_at_each_place(hs, places, 0.05)
     assert [h.score for h in out] == [0.9, 0.88, 0.6, 0.2]
+
+
+def test_visible_edges_move_with_the_image_round_them(bank):
+    # the edges are read in a window round the part: the same view in an image 100 px larger each side
+    # (the principal point moved with it) shows the same edges, 100 px further right and down
+    pose = resting(bank, 1, 200.0, 60.0, -40.0)
+    creases = crease_edges_of(bank)
+    a = visible_edges(bank.vertices_mm, bank.faces, creases, pose, INTR, SIZE)
+    big = Intrinsics(INTR.fx, INTR.fy, INTR.cx + 100, INTR.cy + 100)
+    b = visible_edges(bank.vertices_mm, bank.faces, creases, pose, big, (SIZE[0] + 200, SIZE[1] + 200))
+    assert len(a.uv) > 100
+    np.testing.assert_allclose(b.uv - 100, a.uv, atol=1e-9)
+    np.testing.assert_allclose(b.p_cam, a.p_cam, atol=1e-6)
+    np.testing.assert_array_equal(b.crease, a.crease)
+    np.testing.assert_array_equal(b.outline, a.outline)

@@ -26,13 +26,14 @@ import trimesh
 
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
-from service.vision.geometry.render import render
+from service.vision.geometry.render import rasterise_roi
 
 CREASE_DEG = 30.0  # faces meeting at a sharper turn than this make a visible edge
 DEPTH_JUMP_MM = 2.0  # a z-buffer step larger than this is an occluding edge ...
 SLOPE_RATIO = 3.0  # ... if also this many times larger than the steps beside it
 VISIBLE_TOL_MM = 1.0  # a crease sample is visible when the z-buffer next to it is not nearer than this
 MAX_POINTS = 128  # points a template keeps
+WINDOW_PAD_PX = 8  # the render's window round the part: wider than the depth's smoothing kernel (sigma 1)
 
 
 @dataclass(frozen=True)
@@ -68,26 +69,43 @@ class VisibleEdges:
 def visible_edges(V: np.ndarray, F: np.ndarray, creases: np.ndarray, pose: Pose, intr: Intrinsics,
                   size: tuple[int, int]) -> VisibleEdges | None:
     """The occluding and crease edges the part shows at ``pose``; None when it covers under 4 pixels."""
-    r = render(V, F, pose, intr.K, size)
-    if r.mask.sum() < 4:
+    mask, depth, (u0, v0) = _window(V, F, pose, intr, size)
+    if mask.sum() < 4:
         return None
-    depth = np.where(r.mask, r.depth_mm, np.nan).astype(np.float32)
-    far = float(np.nanmax(depth)) + 10.0 * DEPTH_JUMP_MM
-    depth = np.where(r.mask, depth, far).astype(np.float32)
+    far = float(depth[mask].max()) + 10.0 * DEPTH_JUMP_MM
+    depth = np.where(mask, depth, far).astype(np.float32)
     jump = _near_side_of_jumps(depth)
     smooth = cv2.GaussianBlur(depth, (0, 0), 1.0)
     gx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3)
     jv, ju = np.nonzero(jump)
     z = depth[jv, ju].astype(float)
-    p_cam = np.stack([(ju - intr.cx) / intr.fx * z, (jv - intr.cy) / intr.fy * z, z], 1)
+    ju_img, jv_img = ju + u0, jv + v0
+    p_cam = np.stack([(ju_img - intr.cx) / intr.fx * z, (jv_img - intr.cy) / intr.fy * z, z], 1)
     tan_cam = np.stack([-gy[jv, ju], gx[jv, ju], np.zeros(len(jv), np.float32)], 1).astype(float)
-    near_background = cv2.dilate((~r.mask).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-    p_cr, t_cr, uv_cr = _visible_creases(creases, pose, intr, depth, jump)
-    return VisibleEdges(np.concatenate([np.stack([ju, jv], 1).astype(float), uv_cr]),
+    near_background = cv2.dilate((~mask).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    p_cr, t_cr, uv_cr = _visible_creases(creases, pose, intr, depth, jump, (u0, v0), size)
+    return VisibleEdges(np.concatenate([np.stack([ju_img, jv_img], 1).astype(float), uv_cr]),
                         np.concatenate([p_cam, p_cr]), np.concatenate([tan_cam, t_cr]),
                         np.concatenate([np.zeros(len(p_cam), bool), np.ones(len(p_cr), bool)]),
                         np.concatenate([near_background[jv, ju], np.zeros(len(p_cr), bool)]))
+
+
+def _window(V: np.ndarray, F: np.ndarray, pose: Pose, intr: Intrinsics, size: tuple[int, int]
+            ) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """(mask, depth mm, (u0, v0)) of the part rendered at ``pose`` in the window of its projection grown by
+    ``WINDOW_PAD_PX`` within the image: beyond the depth's smoothing kernel every pixel reads the
+    background, as in the whole image, and the window costs a fraction of it."""
+    d_roi, f_roi, (ru, rv) = rasterise_roi(V, F, pose, intr.K, size)
+    w, h = size
+    rh, rw = f_roi.shape
+    u0, v0 = max(ru - WINDOW_PAD_PX, 0), max(rv - WINDOW_PAD_PX, 0)
+    u1, v1 = min(ru + rw + WINDOW_PAD_PX, w), min(rv + rh + WINDOW_PAD_PX, h)
+    mask = np.zeros((max(v1 - v0, 0), max(u1 - u0, 0)), bool)
+    depth = np.full(mask.shape, np.inf, np.float32)
+    mask[rv - v0:rv - v0 + rh, ru - u0:ru - u0 + rw] = f_roi >= 0
+    depth[rv - v0:rv - v0 + rh, ru - u0:ru - u0 + rw] = d_roi
+    return mask, depth, (u0, v0)
 
 
 def edge_points_at(V: np.ndarray, F: np.ndarray, creases: np.ndarray, pose: Pose, intr: Intrinsics,
@@ -133,9 +151,11 @@ def _near_side_of_jumps(depth: np.ndarray) -> np.ndarray:
 
 
 def _visible_creases(creases: np.ndarray, pose: Pose, intr: Intrinsics, depth: np.ndarray,
-                     jump: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     jump: np.ndarray, origin: tuple[int, int], size: tuple[int, int]
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Crease samples (one per pixel) the z-buffer shows and no occluding edge already covers:
-    camera-frame points, tangents and pixels."""
+    camera-frame points, tangents and pixels. ``depth`` and ``jump``: the window at pixel ``origin`` of
+    an image of ``size`` (w, h) that holds the part's projection."""
     empty = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 2))
     if not len(creases):
         return empty
@@ -148,15 +168,17 @@ def _visible_creases(creases: np.ndarray, pose: Pose, intr: Intrinsics, depth: n
     frac = (np.arange(len(seg)) - first_of + 0.5) / np.repeat(k, k)
     pts = P[seg, 0] + (P[seg, 1] - P[seg, 0]) * frac[:, None]
     uv = np.stack([pts[:, 0] / pts[:, 2] * intr.fx + intr.cx, pts[:, 1] / pts[:, 2] * intr.fy + intr.cy], 1)
-    h, w = depth.shape
+    w, h = size
     iu, iv = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
     inside = (iu >= 1) & (iu < w - 1) & (iv >= 1) & (iv < h - 1)
     iu, iv = np.clip(iu, 1, w - 2), np.clip(iv, 1, h - 2)
+    # window pixels: the window holds every sample in the image and the pixels round it
+    wu, wv = iu - origin[0], iv - origin[1]
     farthest = np.full(len(pts), -np.inf)
     for dv in (-1, 0, 1):
         for du in (-1, 0, 1):
-            farthest = np.maximum(farthest, depth[iv + dv, iu + du])
-    ok = inside & (farthest >= pts[:, 2] - VISIBLE_TOL_MM) & ~jump[iv, iu]
+            farthest = np.maximum(farthest, depth[wv + dv, wu + du])
+    ok = inside & (farthest >= pts[:, 2] - VISIBLE_TOL_MM) & ~jump[wv, wu]
     key = iv * w + iu
     ok_idx = np.flatnonzero(ok)
     _, first = np.unique(key[ok_idx], return_index=True)
