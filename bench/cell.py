@@ -112,7 +112,7 @@ def greedy_match(d: np.ndarray, scores: list[float], threshold_px: float) -> lis
 
 def run_query(bank, set_dir: Path, image: str, lines: list[dict], info, *, use_plane: bool,
               max_instances: int | None, min_visible: float, policy: Policy = DEFAULT_POLICY,
-              agreement_min: float | None = None) -> dict:
+              agreement_min: float | None = None, agreement_floor: float | None = None) -> dict:
     """One estimate of ``image`` for the model of ``lines`` (its gt lines: the copies, or one "absent"
     line), judged against the copies -> the query's record."""
     copies = [g for g in lines if not g.get("absent", False)]
@@ -122,7 +122,8 @@ def run_query(bank, set_dir: Path, image: str, lines: list[dict], info, *, use_p
     img = read_colour(set_dir / image)
     intr = Intrinsics.from_K(np.asarray(g0["K"], float))
     t0 = time.perf_counter()
-    out = estimate(bank, img, intr, plane=plane, max_instances=n, policy=policy, agreement_min=agreement_min)
+    out = estimate(bank, img, intr, plane=plane, max_instances=n, policy=policy, agreement_min=agreement_min,
+                   agreement_floor=agreement_floor)
     ms = 1000.0 * (time.perf_counter() - t0)
     poses = [(inst.refined or inst.coarse).pose for inst in out.instances]
     scores = [float(inst.verdict.score) for inst in out.instances]
@@ -171,18 +172,19 @@ def run_set(name: str, *, stride: int = 1, start: int = 0, models: set[str] | No
             print(f"{Path(name).name} bank {model}: {'loaded' if cached else 'built'} "
                   f"({banks[model].n_templates} templates) in {time.perf_counter() - t0:.1f} s",
                   file=sys.stderr)
-            agreement[model] = None
+            agreement[model] = (None, None)
             if use_plane and calibration_scenes:
                 cal = plane_calibration(banks[model], model, set_dir / "models" / f"{model}.stl",
                                         calibration_scenes, calibration_margin, policy)
-                agreement[model] = cal.agreement_min
-                print(f"{Path(name).name} {model}: agreement_min {cal.agreement_min}, right "
+                agreement[model] = (cal.agreement_min, cal.agreement_floor)
+                print(f"{Path(name).name} {model}: agreement_min {cal.agreement_min}, floor "
+                      f"{cal.agreement_floor}, right "
                       f"{cal.right}/{cal.right_total}, wrong max {cal.wrong_max:.3f} of {cal.wrong_total}",
                       file=sys.stderr)
         info = load_model_info(set_dir, model, meta, minfo)
         recs.append(run_query(banks[model], set_dir, image, lines, info, use_plane=use_plane,
                               max_instances=max_instances, min_visible=min_visible, policy=policy,
-                              agreement_min=agreement[model]))
+                              agreement_min=agreement[model][0], agreement_floor=agreement[model][1]))
         r = recs[-1]
         print(f"{Path(name).name} {image} {model}: {len(r['copies'])} copies, "
               f"{sum(i['right'] for i in r['instances'])} right / {len(r['instances'])} found, "

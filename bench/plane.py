@@ -163,8 +163,9 @@ def main() -> None:
     lo, hi = (int(x) for x in args.parts.split("-"))
     bank = l_block_bank()
     # the part calibrated for a plane as the service calibrates it once it is ready
-    agreement_min = plane_calibration(bank, "l_block", None, args.calibration_scenes,
-                                      policy=policy).agreement_min if args.calibration_scenes else None
+    cal = plane_calibration(bank, "l_block", None, args.calibration_scenes, policy=policy) \
+        if args.calibration_scenes else None
+    agreement = {"agreement_min": cal.agreement_min, "agreement_floor": cal.agreement_floor} if cal else {}
     pts = bank.vertices_mm.astype(float)
     if args.cost_scenes:
         return five_copies_cost(bank, args.seed, args.cost_scenes, pts)
@@ -182,7 +183,7 @@ def main() -> None:
                 if mode == "no plane":
                     kw["distance_range_mm"] = RANGE
                 else:
-                    kw["plane"], kw["agreement_min"] = plane, agreement_min
+                    kw |= {"plane": plane, **agreement}
                 if mode == "plane + ROI":
                     kw["roi_uv"] = roi_of(truth, bank)
                 t0 = time.perf_counter()

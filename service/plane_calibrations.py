@@ -4,8 +4,8 @@ Once a part's templates are ready, the process's ``Calibrator`` renders scenes o
 shapes and sets the agreement of visible edges a pose on a plane must reach (about a minute a part). The
 record holds it as ``plane_calibration``::
 
-    {"version": 1, "status": "running", "done": 3, "total": 12}
-    {"version": 1, "status": "calibrated", "agreement_min": 0.71, "wrong_max": 0.65, "scenes": 12, ...}
+    {"version": 2, "status": "running", "done": 3, "total": 12}
+    {"version": 2, "status": "calibrated", "agreement_min": 0.71, "agreement_floor": 0.3, "scenes": 12, ...}
 
 A calibration of an older method (``version``), or one a stop or a crash ended, is due again: every
 start-up re-queues it. Until a part is calibrated, a request on a plane judges it on the material-bound
@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     from service.stores.base import Store
 
 # The calibration's method: a calibration of another is made again.
-VERSION = 1
+VERSION = 2
 KEY = "plane_calibration"
 
 
@@ -43,10 +43,19 @@ def plane_calibration_failed(store: Store, mid: str, error: str) -> None:
 
 def agreement_min_of(record: dict[str, Any]) -> float | None:
     """The agreement a pose of the part on a plane must reach; None until calibrated (or not calibratable)."""
+    return _calibrated_value(record, "agreement_min")
+
+
+def agreement_floor_of(record: dict[str, Any]) -> float | None:
+    """The least agreement a pose of the part on a plane is found with; None until calibrated."""
+    return _calibrated_value(record, "agreement_floor")
+
+
+def _calibrated_value(record: dict[str, Any], key: str) -> float | None:
     cal = record.get(KEY) or {}
     if cal.get("version") != VERSION or cal.get("status") != "calibrated":
         return None
-    a = cal.get("agreement_min")
+    a = cal.get(key)
     return None if a is None else float(a)
 
 
@@ -81,6 +90,7 @@ def plane_calibration_info(record: dict[str, Any], scenes: int | None) -> dict[s
     progress = 1.0 if status == "calibrated" else (int(cal.get("done") or 0) / total if total else 0.0)
     return {"status": status, "progress": progress,
             "agreement_min": agreement_min_of(record),
+            "agreement_floor": agreement_floor_of(record),
             "wrong_max": cal.get("wrong_max") if current else None,
             "scenes": int(cal.get("scenes") or 0) if status == "calibrated" else None,
             "error": cal.get("error") if status == "failed" else None}
@@ -98,6 +108,7 @@ def calibrate_plane_stored(store: Store, mid: str, bank: TemplateBank, scenes: i
 
     cal = calibrate_plane(bank, scenes, progress=told)
     kept = {"version": VERSION, "status": "calibrated", "agreement_min": cal.agreement_min,
+            "agreement_floor": cal.agreement_floor,
             "wrong_max": float(cal.wrong_max), "right": cal.right, "right_total": cal.right_total,
             "wrong_total": cal.wrong_total, "scenes": cal.scenes}
     return store.update(mid, **{KEY: kept})

@@ -245,8 +245,8 @@ class VerdictJSON(BaseModel):
                          "candidate when nothing is found")
     reason: str = Field(description="found | no_candidate | outside_distance_range | outside_image | "
                         "off_plane | low_support | interior_edges | region_mismatch | shading_mismatch | "
-                        "appearance_mismatch | generic_outline | low_score | deadline (the search stopped at "
-                        "options.deadline_ms before finding one)")
+                        "appearance_mismatch | generic_outline | low_score | edges_disagree | deadline (the "
+                        "search stopped at options.deadline_ms before finding one)")
     evidence: dict[str, float] = Field(description="the evidence the score was computed from: edge_support, "
                                        "unexplained, colour_edge, polarity, region, region_low, in_image, "
                                        "generic (fractions; see docs/API.md), distinct_px (pixels); with "
@@ -348,6 +348,10 @@ class PlaneCalibrationInfo(BaseModel):
         "polarity) a pose on a plane must reach to be found on it; null until calibrated, or when no "
         "agreement kept the wrong poses of its scenes out (a plain shape among look-alikes)")
     wrong_max: float | None = Field(description="the highest agreement a wrong pose reached in its scenes")
+    agreement_floor: float | None = Field(
+        None, description="the least agreement a pose on a plane is found with, whatever its other evidence "
+        "(verdict reason edges_disagree below it): 0.12 under the lowest a right pose read in its scenes; "
+        "null until calibrated")
     scenes: int | None = Field(description="rendered scenes it was calibrated on (null until calibrated)")
     error: str | None = Field(None, description="why it failed (status failed), else null")
 

@@ -88,6 +88,9 @@ def test_a_ready_part_is_calibrated_in_the_background_and_an_estimate_on_a_plane
         assert info["agreement_min"] == pytest.approx(kept["wrong_max"] + MARGIN)
     else:  # too few wrong candidates to say how high a wrong one reads: not calibrated
         assert info["agreement_min"] is None
+    # the floor, a margin under every right candidate's agreement (none with too few of them), as kept
+    assert info["agreement_floor"] == kept["agreement_floor"]
+    assert info["agreement_floor"] is None or info["agreement_floor"] <= 1.0 - MARGIN
     # before: the estimate said the part was not calibrated for a plane; after, only a plain one says so
     assert any("plane calibration is" in w for w in first["warnings"]), first["warnings"]
     after = _estimate(client, mid, sc)
@@ -103,4 +106,4 @@ def test_without_scenes_no_calibration_is_made_and_get_says_not_requested(tmp_pa
         wait_built(c, r.json()["id"])
         info = c.get(f"/models/{r.json()['id']}").json()["plane_calibration"]
         assert info == {"status": "not_requested", "progress": 0.0, "agreement_min": None, "wrong_max": None,
-                        "scenes": None, "error": None}
+                        "agreement_floor": None, "scenes": None, "error": None}

@@ -19,6 +19,7 @@ from service.vision.pipeline import estimate
 from service.vision.pipeline.calibration_scenes import scene
 from service.vision.pipeline.plane_calibration import (
     MARGIN,
+    MIN_RIGHT_PER_SCENE,
     MIN_WRONG_PER_SCENE,
     RIGHT_PX,
     PlaneRecord,
@@ -70,6 +71,19 @@ def test_the_agreement_to_reach_lies_a_margin_above_the_highest_wrong_candidates
     assert calibrated(records[1:], scenes=3).agreement_min is None  # too few wrong candidates
 
 
+def test_the_least_agreement_found_lies_a_margin_below_the_lowest_right_candidates():
+    def rec(agreement, error_px, distinct_px=2.0):
+        return PlaneRecord(error_px, "low_score", {"edge_agreement": agreement, "polarity": 1.0,
+                                                   "distinct_px": distinct_px})
+
+    # the lowest right one has an outline a plain shape has too: the floor holds for it as well
+    records = [rec(0.2, 50.0), rec(0.8, 2.0), rec(0.6, 4.9), rec(0.45, 1.0, distinct_px=0.5), rec(0.1, 5.0)]
+    assert calibrated(records, scenes=1).agreement_floor == pytest.approx(0.45 - MARGIN)
+    assert calibrated(records[:1], scenes=1).agreement_floor is None  # no right candidate: no floor
+    # 3 right candidates in 4 scenes say too little of how low a right pose reads
+    assert MIN_RIGHT_PER_SCENE * 4 > 3 and calibrated(records, scenes=4).agreement_floor is None
+
+
 def test_the_material_free_score_is_held_down_by_polarity_and_reaches_the_operating_point_at_its_agreement():
     assert material_free({"edge_agreement": 0.8, "polarity": 0.6}) == 0.6
     def ev(agreement, distinct_px=2.0):
@@ -93,6 +107,19 @@ def test_a_calibrated_part_on_a_plane_is_found_on_its_agreement_and_only_there()
     assert not decide(ev, agreement_min=0.85).found  # without a plane it is not read
     plain = ev | {"distinct_px": 0.5}  # an outline a plain shape has too: edges alone do not tell
     assert not decide(plain, plane_gap_mm=0.0, plane_tolerance_mm=5.0, agreement_min=0.85).found
+
+
+def test_a_pose_whose_edges_disagree_is_not_found_on_a_plane_however_its_shading_reads():
+    ev = {"edge_support": 0.97, "unexplained": 0.0, "colour_edge": 0.95, "polarity": 0.95, "region": 0.9,
+          "region_low": 0.9, "region_global": 0.9, "coherence": 0.95, "shading_r2": 0.95, "shading_std": 9.0,
+          "generic": 0.1, "distinct_px": 0.5, "edge_agreement": 0.2, "inner_agreement": 0.2}
+    on_plane = {"plane_gap_mm": 0.0, "plane_tolerance_mm": 5.0}
+    assert decide(ev, **on_plane).found  # the material-bound score alone finds it
+    refused = decide(ev, **on_plane, agreement_floor=0.3)
+    assert not refused.found and refused.reason == "edges_disagree"
+    assert refused.score == decide(ev, **on_plane).score  # the score is reported as it was
+    assert decide(ev, **on_plane, agreement_floor=0.15).found
+    assert decide(ev, agreement_floor=0.3).found  # without a plane it is not read
 
 
 def test_calibration_records_the_copies_it_finds_as_right_and_the_estimate_reads_its_agreement(bank):

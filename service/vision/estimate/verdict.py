@@ -69,7 +69,7 @@ MIN_DISTINCT_PX = 1.0
 # The reasons a verdict gives.
 REASONS = ("found", "no_candidate", "outside_distance_range", "outside_image", "off_plane", "low_support",
            "interior_edges", "region_mismatch", "shading_mismatch", "generic_outline", "low_score",
-           "deadline", "appearance_mismatch")
+           "deadline", "appearance_mismatch", "edges_disagree")
 # "deadline": the search stopped early (``deadline_ms``) before a candidate was found; the pipeline
 # sets it (``decide`` judges one hypothesis and never returns it).
 # A rejected pose is said to fail on the evidence furthest below a true pose's typical value (medians
@@ -154,14 +154,16 @@ def rejection_reason(ev: dict) -> str:
 def decide(ev: dict | None, *, z_mm: float | None = None,
            distance_range_mm: tuple[float, float] | None = None, min_score: float | None = None,
            weights: dict | None = None, plane_gap_mm: float | None = None,
-           plane_tolerance_mm: float | None = None, agreement_min: float | None = None) -> Verdict:
+           plane_tolerance_mm: float | None = None, agreement_min: float | None = None,
+           agreement_floor: float | None = None) -> Verdict:
     """The verdict on one refined hypothesis's evidence (``None``: there was no hypothesis).
 
     ``plane_gap_mm``: with a supporting plane, the height of the posed part's lowest point above it
     (negative: through it); beyond +-``plane_tolerance_mm`` the pose does not rest on the plane and is
     not found ("off_plane", the gap in the evidence as ``plane_gap_mm``). ``agreement_min``: with a
     plane, the part's calibrated agreement: the score is then the higher of the verification score and
-    ``agreement_score``."""
+    ``agreement_score``. ``agreement_floor``: with a plane, the least agreement a pose of the part is
+    found with, whatever its score ("edges_disagree" below it)."""
     if ev is None:
         return Verdict(False, 0.0, "no_candidate")
     score = verification_score(ev, weights)
@@ -178,6 +180,8 @@ def decide(ev: dict | None, *, z_mm: float | None = None,
         evidence["plane_gap_mm"] = float(plane_gap_mm)
         if plane_tolerance_mm is not None and abs(plane_gap_mm) > plane_tolerance_mm:
             return Verdict(False, score, "off_plane", evidence)
+        if agreement_floor is not None and "edge_agreement" in ev and material_free(ev) < agreement_floor:
+            return Verdict(False, score, "edges_disagree", evidence)
     if score >= (MIN_SCORE if min_score is None else min_score):
         return Verdict(True, score, "found", evidence)
     return Verdict(False, score, rejection_reason(evidence), evidence)

@@ -35,7 +35,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
              sort: str = "score", deadline_ms: float | None = None, started_at: float | None = None,
              plane: Plane | None = None, plane_tolerance_mm: float = PLANE_TOLERANCE_MM,
              appearance: Appearance | None = None, agreement_min: float | None = None,
-             policy: Policy = DEFAULT_POLICY) -> EstimateOutput:
+             agreement_floor: float | None = None, policy: Policy = DEFAULT_POLICY) -> EstimateOutput:
     """Grey (H, W) or BGR (H, W, 3) image + intrinsics -> ranked poses and the verdict on the best.
 
     The coarse search proposes; up to ``policy.n_verify`` candidates are refined (also with ``refine``
@@ -63,7 +63,8 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     part or disagree (``Appearance.used``).
 
     ``agreement_min``: the part's agreement calibrated on rendered scenes (``pipeline/plane_calibration``):
-    on a plane a candidate is also scored on its visible edges' agreement (``verdict.agreement_score``).
+    on a plane a candidate is also scored on its visible edges' agreement (``verdict.agreement_score``);
+    ``agreement_floor``, from the same calibration: on a plane none is found with less.
     """
     if sort == "height" and plane is None:
         raise ValueError("sort 'height' needs a plane")
@@ -97,7 +98,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     kw = dict(distance_mm=distance_mm, distance_range_mm=judged_range(distance_mm, distance_range_mm),
               min_score=min_score, n_channels=p.n_channels, deadline=deadline, plane=plane,
               plane_tolerance_mm=plane_tolerance_mm, appearance=appearance, policy=policy,
-              agreement_min=agreement_min)
+              agreement_min=agreement_min, agreement_floor=agreement_floor)
     if max_instances <= 1:
         checked = verify_candidates(bank, cands, grey, frame, intr, **kw)
         checked, more, t_later = _later_checks(bank, checked, later, grey, frame, intr, search, appearance,

@@ -35,6 +35,8 @@ MARGIN = 0.12
 # Fewer wrong candidates than this a scene say too little of how high a wrong pose reads: not calibrated
 # (a part's scenes give 12-19 a scene where its outlines are distinct; a long spanner, 2)
 MIN_WRONG_PER_SCENE = 8
+# ... and fewer right ones than this a scene, of how low a right pose reads: no floor
+MIN_RIGHT_PER_SCENE = 1
 
 
 @dataclass(frozen=True)
@@ -73,10 +75,14 @@ class PlaneCalibration:
     right_total: int
     wrong_total: int
     scenes: int
+    # the least a found pose may read, whatever its other evidence; None: no right candidate to say
+    agreement_floor: float | None = None
 
 
 def calibrated(records: list[PlaneRecord], scenes: int, margin: float = MARGIN) -> PlaneCalibration:
-    """The agreement a part's pose must reach: ``margin`` above the highest wrong candidate's."""
+    """The agreement a part's pose must reach to be found on it: ``margin`` above the highest wrong
+    candidate's; and the least it may read to be found at all: ``margin`` below the lowest right one's (a
+    pose whose visible edges mostly disagree is not the part, however its shading reads)."""
     # (a pose whose outline a plain shape has too is never found on agreement: ``verdict.distinct``)
     wrong = [material_free(r.evidence) for r in records
              if r.error_px >= WRONG_PX and r.reason not in REFUSED_FOR_PLACE and distinct(r.evidence)]
@@ -84,7 +90,10 @@ def calibrated(records: list[PlaneRecord], scenes: int, margin: float = MARGIN) 
     top = max(wrong, default=0.0)
     agreement_min = top + margin if len(wrong) >= MIN_WRONG_PER_SCENE * scenes else None
     reached = sum(a >= agreement_min for a in right) if agreement_min is not None else 0
-    return PlaneCalibration(agreement_min, top, reached, len(right), len(wrong), scenes)
+    # every right candidate, an outline a plain shape has too or not: the floor holds for all of them
+    every_right = [material_free(r.evidence) for r in records if r.error_px < RIGHT_PX]
+    floor = min(every_right) - margin if len(every_right) >= MIN_RIGHT_PER_SCENE * scenes else None
+    return PlaneCalibration(agreement_min, top, reached, len(right), len(wrong), scenes, floor)
 
 
 def calibrate_plane(bank: TemplateBank, n_scenes: int = SCENES, seed: int = 0,
