@@ -163,7 +163,7 @@ def decide(ev: dict | None, *, z_mm: float | None = None,
     not found ("off_plane", the gap in the evidence as ``plane_gap_mm``). ``agreement_min``: with a
     plane, the part's calibrated agreement: the score is then the higher of the verification score and
     ``agreement_score``. ``agreement_floor``: with a plane, the least agreement a pose of the part is
-    found with, whatever its score ("edges_disagree" below it)."""
+    found with, whatever its score (a pose scoring enough but reading less: "edges_disagree")."""
     if ev is None:
         return Verdict(False, 0.0, "no_candidate")
     score = verification_score(ev, weights)
@@ -180,8 +180,11 @@ def decide(ev: dict | None, *, z_mm: float | None = None,
         evidence["plane_gap_mm"] = float(plane_gap_mm)
         if plane_tolerance_mm is not None and abs(plane_gap_mm) > plane_tolerance_mm:
             return Verdict(False, score, "off_plane", evidence)
-        if agreement_floor is not None and "edge_agreement" in ev and material_free(ev) < agreement_floor:
-            return Verdict(False, score, "edges_disagree", evidence)
     if score >= (MIN_SCORE if min_score is None else min_score):
+        # (a pose under the operating point keeps the reason its evidence gives: only a would-be-found
+        # one is refused for its edges)
+        if plane_gap_mm is not None and agreement_floor is not None and "edge_agreement" in ev \
+                and material_free(ev) < agreement_floor:
+            return Verdict(False, score, "edges_disagree", evidence)
         return Verdict(True, score, "found", evidence)
     return Verdict(False, score, rejection_reason(evidence), evidence)
