@@ -10,8 +10,9 @@ least ``n / (2 N_ORI)``), normalised: a template that is mostly one straight edg
 any straight edge.
 
 Search: each zone's templates at every ``t``-pixel cell of the zone, the best score per cell; local maxima
-refined to the pixel and to the neighbouring spins; non-maximum suppression; each lifted to
-``T_cam_obj`` resting on the plane at that anchor (``geometry/plane.placements``).
+refined to the pixel and to the neighbouring spins; non-maximum suppression; at each place kept, its
+rivals: other rotations scoring nearly as well round it (``rivals``: one outline, two poses); each lifted
+to ``T_cam_obj`` resting on the plane at that anchor (``geometry/plane.placements``).
 """
 
 from __future__ import annotations
@@ -283,7 +284,9 @@ class GradientSearch:
     proposals: int = 4  # matches proposed for one instance
     proposals_per_instance: int = 2  # and for each further instance
     rivals: int = 2  # other rotations proposed at each match's place (``rivals``)
-    rival_margin: float = 0.05  # scoring within this of the match
+    # a rival scores within this of its place's match on the grid; polished, a proposal this far under
+    # its place's best is dropped (``best_at_each_place``)
+    rival_margin: float = 0.05
 
 
 _TEMPLATES = Memo(16)
