@@ -517,6 +517,9 @@ class CameraInfo(CameraSpec):
     name: str
     mounting: Literal["eye-to-hand", "eye-in-hand", "none"] = Field(
         description="eye-to-hand (T_base_cam), eye-in-hand (T_flange_cam) or none (no extrinsics)")
+    warnings: list[str] = Field(
+        default_factory=list, description="PUT only: what the request sent that was corrected (an extrinsics "
+        "R off orthonormal, snapped to the nearest rotation); empty on GET")
 
 
 class CameraRef(_Request):

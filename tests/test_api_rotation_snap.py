@@ -44,3 +44,17 @@ def test_a_reference_pose_beyond_the_tolerance_is_still_422(untaught, frame, pap
     pose = json.dumps({"R": R.tolist(), "t_mm": paper_gt["t_mm"]})
     detail = assert_error(post(api, image, camera, pose), 422)
     assert "not a rotation matrix" in detail and "by up to 0.0201; allowed 0.01" in detail
+
+
+def test_a_camera_whose_extrinsics_are_snapped_says_so_when_registered_and_not_after(client, paper_gt):  # noqa: F811
+    R = np.diag([1.0, 1.0, 1.004]) @ np.asarray(paper_gt["R"])  # max |R R^T - I| = 0.008
+    body = {"fx": 600.0, "fy": 600.0, "cx": 319.5, "cy": 239.5, "width": 640, "height": 480,
+            "T_base_cam": {"R": R.tolist(), "t_mm": [0.0, 0.0, 900.0]}}
+    r = client.put("/cameras/snapped-cam", json=body)
+    assert r.status_code == 201, r.text
+    (warning,) = r.json()["warnings"]
+    assert warning.startswith("camera's T_base_cam's R was off orthonormal by 0.008")
+    np.testing.assert_allclose(r.json()["T_base_cam"]["R"], paper_gt["R"], atol=1e-9)  # stored snapped
+    assert client.get("/cameras/snapped-cam").json()["warnings"] == []
+    body["T_base_cam"]["R"] = paper_gt["R"]
+    assert client.put("/cameras/snapped-cam", json=body).json()["warnings"] == []  # orthonormal: silent

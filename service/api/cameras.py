@@ -10,6 +10,7 @@ from fastapi import APIRouter, Path, Response
 
 from service.api import error_responses
 from service.api.deps import StoreDep
+from service.cell_io import snap_warnings
 from service.errors import NotFoundError
 from service.schemas import (
     CAMERA_NAME_PATTERN,
@@ -44,7 +45,9 @@ def put_camera(name: CameraName, camera: CameraSpec, store: StoreDep, response: 
     response.status_code = 201 if created else 200
     if created:
         response.headers["Location"] = f"/cameras/{name}"
-    return _info(name, camera.model_dump())
+    info = _info(name, camera.model_dump())
+    info.warnings = snap_warnings(camera)  # the stored R is the snapped one: only this answer can say so
+    return info
 
 
 @router.get("/cameras", response_model=list[CameraInfo])
