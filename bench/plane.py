@@ -45,7 +45,7 @@ from service.vision import pipeline  # noqa: E402
 from service.vision.geometry.frames import Pose, Rz  # noqa: E402
 from service.vision.geometry.plane import Plane  # noqa: E402
 from service.vision.geometry.render import render, render_shaded  # noqa: E402
-from service.vision.pipeline.plane_calibration import SCENES  # noqa: E402
+from service.vision.pipeline.plane_calibration import MARGIN, SCENES  # noqa: E402
 
 RANGE = (300.0, 700.0)
 WRONG_MSPD_PX = 20.0
@@ -155,6 +155,9 @@ def main() -> None:
                     "against one copy without it: this many scenes of each, CPU and wall time")
     ap.add_argument("--calibration-scenes", type=int, default=SCENES,
                     help="the part calibrated for a plane on this many rendered scenes (0: not)")
+    ap.add_argument("--agreement-margin", type=float, default=MARGIN,
+                    help="the calibrated agreement's margin above the highest wrong candidate's (and the "
+                         "floor's under the lowest right one's)")
     ap.add_argument("--min-score", type=float, default=None, help="the verdict's operating point (default: "
                     "the pipeline's)")
     add_policy_options(ap)
@@ -163,7 +166,7 @@ def main() -> None:
     lo, hi = (int(x) for x in args.parts.split("-"))
     bank = l_block_bank()
     # the part calibrated for a plane as the service calibrates it once it is ready
-    cal = plane_calibration(bank, "l_block", None, args.calibration_scenes, policy=policy) \
+    cal = plane_calibration(bank, "l_block", None, args.calibration_scenes, args.agreement_margin, policy) \
         if args.calibration_scenes else None
     agreement = {"agreement_min": cal.agreement_min, "agreement_floor": cal.agreement_floor} if cal else {}
     pts = bank.vertices_mm.astype(float)
