@@ -112,9 +112,10 @@ def greedy_match(d: np.ndarray, scores: list[float], threshold_px: float) -> lis
 
 def run_query(bank, set_dir: Path, image: str, lines: list[dict], info, *, use_plane: bool,
               max_instances: int | None, min_visible: float, policy: Policy = DEFAULT_POLICY,
-              agreement_min: float | None = None, agreement_floor: float | None = None) -> dict:
+              agreement: dict | None = None) -> dict:
     """One estimate of ``image`` for the model of ``lines`` (its gt lines: the copies, or one "absent"
-    line), judged against the copies -> the query's record."""
+    line), judged against the copies -> the query's record. ``agreement``: the part's plane calibration
+    (``agreement_min``, ``agreement_floor``) as ``estimate`` takes it."""
     copies = [g for g in lines if not g.get("absent", False)]
     n = max_instances or max(1, min(len(copies), MAX_INSTANCES))
     g0 = lines[0]
@@ -122,8 +123,7 @@ def run_query(bank, set_dir: Path, image: str, lines: list[dict], info, *, use_p
     img = read_colour(set_dir / image)
     intr = Intrinsics.from_K(np.asarray(g0["K"], float))
     t0 = time.perf_counter()
-    out = estimate(bank, img, intr, plane=plane, max_instances=n, policy=policy, agreement_min=agreement_min,
-                   agreement_floor=agreement_floor)
+    out = estimate(bank, img, intr, plane=plane, max_instances=n, policy=policy, **(agreement or {}))
     ms = 1000.0 * (time.perf_counter() - t0)
     poses = [(inst.refined or inst.coarse).pose for inst in out.instances]
     scores = [float(inst.verdict.score) for inst in out.instances]
@@ -172,11 +172,12 @@ def run_set(name: str, *, stride: int = 1, start: int = 0, models: set[str] | No
             print(f"{Path(name).name} bank {model}: {'loaded' if cached else 'built'} "
                   f"({banks[model].n_templates} templates) in {time.perf_counter() - t0:.1f} s",
                   file=sys.stderr)
-            agreement[model] = (None, None)
+            agreement[model] = {}
             if use_plane and calibration_scenes:
                 cal = plane_calibration(banks[model], model, set_dir / "models" / f"{model}.stl",
                                         calibration_scenes, calibration_margin, policy)
-                agreement[model] = (cal.agreement_min, cal.agreement_floor)
+                agreement[model] = {"agreement_min": cal.agreement_min,
+                                    "agreement_floor": cal.agreement_floor}
                 print(f"{Path(name).name} {model}: agreement_min {cal.agreement_min}, floor "
                       f"{cal.agreement_floor}, right "
                       f"{cal.right}/{cal.right_total}, wrong max {cal.wrong_max:.3f} of {cal.wrong_total}",
@@ -184,7 +185,7 @@ def run_set(name: str, *, stride: int = 1, start: int = 0, models: set[str] | No
         info = load_model_info(set_dir, model, meta, minfo)
         recs.append(run_query(banks[model], set_dir, image, lines, info, use_plane=use_plane,
                               max_instances=max_instances, min_visible=min_visible, policy=policy,
-                              agreement_min=agreement[model][0], agreement_floor=agreement[model][1]))
+                              agreement=agreement[model]))
         r = recs[-1]
         print(f"{Path(name).name} {image} {model}: {len(r['copies'])} copies, "
               f"{sum(i['right'] for i in r['instances'])} right / {len(r['instances'])} found, "

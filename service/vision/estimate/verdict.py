@@ -167,7 +167,8 @@ def decide(ev: dict | None, *, z_mm: float | None = None,
     if ev is None:
         return Verdict(False, 0.0, "no_candidate")
     score = verification_score(ev, weights)
-    if plane_gap_mm is not None and agreement_min is not None and "edge_agreement" in ev:
+    on_plane = plane_gap_mm is not None and "edge_agreement" in ev  # the calibrated agreement is read
+    if on_plane and agreement_min is not None:
         score = max(score, agreement_score(ev, agreement_min))
     # (a part without taught colours lacks their evidence: reported as given)
     evidence = {k: float(ev[k]) for k in FEATURES if k in ev} | {"in_image": float(ev.get("in_image", 1.0))}
@@ -183,8 +184,7 @@ def decide(ev: dict | None, *, z_mm: float | None = None,
     if score >= (MIN_SCORE if min_score is None else min_score):
         # (a pose under the operating point keeps the reason its evidence gives: only a would-be-found
         # one is refused for its edges)
-        if plane_gap_mm is not None and agreement_floor is not None and "edge_agreement" in ev \
-                and material_free(ev) < agreement_floor:
+        if on_plane and agreement_floor is not None and material_free(ev) < agreement_floor:
             return Verdict(False, score, "edges_disagree", evidence)
         return Verdict(True, score, "found", evidence)
     return Verdict(False, score, rejection_reason(evidence), evidence)

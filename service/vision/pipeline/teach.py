@@ -112,7 +112,7 @@ def calibrate_appearance(bank: TemplateBank, views: list[tuple], appearance: App
         out = estimate(bank, image, intr, min_score=_NEVER, appearance=others, policy=policy)
         for c in out.checked:
             if _counts_as_met(c, policy) and pose_error_px(bank, c.refined.pose, pose, intr, image.shape[1],
-                                                       policy) >= policy.calibration_wrong_px:
+                                                           policy) >= policy.calibration_wrong_px:
                 wrong = max(wrong, c.verdict.score)
     return replace(appearance, wrong_score=wrong, calibrated_photos=len(views))
 
@@ -126,7 +126,7 @@ def _counts_as_met(c: Checked, policy: Policy = DEFAULT_POLICY) -> bool:
 
 
 def pose_error_px(bank: TemplateBank, pose: Pose, truth: Pose, intr: Intrinsics, width: int,
-              policy: Policy = DEFAULT_POLICY) -> float:
+                  policy: Policy = DEFAULT_POLICY) -> float:
     """MSPD (a revolved part's spins about its axis alike) between two poses, pixels at 640 wide."""
     v = np.asarray(bank.vertices_mm, float)
     v = v[:: max(1, len(v) // policy.calibration_points)]
