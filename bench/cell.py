@@ -53,7 +53,13 @@ from bench.lib.data import (  # noqa: E402
     symmetry_axis,
 )
 from bench.lib.policy import add_policy_options, policy_of  # noqa: E402
-from service.vision.estimate.verdict import distinct, material_free, verification_score  # noqa: E402
+from service.vision.estimate.verdict import (  # noqa: E402
+    AGREEMENT_EVIDENCE,
+    PlaneAgreement,
+    distinct,
+    material_free,
+    verification_score,
+)
 from service.vision.geometry.camera import Intrinsics  # noqa: E402
 from service.vision.geometry.plane import Plane  # noqa: E402
 from service.vision.pipeline import DEFAULT_POLICY, Policy, estimate  # noqa: E402
@@ -112,33 +118,41 @@ def greedy_match(d: np.ndarray, scores: list[float], threshold_px: float) -> lis
 
 def run_query(bank, set_dir: Path, image: str, lines: list[dict], info, *, use_plane: bool,
               max_instances: int | None, min_visible: float, policy: Policy = DEFAULT_POLICY,
-              agreement: dict | None = None) -> dict:
+              agreement: PlaneAgreement | None = None, warm: bool = False) -> dict:
     """One estimate of ``image`` for the model of ``lines`` (its gt lines: the copies, or one "absent"
     line), judged against the copies -> the query's record. ``agreement``: the part's plane calibration
-    (``agreement_min``, ``agreement_floor``) as ``estimate`` takes it."""
+    as ``estimate`` takes it. ``warm``: the frame is estimated once before the timed run, so its latency
+    is a fixed camera's over a fixed table (the plane templates made, as after a cell's first frame)."""
     copies = [g for g in lines if not g.get("absent", False)]
     n = max_instances or max(1, min(len(copies), MAX_INSTANCES))
     g0 = lines[0]
     plane = plane_of(g0) if use_plane else None
     img = read_colour(set_dir / image)
     intr = Intrinsics.from_K(np.asarray(g0["K"], float))
+    if warm:
+        estimate(bank, img, intr, plane=plane, max_instances=n, policy=policy, agreement=agreement)
     t0 = time.perf_counter()
-    out = estimate(bank, img, intr, plane=plane, max_instances=n, policy=policy, **(agreement or {}))
+    out = estimate(bank, img, intr, plane=plane, max_instances=n, policy=policy, agreement=agreement)
+    along = agreement.along if agreement is not None else "edge_agreement"
     ms = 1000.0 * (time.perf_counter() - t0)
     poses = [(inst.refined or inst.coarse).pose for inst in out.instances]
     scores = [float(inst.verdict.score) for inst in out.instances]
     d = np.array([[mspd640(p, g, info) for g in copies] for p in poses], float)
     d = d.reshape(len(poses), len(copies))
     m20, m5 = greedy_match(d, scores, RIGHT_PX), greedy_match(d, scores, FINE_PX)
+    # a copy some checked candidate lay near, whatever its verdict: where the verdict, not the search, lost it
+    near = {c for cand in out.checked for c, g in enumerate(copies)
+            if mspd640(cand.refined.pose, g, info) < RIGHT_PX}
     targets = [c for c, g in enumerate(copies) if float(g.get("visible_fraction", 1.0)) >= min_visible]
     return {
         "image": image, "model": lines[0]["model"], "max_instances": n, "plane": plane is not None,
         "ms": ms, "reason": out.verdict.reason, "n_targets": len(targets),
         "copies": [{"visible": float(g.get("visible_fraction", 1.0)), "target": c in targets,
                     "mspd640": float(d[:, c].min()) if len(poses) else None,
-                    "right": c in m20, "fine": c in m5} for c, g in enumerate(copies)],
+                    "right": c in m20, "fine": c in m5, "proposed": c in near} for c, g in enumerate(copies)],
         "instances": [{"score": s, "reason": inst.verdict.reason,
-                       "material_free": material_free(inst.verdict.evidence),
+                       "material_free": material_free(inst.verdict.evidence, along),
+                       **{k: inst.verdict.evidence.get(k) for k in AGREEMENT_EVIDENCE},
                        "distinct": distinct(inst.verdict.evidence),
                        "material_bound": verification_score(inst.verdict.evidence),
                        "mspd640": float(d[i].min()) if len(copies) else None,
@@ -149,11 +163,12 @@ def run_query(bank, set_dir: Path, image: str, lines: list[dict], info, *, use_p
 
 def run_set(name: str, *, stride: int = 1, start: int = 0, models: set[str] | None = None,
             limit: int | None = None, plane: bool | None = None, max_instances: int | None = None,
-            min_visible: float = MIN_VISIBLE, policy: Policy = DEFAULT_POLICY,
-            calibration_scenes: int = SCENES, calibration_margin: float = MARGIN) -> list[dict]:
+            min_visible: float = MIN_VISIBLE, policy: Policy = DEFAULT_POLICY, warm: bool = False,
+            calibration_scenes: int = SCENES, calibration_margin: float = MARGIN,
+            calibration_along: tuple[str, ...] = AGREEMENT_EVIDENCE) -> list[dict]:
     """Every query of the set (``queries_of``) -> their records. ``plane`` None: the plane when the gt lines
     carry one. With a plane each part is calibrated on ``calibration_scenes`` rendered scenes, as the
-    service calibrates it at upload (0: not)."""
+    service calibrates it at upload (0: not). ``warm``: see ``run_query``."""
     set_dir = set_dir_of(name)
     meta = read_meta(set_dir)
     gts = read_gt(set_dir)
@@ -172,19 +187,18 @@ def run_set(name: str, *, stride: int = 1, start: int = 0, models: set[str] | No
             print(f"{Path(name).name} bank {model}: {'loaded' if cached else 'built'} "
                   f"({banks[model].n_templates} templates) in {time.perf_counter() - t0:.1f} s",
                   file=sys.stderr)
-            agreement[model] = {}
+            agreement[model] = None
             if use_plane and calibration_scenes:
                 cal = plane_calibration(banks[model], model, set_dir / "models" / f"{model}.stl",
-                                        calibration_scenes, calibration_margin, policy)
-                agreement[model] = {"agreement_min": cal.agreement_min,
-                                    "agreement_floor": cal.agreement_floor}
+                                        calibration_scenes, calibration_margin, policy, calibration_along)
+                agreement[model] = cal.agreement
                 print(f"{Path(name).name} {model}: agreement_min {cal.agreement_min}, floor "
-                      f"{cal.agreement_floor}, right "
+                      f"{cal.agreement_floor}, along {cal.agreement_along}, right "
                       f"{cal.right}/{cal.right_total}, wrong max {cal.wrong_max:.3f} of {cal.wrong_total}",
                       file=sys.stderr)
         info = load_model_info(set_dir, model, meta, minfo)
         recs.append(run_query(banks[model], set_dir, image, lines, info, use_plane=use_plane,
-                              max_instances=max_instances, min_visible=min_visible, policy=policy,
+                              max_instances=max_instances, min_visible=min_visible, policy=policy, warm=warm,
                               agreement=agreement[model]))
         r = recs[-1]
         print(f"{Path(name).name} {image} {model}: {len(r['copies'])} copies, "
@@ -202,6 +216,7 @@ def summarise(recs: list[dict]) -> dict:
             "found": len(inst), "right": right, "wrong": len(inst) - right,
             "recall5": _share(sum(c["fine"] for c in targets), len(targets)),
             "recall20": _share(sum(c["right"] for c in targets), len(targets)),
+            "proposed": _share(sum(c.get("proposed", False) for c in targets), len(targets)),
             "precision": _share(right, len(inst)),
             "p50": float(np.median(ms)), "p95": float(np.percentile(ms, 95))}
 
@@ -216,7 +231,8 @@ def _pct(x: float) -> str:
 
 def _row(label: str, s: dict) -> str:
     cells = [label, str(s["queries"]), f"{s['copies']} ({s['targets']})", str(s["found"]), str(s["right"]),
-             f"**{s['wrong']}**", _pct(s["recall5"]), _pct(s["recall20"]), _pct(s["precision"]),
+             f"**{s['wrong']}**", _pct(s["recall5"]), _pct(s["recall20"]), _pct(s["proposed"]),
+             _pct(s["precision"]),
              f"{s['p50']:.0f} / {s['p95']:.0f}"]
     return "| " + " | ".join(cells) + " |"
 
@@ -224,7 +240,7 @@ def _row(label: str, s: dict) -> str:
 def table(name: str, recs: list[dict]) -> str:
     """The set's markdown table: one row per model (sorted by name), then the set's."""
     lines = ["| model | queries | copies (targets) | found | right | wrong found | recall <5px "
-             "| recall <20px | precision | latency p50 / p95 ms |", "|---" * 10 + "|"]
+             "| recall <20px | checked <20px | precision | latency p50 / p95 ms |", "|---" * 11 + "|"]
     for model in sorted({r["model"] for r in recs}):
         lines.append(_row(PART_NAMES.get(model, model), summarise([r for r in recs if r["model"] == model])))
     lines.append(_row(f"**{Path(name).name}**", summarise(recs)))
@@ -261,6 +277,12 @@ def main(argv=None) -> int:
                     help="with a plane: each part calibrated on this many rendered scenes (0: not)")
     ap.add_argument("--agreement-margin", type=float, default=MARGIN,
                     help="its agreement this far above the highest wrong one's (default: the service's)")
+    ap.add_argument("--agreement-along", default=",".join(AGREEMENT_EVIDENCE),
+                    help="the agreements its calibration may choose from (comma-separated; default: the "
+                         "service's)")
+    ap.add_argument("--warm", action="store_true",
+                    help="time each frame's second estimate: a fixed camera's latency over a fixed table "
+                         "(its templates made by the first)")
     add_policy_options(ap)
     a = ap.parse_args(argv)
     policy = policy_of(a)
@@ -272,8 +294,10 @@ def main(argv=None) -> int:
     for name in a.sets.split(","):
         t0 = time.perf_counter()
         recs = run_set(name, stride=a.stride, start=a.start, models=models, limit=a.limit, plane=a.plane,
+                       warm=a.warm,
                        max_instances=a.max_instances, min_visible=a.min_visible, policy=policy,
-                       calibration_scenes=a.calibration_scenes, calibration_margin=a.agreement_margin)
+                       calibration_scenes=a.calibration_scenes, calibration_margin=a.agreement_margin,
+                       calibration_along=tuple(a.agreement_along.split(",")))
         print(f"{Path(name).name}: {len(recs)} queries in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
         for r in recs if out else []:
             out.write(json.dumps({"set": Path(name).name, **r}) + "\n")

@@ -168,7 +168,7 @@ def main() -> None:
     # the part calibrated for a plane as the service calibrates it once it is ready
     cal = plane_calibration(bank, "l_block", None, args.calibration_scenes, args.agreement_margin, policy) \
         if args.calibration_scenes else None
-    agreement = {"agreement_min": cal.agreement_min, "agreement_floor": cal.agreement_floor} if cal else {}
+    agreement = {"agreement": cal.agreement} if cal else {}
     pts = bank.vertices_mm.astype(float)
     if args.cost_scenes:
         return five_copies_cost(bank, args.seed, args.cost_scenes, pts)

@@ -14,7 +14,7 @@ from service.cell import Grasp, base_from_cam, place_grasps, rigid
 from service.decode import decode_image, image_size
 from service.errors import UnprocessableError
 from service.form_parts import parse_json_object, parse_json_part, validate_part
-from service.plane_calibrations import agreement_floor_of, agreement_min_of, plane_calibration_warning
+from service.plane_calibrations import plane_agreement_of, plane_calibration_warning
 from service.schemas import (
     Camera,
     CameraRef,
@@ -176,8 +176,7 @@ def estimate_result(record: dict[str, Any], bank: TemplateBank, data: bytes, cam
     if kwargs["deadline_ms"] is None:
         kwargs["deadline_ms"] = default_deadline_ms or None
     kwargs["appearance"] = appearance
-    kwargs["agreement_min"] = agreement_min_of(record)  # both read on a plane only
-    kwargs["agreement_floor"] = agreement_floor_of(record)
+    kwargs["agreement"] = plane_agreement_of(record)  # read on a plane only
     out = estimate_image(bank, image, cam.to_intrinsics(), started_at=started_at, **kwargs)
     result = EstimateResult.from_output(record["id"], out)
     uncalibrated = plane_calibration_warning(record) if kwargs.get("plane") is not None else None

@@ -4,8 +4,9 @@ Once a part's templates are ready, the process's ``Calibrator`` renders scenes o
 shapes and sets the agreement of visible edges a pose on a plane must reach (about a minute a part). The
 record holds it as ``plane_calibration``::
 
-    {"version": 2, "status": "running", "done": 3, "total": 12}
-    {"version": 2, "status": "calibrated", "agreement_min": 0.71, "agreement_floor": 0.3, "scenes": 12, ...}
+    {"version": 3, "status": "running", "done": 3, "total": 12}
+    {"version": 3, "status": "calibrated", "agreement_min": 0.71, "agreement_floor": 0.3,
+     "agreement_along": "outline_agreement", "scenes": 12, ...}
 
 A calibration of an older method (``version``), or one a stop or a crash ended, is due again: every
 start-up re-queues it. Until a part is calibrated, a request on a plane judges it on the material-bound
@@ -18,13 +19,14 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from service.vision.bank import TemplateBank
+from service.vision.estimate.verdict import PlaneAgreement
 from service.vision.pipeline.plane_calibration import calibrate_plane
 
 if TYPE_CHECKING:
     from service.stores.base import Store
 
 # The calibration's method: a calibration of another is made again.
-VERSION = 2
+VERSION = 3
 KEY = "plane_calibration"
 
 
@@ -49,6 +51,22 @@ def agreement_min_of(record: dict[str, Any]) -> float | None:
 def agreement_floor_of(record: dict[str, Any]) -> float | None:
     """The least agreement a pose of the part on a plane is found with; None until calibrated."""
     return _calibrated_value(record, "agreement_floor")
+
+
+def agreement_along_of(record: dict[str, Any]) -> str | None:
+    """Along which edges the part's agreement is read (``verdict.AGREEMENT_EVIDENCE``); None until
+    calibrated."""
+    cal = record.get(KEY) or {}
+    calibrated = cal.get("version") == VERSION and cal.get("status") == "calibrated"
+    return str(cal.get("agreement_along", "edge_agreement")) if calibrated else None
+
+
+def plane_agreement_of(record: dict[str, Any]) -> PlaneAgreement | None:
+    """The part's operating point on a plane as the verdict takes it; None until calibrated."""
+    along = agreement_along_of(record)
+    if along is None:
+        return None
+    return PlaneAgreement(agreement_min_of(record), agreement_floor_of(record), along)
 
 
 def _calibrated_value(record: dict[str, Any], key: str) -> float | None:
@@ -91,6 +109,7 @@ def plane_calibration_info(record: dict[str, Any], scenes: int | None) -> dict[s
     return {"status": status, "progress": progress,
             "agreement_min": agreement_min_of(record),
             "agreement_floor": agreement_floor_of(record),
+            "agreement_along": agreement_along_of(record),
             "wrong_max": cal.get("wrong_max") if current else None,
             "scenes": int(cal.get("scenes") or 0) if status == "calibrated" else None,
             "error": cal.get("error") if status == "failed" else None}
@@ -108,7 +127,7 @@ def calibrate_plane_stored(store: Store, mid: str, bank: TemplateBank, scenes: i
 
     cal = calibrate_plane(bank, scenes, progress=told)
     kept = {"version": VERSION, "status": "calibrated", "agreement_min": cal.agreement_min,
-            "agreement_floor": cal.agreement_floor,
+            "agreement_floor": cal.agreement_floor, "agreement_along": cal.agreement_along,
             "wrong_max": float(cal.wrong_max), "right": cal.right, "right_total": cal.right_total,
             "wrong_total": cal.wrong_total, "scenes": cal.scenes}
     return store.update(mid, **{KEY: kept})

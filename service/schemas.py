@@ -344,14 +344,18 @@ class PlaneCalibrationInfo(BaseModel):
         "(see error; not tried again), or not_requested (POSE_PLANE_CALIBRATION_SCENES=0)")
     progress: float = Field(description="0..1, the share of its scenes judged")
     agreement_min: float | None = Field(
-        description="the agreement of the visible edges' gradients (min of evidence edge_agreement and "
-        "polarity) a pose on a plane must reach to be found on it; null until calibrated, or when no "
-        "agreement kept the wrong poses of its scenes out (a plain shape among look-alikes)")
+        description="the agreement of the visible edges' gradients (min of the evidence agreement_along "
+        "names and polarity) a pose on a plane must reach to be found on it; null until calibrated, or when "
+        "no agreement kept the wrong poses of its scenes out (a plain shape among look-alikes)")
     wrong_max: float | None = Field(description="the highest agreement a wrong pose reached in its scenes")
     agreement_floor: float | None = Field(
         None, description="the least agreement a pose on a plane is found with, whatever its other evidence "
         "(verdict reason edges_disagree below it): 0.12 under the lowest a right pose read in its scenes; "
         "null until calibrated")
+    agreement_along: Literal["edge_agreement", "outline_agreement"] | None = Field(
+        None, description="the evidence agreement_min and agreement_floor read: edge_agreement (every "
+        "visible edge) or outline_agreement (the outline alone), whichever let more of its scenes' right "
+        "poses reach their point; null until calibrated")
     scenes: int | None = Field(description="rendered scenes it was calibrated on (null until calibrated)")
     error: str | None = Field(None, description="why it failed (status failed), else null")
 

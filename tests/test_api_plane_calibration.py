@@ -22,6 +22,7 @@ from service.main import create_app
 from service.plane_calibrations import KEY
 from service.settings import Settings
 from service.stores import open_store
+from service.vision.estimate.verdict import AGREEMENT_EVIDENCE
 from service.vision.pipeline.calibration_scenes import scene
 from service.vision.pipeline.plane_calibration import MARGIN, MIN_WRONG_PER_SCENE
 from tests.api_helpers import wait_built
@@ -90,6 +91,7 @@ def test_a_ready_part_is_calibrated_in_the_background_and_an_estimate_on_a_plane
         assert info["agreement_min"] is None
     # the floor, a margin under every right candidate's agreement (none with too few of them), as kept
     assert info["agreement_floor"] == kept["agreement_floor"]
+    assert info["agreement_along"] == kept["agreement_along"] in AGREEMENT_EVIDENCE
     assert info["agreement_floor"] is None or info["agreement_floor"] <= 1.0 - MARGIN
     # before: the estimate said the part was not calibrated for a plane; after, only a plain one says so
     assert any("plane calibration is" in w for w in first["warnings"]), first["warnings"]
@@ -106,4 +108,4 @@ def test_without_scenes_no_calibration_is_made_and_get_says_not_requested(tmp_pa
         wait_built(c, r.json()["id"])
         info = c.get(f"/models/{r.json()['id']}").json()["plane_calibration"]
         assert info == {"status": "not_requested", "progress": 0.0, "agreement_min": None, "wrong_max": None,
-                        "agreement_floor": None, "scenes": None, "error": None}
+                        "agreement_floor": None, "agreement_along": None, "scenes": None, "error": None}

@@ -124,8 +124,9 @@ def test_edges_agree_at_the_true_pose_and_not_beside_it(bank):
     beside = edge_agreement(bank.vertices_mm, bank.faces, creases,
                             Pose(pose.R, pose.t_mm + np.array([12.0 * pose.t_mm[2] / INTR.fx, 0.0, 0.0])),
                             INTR, agreeing)
-    assert at["edge_agreement"] > TRUE_AGREEMENT and at["inner_agreement"] > TRUE_AGREEMENT
-    assert beside["edge_agreement"] < SHIFTED_AGREEMENT
+    for k in ("edge_agreement", "inner_agreement", "outline_agreement"):
+        assert at[k] > TRUE_AGREEMENT
+    assert beside["edge_agreement"] < SHIFTED_AGREEMENT and beside["outline_agreement"] < SHIFTED_AGREEMENT
 
 
 def test_the_best_in_a_window_is_the_brute_force_best_over_its_cells():

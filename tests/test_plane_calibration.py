@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from service.vision.estimate.verdict import MIN_SCORE, agreement_score, decide, material_free
+from service.vision.estimate.verdict import MIN_SCORE, PlaneAgreement, agreement_score, decide, material_free
 from service.vision.geometry.camera import project
 from service.vision.geometry.plane import rest_gap_mm
 from service.vision.pipeline import estimate
@@ -69,6 +69,31 @@ def test_the_agreement_to_reach_lies_a_margin_above_the_highest_wrong_candidates
     assert cal.agreement_min == pytest.approx(top + MARGIN) and cal.wrong_max == pytest.approx(top)
     assert (cal.right, cal.right_total, cal.wrong_total) == (1, 2, 3 * MIN_WRONG_PER_SCENE)
     assert calibrated(records[1:], scenes=3).agreement_min is None  # too few wrong candidates
+    assert cal.agreement_along == "edge_agreement"  # records without an outline's agreement read 0 there
+    assert cal.agreement == PlaneAgreement(cal.agreement_min, cal.agreement_floor, "edge_agreement")
+
+
+def test_a_part_is_calibrated_along_the_edges_that_let_more_right_candidates_reach_their_point():
+    def rec(edges, outline, error_px):
+        return PlaneRecord(error_px, "low_score", {"edge_agreement": edges, "outline_agreement": outline,
+                                                   "polarity": 1.0, "distinct_px": 2.0})
+
+    n = MIN_WRONG_PER_SCENE
+    # creases that seldom show: the right poses' outlines agree, their edges much less
+    wrong = [rec(0.4, 0.6, 50.0) for _ in range(n)]
+    right = [rec(0.45, 0.9, 2.0), rec(0.5, 0.95, 1.0), rec(0.6, 0.7, 3.0)]
+    cal = calibrated([*wrong, *right], scenes=1)
+    assert cal.agreement_along == "outline_agreement"
+    assert cal.agreement_min == pytest.approx(0.6 + MARGIN) and cal.right == 2
+    assert cal.agreement_floor == pytest.approx(0.7 - MARGIN)  # the floor reads the same agreement
+    assert calibrated([*wrong, *right], scenes=1, along=("edge_agreement",)).right == 1
+    # look-alike outlines: the edges tell them apart
+    wrong = [rec(0.4, 0.95, 50.0) for _ in range(n)]
+    assert calibrated([*wrong, *right], scenes=1).agreement_along == "edge_agreement"
+    # a tie keeps every edge's agreement
+    wrong = [rec(0.4, 0.6, 50.0) for _ in range(n)]
+    tie = [rec(0.9, 0.9, 2.0)]
+    assert calibrated([*wrong, *tie], scenes=1).agreement_along == "edge_agreement"
 
 
 def test_the_least_agreement_found_lies_a_margin_below_the_lowest_right_candidates():
@@ -86,13 +111,17 @@ def test_the_least_agreement_found_lies_a_margin_below_the_lowest_right_candidat
 
 def test_the_material_free_score_is_held_down_by_polarity_and_reaches_the_operating_point_at_its_agreement():
     assert material_free({"edge_agreement": 0.8, "polarity": 0.6}) == 0.6
+    assert material_free({"edge_agreement": 0.8, "outline_agreement": 0.5, "polarity": 0.6},
+                         "outline_agreement") == 0.5
     def ev(agreement, distinct_px=2.0):
         return {"edge_agreement": agreement, "polarity": 1.0, "distinct_px": distinct_px}
 
-    assert agreement_score(ev(0.7), 0.7) == pytest.approx(MIN_SCORE)
-    assert agreement_score(ev(0.72), 0.7) > MIN_SCORE
-    assert agreement_score(ev(0.68), 0.7) < MIN_SCORE
-    assert agreement_score(ev(0.99, distinct_px=0.9), 0.7) == 0.0
+    at = PlaneAgreement(0.7, None)
+    assert agreement_score(ev(0.7), at) == pytest.approx(MIN_SCORE)
+    assert agreement_score(ev(0.72), at) > MIN_SCORE
+    assert agreement_score(ev(0.68), at) < MIN_SCORE
+    assert agreement_score(ev(0.99, distinct_px=0.9), at) == 0.0
+    assert agreement_score(ev(0.99), PlaneAgreement(None, 0.3)) == 0.0  # not calibrated
 
 
 def test_a_calibrated_part_on_a_plane_is_found_on_its_agreement_and_only_there():
@@ -100,13 +129,19 @@ def test_a_calibrated_part_on_a_plane_is_found_on_its_agreement_and_only_there()
           "region_low": 0.5, "region_global": 0.3, "coherence": 0.5, "shading_r2": 0.2, "shading_std": 9.0,
           "generic": 0.5, "distinct_px": 2.0, "edge_agreement": 0.9, "inner_agreement": 0.8}
     assert not decide(ev, plane_gap_mm=0.0, plane_tolerance_mm=5.0).found  # the material-bound score
-    found = decide(ev, plane_gap_mm=0.0, plane_tolerance_mm=5.0, agreement_min=0.85)
+    on_plane = {"plane_gap_mm": 0.0, "plane_tolerance_mm": 5.0}
+    found = decide(ev, **on_plane, agreement=PlaneAgreement(0.85, None))
     assert found.found and found.reason == "found" and found.score > MIN_SCORE
-    assert not decide(ev, plane_gap_mm=0.0, plane_tolerance_mm=5.0, agreement_min=0.95).found
-    assert decide(ev, plane_gap_mm=9.0, plane_tolerance_mm=5.0, agreement_min=0.85).reason == "off_plane"
-    assert not decide(ev, agreement_min=0.85).found  # without a plane it is not read
+    assert not decide(ev, **on_plane, agreement=PlaneAgreement(0.95, None)).found
+    assert decide(ev, plane_gap_mm=9.0, plane_tolerance_mm=5.0,
+                  agreement=PlaneAgreement(0.85, None)).reason == "off_plane"
+    assert not decide(ev, agreement=PlaneAgreement(0.85, None)).found  # without a plane it is not read
     plain = ev | {"distinct_px": 0.5}  # an outline a plain shape has too: edges alone do not tell
-    assert not decide(plain, plane_gap_mm=0.0, plane_tolerance_mm=5.0, agreement_min=0.85).found
+    assert not decide(plain, **on_plane, agreement=PlaneAgreement(0.85, None)).found
+    # a part calibrated along its outline reads that agreement, not every edge's
+    outline = ev | {"edge_agreement": 0.6, "outline_agreement": 0.9}
+    assert decide(outline, **on_plane, agreement=PlaneAgreement(0.85, None, "outline_agreement")).found
+    assert not decide(outline, **on_plane, agreement=PlaneAgreement(0.85, None)).found
 
 
 def test_a_pose_whose_edges_disagree_is_not_found_on_a_plane_however_its_shading_reads():
@@ -115,11 +150,11 @@ def test_a_pose_whose_edges_disagree_is_not_found_on_a_plane_however_its_shading
           "generic": 0.1, "distinct_px": 0.5, "edge_agreement": 0.2, "inner_agreement": 0.2}
     on_plane = {"plane_gap_mm": 0.0, "plane_tolerance_mm": 5.0}
     assert decide(ev, **on_plane).found  # the material-bound score alone finds it
-    refused = decide(ev, **on_plane, agreement_floor=0.3)
+    refused = decide(ev, **on_plane, agreement=PlaneAgreement(None, 0.3))
     assert not refused.found and refused.reason == "edges_disagree"
     assert refused.score == decide(ev, **on_plane).score  # the score is reported as it was
-    assert decide(ev, **on_plane, agreement_floor=0.15).found
-    assert decide(ev, agreement_floor=0.3).found  # without a plane it is not read
+    assert decide(ev, **on_plane, agreement=PlaneAgreement(None, 0.15)).found
+    assert decide(ev, agreement=PlaneAgreement(None, 0.3)).found  # without a plane it is not read
 
 
 def test_calibration_records_the_copies_it_finds_as_right_and_the_estimate_reads_its_agreement(bank):
@@ -130,5 +165,6 @@ def test_calibration_records_the_copies_it_finds_as_right_and_the_estimate_reads
     # the same scene, estimated with the lowest agreement a right candidate read: it is found there
     sc = scene(bank, np.random.default_rng([7, 0]))
     a = min(material_free(r.evidence) for r in right)
-    out = estimate(bank, sc.bgr, sc.intr, plane=sc.plane, max_instances=len(sc.poses), agreement_min=a)
+    out = estimate(bank, sc.bgr, sc.intr, plane=sc.plane, max_instances=len(sc.poses),
+                   agreement=PlaneAgreement(a, None))
     assert out.found

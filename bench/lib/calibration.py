@@ -12,6 +12,7 @@ from pathlib import Path
 
 from bench.lib.data import OUT_DIR, ROOT, bank_path
 from service.vision.bank import TemplateBank
+from service.vision.estimate.verdict import AGREEMENT_EVIDENCE
 from service.vision.pipeline.plane_calibration import (
     MARGIN,
     PlaneCalibration,
@@ -23,9 +24,11 @@ from service.vision.pipeline.policy import DEFAULT_POLICY, Policy
 
 
 def _method(policy: Policy) -> str:
-    """A hash of the calibration's scenes and of the gradient search that proposes on them: a change
-    makes the records again (the operating point is derived from them at every load: ``calibrated``)."""
-    scenes = (ROOT / "service/vision/pipeline/calibration_scenes.py").read_bytes()
+    """A hash of the calibration's scenes, of the agreement evidence the records keep, and of the gradient
+    search that proposes on them: a change makes the records again (the operating point is derived from
+    them at every load: ``calibrated``)."""
+    scenes = b"".join((ROOT / "service/vision" / f).read_bytes()
+                      for f in ("pipeline/calibration_scenes.py", "estimate/edge_agreement.py"))
     search = repr(policy.gradient).encode()
     return f"{hashlib.sha1(scenes).hexdigest()[:8]}-g{hashlib.sha1(search).hexdigest()[:6]}"
 
@@ -36,7 +39,8 @@ def _record(row: dict) -> PlaneRecord:
 
 
 def plane_calibration(bank: TemplateBank, model: str, mesh_path: Path | None, scenes: int,
-                      margin: float = MARGIN, policy: Policy = DEFAULT_POLICY) -> PlaneCalibration:
+                      margin: float = MARGIN, policy: Policy = DEFAULT_POLICY,
+                      along: tuple[str, ...] = AGREEMENT_EVIDENCE) -> PlaneCalibration:
     """``bank``'s calibration on ``scenes`` scenes; its records kept under the bank's cache name (a bank
     made without a mesh file, ``mesh_path`` None: under ``model`` and a hash of its vertices)."""
     stem = bank_path(model, mesh_path, None).stem if mesh_path is not None else \
@@ -51,4 +55,4 @@ def plane_calibration(bank: TemplateBank, model: str, mesh_path: Path | None, sc
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text("".join(json.dumps(asdict(r)) + "\n" for r in records))
         print(f"calibrated {model} on {scenes} scenes in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
-    return calibrated(records, scenes, margin)
+    return calibrated(records, scenes, margin, along)

@@ -8,6 +8,8 @@ The polarity is not read: a shiny part is brighter or darker than the table with
 weighs 1 / (the points of its orientation bin), so a long straight side does not outvote the rest.
 
 - ``edge_agreement``: the weighted share of all visible edge points that agree;
+- ``outline_agreement``: the same over the outline only: a part whose creases seldom show (a smooth
+  moulding, one light) reads its outline undiluted;
 - ``inner_agreement``: the same over the inner edges (creases and self-occlusions inside the outline);
   a part showing fewer than ``MIN_INNER_POINTS`` of them reads its ``edge_agreement``. A wrong pose
   on another part's outline or on the table's texture can fit an outline, seldom the edges within it.
@@ -38,12 +40,13 @@ def edge_agreement(vertices_mm: np.ndarray, faces: np.ndarray, creases: np.ndarr
     h, w = agreeing.shape
     e = visible_edges(vertices_mm, faces, creases, pose, intr, (w, h))
     if e is None:
-        return {"edge_agreement": 0.0, "inner_agreement": 0.0}
+        return {"edge_agreement": 0.0, "outline_agreement": 0.0, "inner_agreement": 0.0}
     unit = e.tangent_cam / np.maximum(np.linalg.norm(e.tangent_cam, axis=1), 1e-9)[:, None]
     ori = quantise(edge_normals_px(e.p_cam, unit, intr)[1])
     every = share_agreeing(e.uv, ori, agreeing)
     inner = ~e.outline & _inside(e.uv, agreeing.shape)
     return {"edge_agreement": every,
+            "outline_agreement": share_agreeing(e.uv[e.outline], ori[e.outline], agreeing),
             "inner_agreement": share_agreeing(e.uv[inner], ori[inner], agreeing)
             if inner.sum() >= MIN_INNER_POINTS else every}
 

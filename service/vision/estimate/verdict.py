@@ -31,13 +31,13 @@ FEATURES = ("edge_support", "unexplained", "colour_edge", "polarity", "region", 
             # the taught appearance's (``evidence.appearance``): only for a part with reference photos
             "appearance", "appearance_known",
             # with a plane: the gradient orientation along every visible CAD edge, and along the inner
-            # ones (``edge_agreement``): evidence that assumes no material, reported and not scored
-            "edge_agreement", "inner_agreement")
+            # ones, and along the outline alone (``edge_agreement``): evidence that assumes no material
+            "edge_agreement", "inner_agreement", "outline_agreement")
 # Evidence an older record (a bench cache made before it existed) may lack: read as 0 in a feature vector.
 # Of these, reported only for a part with taught colours (scored by ``APPEARANCE_WEIGHTS`` then).
 TAUGHT_FEATURES = ("appearance", "appearance_known")
 # Reported only with a plane (``pipeline/check.judge``).
-PLANE_FEATURES = ("edge_agreement", "inner_agreement")
+PLANE_FEATURES = ("edge_agreement", "inner_agreement", "outline_agreement")
 LATER_FEATURES = ("distinct_px", *TAUGHT_FEATURES, *PLANE_FEATURES)
 # Evidence the verification score of an untaught part may use, and which of it counts against a pose.
 MODEL_FEATURES = ("edge_support", "unexplained", "colour_edge", "region_low", "region_global", "coherence",
@@ -117,19 +117,37 @@ def distinct(ev: dict) -> bool:
     return _read(ev, "distinct_px") >= MIN_DISTINCT_PX
 
 
-def material_free(ev: dict) -> float:
-    """The share of the pose's visible CAD edges whose image gradient agrees (``edge_agreement``), held
-    down by how consistently the outline's contrast keeps its sign (``polarity``): a pose laid across
-    other parts' straight edges agrees in orientation but flips contrast from part to part."""
-    return min(_read(ev, "edge_agreement"), float(ev.get("polarity", 0.0)))
+# The agreements a part's calibration may judge it on (``pipeline/plane_calibration``): along every visible
+# edge, or along the outline alone (a part whose creases seldom show reads its outline undiluted).
+AGREEMENT_EVIDENCE = ("edge_agreement", "outline_agreement")
 
 
-def agreement_score(ev: dict, agreement_min: float) -> float:
-    """The score of ``material_free(ev)`` for a part whose calibrated agreement is ``agreement_min``:
-    ``MIN_SCORE`` there; 0 for an outline a plain shape has too (``MIN_DISTINCT_PX``)."""
-    if not distinct(ev):
+def material_free(ev: dict, along: str = "edge_agreement") -> float:
+    """The share of the pose's visible CAD edges (``along``: one of ``AGREEMENT_EVIDENCE``) whose image
+    gradient agrees, held down by how consistently the outline's contrast keeps its sign
+    (``polarity``): a pose laid across other parts' straight edges agrees in orientation but flips
+    contrast from part to part."""
+    return min(_read(ev, along), float(ev.get("polarity", 0.0)))
+
+
+@dataclass(frozen=True)
+class PlaneAgreement:
+    """A part's material-free operating point on a plane, calibrated on rendered scenes of it
+    (``pipeline/plane_calibration``): a pose is also found when its agreement ``along`` reaches
+    ``point``, and never found under ``floor``, whatever its other evidence."""
+    point: float | None  # None: not calibrated (too few wrong poses to say how high one reads)
+    floor: float | None  # None: too few right poses to say how low one reads
+    along: str = "edge_agreement"  # one of ``AGREEMENT_EVIDENCE``
+
+
+def agreement_score(ev: dict, agreement: PlaneAgreement) -> float:
+    """The score of ``material_free(ev, agreement.along)`` for a part calibrated at ``agreement.point``:
+    ``MIN_SCORE`` there; 0 for an outline a plain shape has too (``MIN_DISTINCT_PX``) or an uncalibrated
+    part."""
+    if not distinct(ev) or agreement.point is None:
         return 0.0
-    z = math.log(MIN_SCORE / (1.0 - MIN_SCORE)) + AGREEMENT_SLOPE * (material_free(ev) - agreement_min)
+    z = math.log(MIN_SCORE / (1.0 - MIN_SCORE)) + AGREEMENT_SLOPE * (
+        material_free(ev, agreement.along) - agreement.point)
     return float(1.0 / (1.0 + math.exp(-min(max(z, -50.0), 50.0))))
 
 
@@ -154,22 +172,22 @@ def rejection_reason(ev: dict) -> str:
 def decide(ev: dict | None, *, z_mm: float | None = None,
            distance_range_mm: tuple[float, float] | None = None, min_score: float | None = None,
            weights: dict | None = None, plane_gap_mm: float | None = None,
-           plane_tolerance_mm: float | None = None, agreement_min: float | None = None,
-           agreement_floor: float | None = None) -> Verdict:
+           plane_tolerance_mm: float | None = None, agreement: PlaneAgreement | None = None) -> Verdict:
     """The verdict on one refined hypothesis's evidence (``None``: there was no hypothesis).
 
     ``plane_gap_mm``: with a supporting plane, the height of the posed part's lowest point above it
     (negative: through it); beyond +-``plane_tolerance_mm`` the pose does not rest on the plane and is
-    not found ("off_plane", the gap in the evidence as ``plane_gap_mm``). ``agreement_min``: with a
-    plane, the part's calibrated agreement: the score is then the higher of the verification score and
-    ``agreement_score``. ``agreement_floor``: with a plane, the least agreement a pose of the part is
-    found with, whatever its score (a pose scoring enough but reading less: "edges_disagree")."""
+    not found ("off_plane", the gap in the evidence as ``plane_gap_mm``). ``agreement``: with a plane,
+    the part's calibrated agreement: the score is then the higher of the verification score and
+    ``agreement_score``, and a pose scoring enough but reading less than its floor is not found
+    ("edges_disagree")."""
     if ev is None:
         return Verdict(False, 0.0, "no_candidate")
     score = verification_score(ev, weights)
-    on_plane = plane_gap_mm is not None and "edge_agreement" in ev  # the calibrated agreement is read
-    if on_plane and agreement_min is not None:
-        score = max(score, agreement_score(ev, agreement_min))
+    # the calibrated agreement is read
+    on_plane = plane_gap_mm is not None and "edge_agreement" in ev and agreement is not None
+    if on_plane:
+        score = max(score, agreement_score(ev, agreement))
     # (a part without taught colours lacks their evidence: reported as given)
     evidence = {k: float(ev[k]) for k in FEATURES if k in ev} | {"in_image": float(ev.get("in_image", 1.0))}
     if distance_range_mm is not None and z_mm is not None and not (
@@ -184,7 +202,7 @@ def decide(ev: dict | None, *, z_mm: float | None = None,
     if score >= (MIN_SCORE if min_score is None else min_score):
         # (a pose under the operating point keeps the reason its evidence gives: only a would-be-found
         # one is refused for its edges)
-        if on_plane and agreement_floor is not None and material_free(ev) < agreement_floor:
+        if on_plane and agreement.floor is not None and material_free(ev, agreement.along) < agreement.floor:
             return Verdict(False, score, "edges_disagree", evidence)
         return Verdict(True, score, "found", evidence)
     return Verdict(False, score, rejection_reason(evidence), evidence)

@@ -17,7 +17,7 @@ from service.vision.estimate.contour_region import region_contour_refine
 from service.vision.estimate.edge_agreement import edge_agreement
 from service.vision.estimate.evidence import ColourFrame, evidence
 from service.vision.estimate.plane import PLANE_TOLERANCE_MM
-from service.vision.estimate.verdict import decide
+from service.vision.estimate.verdict import PlaneAgreement, decide
 from service.vision.geometry.camera import Intrinsics, project
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz
 from service.vision.geometry.plane import Plane, rest_gap_mm
@@ -59,15 +59,15 @@ def judge(bank: TemplateBank, c: Checked, frame: ColourFrame, intr: Intrinsics, 
           unexplained: Unexplained, distance_range_mm: tuple[float, float] | None, min_score: float | None,
           plane: Plane | None = None, plane_tolerance_mm: float = PLANE_TOLERANCE_MM,
           others_depth_mm: np.ndarray | None = None, appearance: Appearance | None = None,
-          weights: tuple[tuple[str, float], ...] | None = None, agreement_min: float | None = None,
-          agreement_floor: float | None = None) -> Checked:
+          weights: tuple[tuple[str, float], ...] | None = None,
+          agreement: PlaneAgreement | None = None) -> Checked:
     """``c`` with the verdict on its refined pose: the evidence measured there (``evidence``; the
     refinement's ``edge_support`` and ``unexplained`` edges with it), the distance range and the
     plane. ``unexplained`` may be a callable giving it (read after the evidence is measured).
     ``weights``: the score's weights for a part without taught colours (``Policy.verdict_weights``;
     None: the service's). On a plane the evidence also reports ``edge_agreement``, and a part whose
-    agreement is calibrated (``agreement_min``, ``pipeline/plane_calibration``) is also scored on it, and
-    not found under ``agreement_floor``."""
+    agreement is calibrated (``agreement``, ``pipeline/plane_calibration``) is also scored on it, and
+    not found under its floor."""
     pose = c.refined.pose
     ev = evidence(bank, pose, intr, frame, others_depth_mm, face_bgr_of(appearance)).as_dict()
     ev |= {"edge_support": edge_support, "unexplained": float(unexplained() if callable(unexplained)
@@ -78,8 +78,7 @@ def judge(bank: TemplateBank, c: Checked, frame: ColourFrame, intr: Intrinsics, 
     untaught = weights is not None and "appearance" not in ev  # taught: ``verdict.APPEARANCE_WEIGHTS``
     v = decide(ev, z_mm=float(pose.t_mm[2]), distance_range_mm=distance_range_mm, min_score=min_score,
                weights=dict(weights) if untaught else None, plane_gap_mm=gap,
-               plane_tolerance_mm=plane_tolerance_mm, agreement_min=agreement_min,
-               agreement_floor=agreement_floor)
+               plane_tolerance_mm=plane_tolerance_mm, agreement=agreement)
     return Checked(c.candidate, c.refined, v)
 
 
@@ -250,14 +249,14 @@ def check_candidate(bank: TemplateBank, cand: PoseCandidate, grey: np.ndarray, f
                     plane_tolerance_mm: float = PLANE_TOLERANCE_MM,
                     others_depth_mm: np.ndarray | None = None, deadline: Deadline = NO_DEADLINE,
                     appearance: Appearance | None = None, policy: Policy = DEFAULT_POLICY,
-                    agreement_min: float | None = None, agreement_floor: float | None = None) -> Checked:
+                    agreement: PlaneAgreement | None = None) -> Checked:
     """One candidate refined, its evidence measured at the refined pose, and the verdict on it (with a
     plane, also whether the refined pose rests on it; ``others_depth_mm``: see ``judge``). A found one
     is checked against its mirror twins (``Checker.twin_checked``)."""
     check = Checker(bank, grey, frame, intr, distance_mm, n_channels,
                     dict(distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
                          plane_tolerance_mm=plane_tolerance_mm, appearance=appearance,
-                         agreement_min=agreement_min, agreement_floor=agreement_floor), deadline, policy)
+                         agreement=agreement), deadline, policy)
     return check.twin_checked(check(cand, others_depth_mm), others_depth_mm)
 
 
@@ -267,7 +266,7 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
                       n_channels: int, deadline: Deadline = NO_DEADLINE, plane: Plane | None = None,
                       plane_tolerance_mm: float = PLANE_TOLERANCE_MM,
                       appearance: Appearance | None = None, policy: Policy = DEFAULT_POLICY,
-                      agreement_min: float | None = None, agreement_floor: float | None = None
+                      agreement: PlaneAgreement | None = None
                       ) -> list[Checked]:
     """Refine and verify the best ``policy.n_verify`` candidates, best verification first. Stops at the
     first found one: the search ranks by chamfer cost (over the local background's), and on a clean frame
@@ -279,8 +278,7 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
         c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm,
                             distance_range_mm=distance_range_mm, min_score=min_score, n_channels=n_channels,
                             plane=plane, plane_tolerance_mm=plane_tolerance_mm, deadline=deadline,
-                            appearance=appearance, policy=policy, agreement_min=agreement_min,
-                            agreement_floor=agreement_floor)
+                            appearance=appearance, policy=policy, agreement=agreement)
         out.append(c)
         if c.verdict.found:
             break

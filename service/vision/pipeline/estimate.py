@@ -16,7 +16,7 @@ from service.vision.estimate.edges import to_grey_u8
 from service.vision.estimate.evidence import ColourFrame, colour_frame
 from service.vision.estimate.plane import PLANE_TOLERANCE_MM
 from service.vision.estimate.search import SearchParams
-from service.vision.estimate.verdict import Verdict, decide
+from service.vision.estimate.verdict import PlaneAgreement, Verdict, decide
 from service.vision.geometry.camera import Intrinsics, undistort_image
 from service.vision.geometry.plane import Plane, depths_in_view_mm
 from service.vision.model.appearance import Appearance
@@ -34,8 +34,8 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
              min_score: float | None = None, roi_uv: np.ndarray | None = None, max_instances: int = 1,
              sort: str = "score", deadline_ms: float | None = None, started_at: float | None = None,
              plane: Plane | None = None, plane_tolerance_mm: float = PLANE_TOLERANCE_MM,
-             appearance: Appearance | None = None, agreement_min: float | None = None,
-             agreement_floor: float | None = None, policy: Policy = DEFAULT_POLICY) -> EstimateOutput:
+             appearance: Appearance | None = None, agreement: PlaneAgreement | None = None,
+             policy: Policy = DEFAULT_POLICY) -> EstimateOutput:
     """Grey (H, W) or BGR (H, W, 3) image + intrinsics -> ranked poses and the verdict on the best.
 
     The coarse search proposes; up to ``policy.n_verify`` candidates are refined (also with ``refine``
@@ -62,9 +62,9 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     candidate is then judged on them too (``verdict.APPEARANCE_WEIGHTS``), unless the photos show a plain
     part or disagree (``Appearance.used``).
 
-    ``agreement_min``: the part's agreement calibrated on rendered scenes (``pipeline/plane_calibration``):
-    on a plane a candidate is also scored on its visible edges' agreement (``verdict.agreement_score``);
-    ``agreement_floor``, from the same calibration: on a plane none is found with less.
+    ``agreement``: the part's agreement calibrated on rendered scenes (``pipeline/plane_calibration``):
+    on a plane a candidate is also scored on its visible edges' agreement (``verdict.agreement_score``),
+    and none is found under its floor.
     """
     if sort == "height" and plane is None:
         raise ValueError("sort 'height' needs a plane")
@@ -98,7 +98,7 @@ def estimate(bank: TemplateBank, image: np.ndarray, intr: Intrinsics, *, distanc
     kw = dict(distance_mm=distance_mm, distance_range_mm=judged_range(distance_mm, distance_range_mm),
               min_score=min_score, n_channels=p.n_channels, deadline=deadline, plane=plane,
               plane_tolerance_mm=plane_tolerance_mm, appearance=appearance, policy=policy,
-              agreement_min=agreement_min, agreement_floor=agreement_floor)
+              agreement=agreement)
     if max_instances <= 1:
         checked = verify_candidates(bank, cands, grey, frame, intr, **kw)
         checked, more, t_later = _later_checks(bank, checked, later, grey, frame, intr, search, appearance,

@@ -9,6 +9,7 @@ from service.vision.bank import TemplateBank
 from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.evidence import ColourFrame
 from service.vision.estimate.plane import PLANE_TOLERANCE_MM
+from service.vision.estimate.verdict import PlaneAgreement
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
 from service.vision.geometry.plane import Plane, centre_height_mm
@@ -28,8 +29,8 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
                      distance_range_mm: tuple[float, float] | None, min_score: float | None,
                      n_channels: int, deadline: Deadline = NO_DEADLINE, plane: Plane | None = None,
                      plane_tolerance_mm: float = PLANE_TOLERANCE_MM, appearance=None,
-                     policy: Policy = DEFAULT_POLICY, agreement_min: float | None = None,
-                     agreement_floor: float | None = None) -> tuple[list[Checked], list[Checked]]:
+                     policy: Policy = DEFAULT_POLICY, agreement: PlaneAgreement | None = None
+                     ) -> tuple[list[Checked], list[Checked]]:
     """Refine and verify candidates (best chamfer cost first) until ``max_instances`` distinct ones are
     found or the candidates run out -> (found, in the order found; rejected, best verification first).
     A candidate whose silhouette overlaps a found instance's by more than ``policy.instance_iou`` (IoU) is
@@ -43,7 +44,7 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
     check = Checker(bank, grey, frame, intr, distance_mm, n_channels,
                     dict(distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
                          plane_tolerance_mm=plane_tolerance_mm, appearance=appearance,
-                         agreement_min=agreement_min, agreement_floor=agreement_floor), deadline, policy)
+                         agreement=agreement), deadline, policy)
     scene = Scene(check, max_instances)
     for cand in cands:
         if scene.full():

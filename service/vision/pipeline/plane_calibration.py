@@ -5,7 +5,9 @@ agrees (``verdict.material_free``): evidence that assumes no material. How high 
 reads there depends on the part: a tube's circles agree with any cylinder's end, a clamp's outline with
 nothing else. So each part's agreement to reach is the highest a wrong pose reached in its calibration
 scenes (every candidate judged, as a request on a plane judges them), raised by a margin: the rendered
-scenes are cleaner than a cell's photos, where wrong poses read a little higher.
+scenes are cleaner than a cell's photos, where wrong poses read a little higher. The agreement is read
+along every visible edge, or along the outline alone where that lets more of the scenes' right poses reach
+their point: a smooth moulding's creases seldom show under one light, and dilute what its outline says.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.vision.bank import TemplateBank
-from service.vision.estimate.verdict import distinct, material_free
+from service.vision.estimate.verdict import AGREEMENT_EVIDENCE, PlaneAgreement, distinct, material_free
 from service.vision.pipeline.calibration_scenes import scene
 from service.vision.pipeline.estimate import estimate
 from service.vision.pipeline.policy import DEFAULT_POLICY, Policy
@@ -77,23 +79,39 @@ class PlaneCalibration:
     scenes: int
     # the least a found pose may read, whatever its other evidence; None: no right candidate to say
     agreement_floor: float | None = None
+    agreement_along: str = "edge_agreement"  # the agreement both are read on (``verdict.AGREEMENT_EVIDENCE``)
+
+    @property
+    def agreement(self) -> PlaneAgreement:
+        """The operating point as the verdict takes it."""
+        return PlaneAgreement(self.agreement_min, self.agreement_floor, self.agreement_along)
 
 
-def calibrated(records: list[PlaneRecord], scenes: int, margin: float = MARGIN) -> PlaneCalibration:
+def calibrated(records: list[PlaneRecord], scenes: int, margin: float = MARGIN,
+               along: tuple[str, ...] = AGREEMENT_EVIDENCE) -> PlaneCalibration:
+    """The part's calibration on the agreement of ``along`` under which most right candidates reach their
+    point (the first on a tie): some parts' creases seldom show, and their outline tells them better; a
+    part whose outline look-alikes share tells them by its creases (``_calibrated_along``)."""
+    cals = [_calibrated_along(records, scenes, margin, a) for a in along]
+    return max(cals, key=lambda c: (c.agreement_min is not None, c.right))
+
+
+def _calibrated_along(records: list[PlaneRecord], scenes: int, margin: float, along: str) -> PlaneCalibration:
     """The agreement a part's pose must reach to be found on it: ``margin`` above the highest wrong
     candidate's; and the least it may read to be found at all: ``margin`` below the lowest right one's (a
     pose whose visible edges mostly disagree is not the part, however its shading reads)."""
     # (a pose whose outline a plain shape has too is never found on agreement: ``verdict.distinct``)
-    wrong = [material_free(r.evidence) for r in records
+    wrong = [material_free(r.evidence, along) for r in records
              if r.error_px >= WRONG_PX and r.reason not in REFUSED_FOR_PLACE and distinct(r.evidence)]
-    right = [material_free(r.evidence) for r in records if r.error_px < RIGHT_PX and distinct(r.evidence)]
+    right = [material_free(r.evidence, along) for r in records
+             if r.error_px < RIGHT_PX and distinct(r.evidence)]
     top = max(wrong, default=0.0)
     agreement_min = top + margin if len(wrong) >= MIN_WRONG_PER_SCENE * scenes else None
     reached = sum(a >= agreement_min for a in right) if agreement_min is not None else 0
     # every right candidate, an outline a plain shape has too or not: the floor holds for all of them
-    every_right = [material_free(r.evidence) for r in records if r.error_px < RIGHT_PX]
+    every_right = [material_free(r.evidence, along) for r in records if r.error_px < RIGHT_PX]
     floor = min(every_right) - margin if len(every_right) >= MIN_RIGHT_PER_SCENE * scenes else None
-    return PlaneCalibration(agreement_min, top, reached, len(right), len(wrong), scenes, floor)
+    return PlaneCalibration(agreement_min, top, reached, len(right), len(wrong), scenes, floor, along)
 
 
 def calibrate_plane(bank: TemplateBank, n_scenes: int = SCENES, seed: int = 0,
