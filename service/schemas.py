@@ -354,8 +354,8 @@ class PlaneCalibrationInfo(BaseModel):
         "null until calibrated")
     agreement_along: Literal["edge_agreement", "outline_agreement"] | None = Field(
         None, description="the evidence agreement_min and agreement_floor read: edge_agreement (every "
-        "visible edge) or outline_agreement (the outline alone), whichever let more of its scenes' right "
-        "poses reach their point; null until calibrated")
+        "visible edge) or outline_agreement (the outline alone) where that let a tenth more of its scenes' "
+        "right poses reach their point; null until calibrated")
     scenes: int | None = Field(description="rendered scenes it was calibrated on (null until calibrated)")
     error: str | None = Field(None, description="why it failed (status failed), else null")
 

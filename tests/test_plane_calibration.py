@@ -18,6 +18,7 @@ from service.vision.geometry.plane import rest_gap_mm
 from service.vision.pipeline import estimate
 from service.vision.pipeline.calibration_scenes import scene
 from service.vision.pipeline.plane_calibration import (
+    ALONG_MIN_GAIN,
     MARGIN,
     MIN_RIGHT_PER_SCENE,
     MIN_WRONG_PER_SCENE,
@@ -94,6 +95,10 @@ def test_a_part_is_calibrated_along_the_edges_that_let_more_right_candidates_rea
     wrong = [rec(0.4, 0.6, 50.0) for _ in range(n)]
     tie = [rec(0.9, 0.9, 2.0)]
     assert calibrated([*wrong, *tie], scenes=1).agreement_along == "edge_agreement"
+    # ... as does one more of many: the scenes' noise (``ALONG_MIN_GAIN``)
+    many = [rec(0.6, 0.9, 2.0) for _ in range(11)] + [rec(0.45, 0.9, 2.0)]
+    assert ALONG_MIN_GAIN * len(many) > 1
+    assert calibrated([*wrong, *many], scenes=1).agreement_along == "edge_agreement"
 
 
 def test_the_least_agreement_found_lies_a_margin_below_the_lowest_right_candidates():
