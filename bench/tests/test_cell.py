@@ -45,3 +45,13 @@ def test_summary_counts_wrong_instances_also_on_images_without_a_copy():
     s = cell.summarise(recs)
     assert (s["queries"], s["copies"], s["targets"], s["found"], s["right"], s["wrong"]) == (2, 2, 1, 3, 1, 2)
     assert (s["recall20"], s["recall5"], s["precision"]) == (1.0, 0.0, pytest.approx(1 / 3))
+    assert s["proposed"] == 0.0  # records made before the column read as never checked near
+
+
+def test_checked_counts_targets_a_checked_candidate_lay_near_whatever_the_verdict():
+    copies = [{"target": True, "right": False, "fine": False, "proposed": True},
+              {"target": True, "right": True, "fine": True, "proposed": True},
+              {"target": False, "right": False, "fine": False, "proposed": True},
+              {"target": True, "right": False, "fine": False, "proposed": False}]
+    s = cell.summarise([{"model": "a", "ms": 1.0, "copies": copies, "instances": [{"right": True}]}])
+    assert s["proposed"] == pytest.approx(2 / 3) and s["recall20"] == pytest.approx(1 / 3)

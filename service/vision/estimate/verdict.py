@@ -30,8 +30,8 @@ FEATURES = ("edge_support", "unexplained", "colour_edge", "polarity", "region", 
             "generic", "distinct_px",
             # the taught appearance's (``evidence.appearance``): only for a part with reference photos
             "appearance", "appearance_known",
-            # with a plane: the gradient orientation along every visible CAD edge, and along the inner
-            # ones, and along the outline alone (``edge_agreement``): evidence that assumes no material
+            # with a plane: the gradient orientation along every visible CAD edge, along the inner ones
+            # and along the outline alone (``edge_agreement.py``): evidence that assumes no material
             "edge_agreement", "inner_agreement", "outline_agreement")
 # Evidence an older record (a bench cache made before it existed) may lack: read as 0 in a feature vector.
 # Of these, reported only for a part with taught colours (scored by ``APPEARANCE_WEIGHTS`` then).
@@ -184,7 +184,7 @@ def decide(ev: dict | None, *, z_mm: float | None = None,
     if ev is None:
         return Verdict(False, 0.0, "no_candidate")
     score = verification_score(ev, weights)
-    # the calibrated agreement is read
+    # (a record made before the agreement was measured is judged as it was then)
     on_plane = plane_gap_mm is not None and "edge_agreement" in ev and agreement is not None
     if on_plane:
         score = max(score, agreement_score(ev, agreement))
