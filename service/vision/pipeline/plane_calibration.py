@@ -32,7 +32,8 @@ RIGHT_PX = 5.0  # and this close to one, right
 REFUSED_FOR_PLACE = ("outside_distance_range", "outside_image", "off_plane")
 SCENES = 12  # about a minute a part on 2 cores
 # agreement above the highest wrong candidate's: the smallest that found no wrong candidate on the fit sets
-# (sygrid_synth's even images, the Blender piles); at 0.06 a real photo's wrong cat read 0.0001 above it
+# (sygrid_synth's even images, the Blender piles) and the project's plane renders, where at 0.06 a
+# textured floor's L-block is found wrong (docs/benchmarks.md)
 MARGIN = 0.12
 # Fewer wrong candidates than this a scene say too little of how high a wrong pose reads: not calibrated
 # (a part's scenes give 12-19 a scene where its outlines are distinct; a long spanner, 2)
