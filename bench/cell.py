@@ -133,8 +133,8 @@ def run_query(bank, set_dir: Path, image: str, lines: list[dict], info, *, use_p
         estimate(bank, img, intr, plane=plane, max_instances=n, policy=policy, agreement=agreement)
     t0 = time.perf_counter()
     out = estimate(bank, img, intr, plane=plane, max_instances=n, policy=policy, agreement=agreement)
-    along = agreement.along if agreement is not None else "edge_agreement"
     ms = 1000.0 * (time.perf_counter() - t0)
+    along = agreement.along if agreement is not None else "edge_agreement"
     poses = [(inst.refined or inst.coarse).pose for inst in out.instances]
     scores = [float(inst.verdict.score) for inst in out.instances]
     d = np.array([[mspd640(p, g, info) for g in copies] for p in poses], float)

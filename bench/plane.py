@@ -168,7 +168,7 @@ def main() -> None:
     # the part calibrated for a plane as the service calibrates it once it is ready
     cal = plane_calibration(bank, "l_block", None, args.calibration_scenes, args.agreement_margin, policy) \
         if args.calibration_scenes else None
-    agreement = {"agreement": cal.agreement} if cal else {}
+    agreement = cal.agreement if cal else None
     pts = bank.vertices_mm.astype(float)
     if args.cost_scenes:
         return five_copies_cost(bank, args.seed, args.cost_scenes, pts)
@@ -186,7 +186,7 @@ def main() -> None:
                 if mode == "no plane":
                     kw["distance_range_mm"] = RANGE
                 else:
-                    kw |= {"plane": plane, **agreement}
+                    kw |= {"plane": plane, "agreement": agreement}
                 if mode == "plane + ROI":
                     kw["roi_uv"] = roi_of(truth, bank)
                 t0 = time.perf_counter()

@@ -56,9 +56,8 @@ def agreement_floor_of(record: dict[str, Any]) -> float | None:
 def agreement_along_of(record: dict[str, Any]) -> str | None:
     """Along which edges the part's agreement is read (``verdict.AGREEMENT_EVIDENCE``); None until
     calibrated."""
-    cal = record.get(KEY) or {}
-    calibrated = cal.get("version") == VERSION and cal.get("status") == "calibrated"
-    return str(cal.get("agreement_along", "edge_agreement")) if calibrated else None
+    cal = _calibrated(record)
+    return None if cal is None else str(cal.get("agreement_along", "edge_agreement"))
 
 
 def plane_agreement_of(record: dict[str, Any]) -> PlaneAgreement | None:
@@ -69,11 +68,14 @@ def plane_agreement_of(record: dict[str, Any]) -> PlaneAgreement | None:
     return PlaneAgreement(agreement_min_of(record), agreement_floor_of(record), along)
 
 
-def _calibrated_value(record: dict[str, Any], key: str) -> float | None:
+def _calibrated(record: dict[str, Any]) -> dict[str, Any] | None:
+    """The record's calibration if it is of this method and ended calibrated, else None."""
     cal = record.get(KEY) or {}
-    if cal.get("version") != VERSION or cal.get("status") != "calibrated":
-        return None
-    a = cal.get(key)
+    return cal if cal.get("version") == VERSION and cal.get("status") == "calibrated" else None
+
+
+def _calibrated_value(record: dict[str, Any], key: str) -> float | None:
+    a = (_calibrated(record) or {}).get(key)
     return None if a is None else float(a)
 
 

@@ -185,8 +185,8 @@ def decide(ev: dict | None, *, z_mm: float | None = None,
         return Verdict(False, 0.0, "no_candidate")
     score = verification_score(ev, weights)
     # (a record made before the agreement was measured is judged as it was then)
-    on_plane = plane_gap_mm is not None and "edge_agreement" in ev and agreement is not None
-    if on_plane:
+    calibrated = plane_gap_mm is not None and "edge_agreement" in ev and agreement is not None
+    if calibrated:
         score = max(score, agreement_score(ev, agreement))
     # (a part without taught colours lacks their evidence: reported as given)
     evidence = {k: float(ev[k]) for k in FEATURES if k in ev} | {"in_image": float(ev.get("in_image", 1.0))}
@@ -202,7 +202,8 @@ def decide(ev: dict | None, *, z_mm: float | None = None,
     if score >= (MIN_SCORE if min_score is None else min_score):
         # (a pose under the operating point keeps the reason its evidence gives: only a would-be-found
         # one is refused for its edges)
-        if on_plane and agreement.floor is not None and material_free(ev, agreement.along) < agreement.floor:
+        floor = agreement.floor if calibrated else None
+        if floor is not None and material_free(ev, agreement.along) < floor:
             return Verdict(False, score, "edges_disagree", evidence)
         return Verdict(True, score, "found", evidence)
     return Verdict(False, score, rejection_reason(evidence), evidence)

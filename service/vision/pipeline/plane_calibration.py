@@ -98,11 +98,10 @@ def calibrated(records: list[PlaneRecord], scenes: int, margin: float = MARGIN,
     point (the first unless another gains ``ALONG_MIN_GAIN``): some parts' creases seldom show, and their
     outline tells them better; a part whose outline look-alikes share tells them by its creases
     (``_calibrated_along``)."""
+    # (which candidates are wrong or right does not depend on ``along``: an uncalibrated part reaches 0)
     first, *others = [_calibrated_along(records, scenes, margin, a) for a in along]
-    best = max(others, key=lambda c: (c.agreement_min is not None, c.right), default=first)
-    gain = best.right - (first.right if first.agreement_min is not None else 0)
-    enough = best.agreement_min is not None and gain >= max(1.0, ALONG_MIN_GAIN * max(best.right_total, 1))
-    return best if enough else first
+    best = max(others, key=lambda c: c.right, default=first)
+    return best if best.right - first.right >= max(1.0, ALONG_MIN_GAIN * best.right_total) else first
 
 
 def _calibrated_along(records: list[PlaneRecord], scenes: int, margin: float, along: str) -> PlaneCalibration:
