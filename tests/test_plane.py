@@ -18,7 +18,7 @@ from service.vision.estimate.plane import _poses
 from service.vision.estimate.refine import refine_pose
 from service.vision.estimate.verdict import decide
 from service.vision.geometry.camera import Intrinsics, project
-from service.vision.geometry.frames import Pose
+from service.vision.geometry.frames import Pose, rotation_angle_deg
 from service.vision.geometry.plane import (
     Plane,
     R_cam_rest,
@@ -47,7 +47,13 @@ from tests.scenes import (
     scene,
     visible_fraction,
 )
-from tests.tolerances import PLANE_FOUND_T_MM, PLANE_REST_TOL_MM, ROUND_TRIP_ATOL
+from tests.tolerances import (
+    PLANE_FOUND_T_MM,
+    PLANE_REST_TOL_MM,
+    REFINE_ANGLE_DEG,
+    REFINE_TRANS_MM,
+    ROUND_TRIP_ATOL,
+)
 
 
 @pytest.fixture(scope="module")
@@ -299,15 +305,17 @@ def test_the_scoring_kernel_picks_the_views_scoring_poses_would(bank):
     np.testing.assert_array_equal(score_poses(bank, R, t, dt_q, tau_q, dtt, INTR, 32), want)
 
 
-def test_a_refinement_the_plane_refuses_is_not_kept(bank):
+@pytest.mark.parametrize("spin_deg, slide_mm", [(4.0, 3.0), (-6.0, -4.0)])
+def test_a_pose_resting_on_the_plane_is_refined_on_it(bank, spin_deg, slide_mm):
+    # spun and slid on the plane from the truth, it is spun and slid back, its lowest point kept on it
     truth = resting(bank, 0, 25.0, 10.0, -20.0)
+    start = resting(bank, 0, 25.0 + spin_deg, 10.0 + slide_mm, -20.0 + 0.5 * slide_mm)
     img = scene(bank, [truth])
-    start = Pose(truth.R, truth.t_mm + np.array([2.0, -1.5, 0.0]))
-    free = refine_pose(bank, start, img[..., 0], INTR)
-    held = refine_pose(bank, start, img[..., 0], INTR, accept=lambda pose: False)
-    assert np.linalg.norm(free.pose.t_mm - truth.t_mm) < 0.5 * np.linalg.norm(start.t_mm - truth.t_mm)
-    np.testing.assert_allclose(held.pose.t_mm, start.t_mm, atol=ROUND_TRIP_ATOL)
-    np.testing.assert_allclose(held.pose.R, start.R, atol=ROUND_TRIP_ATOL)
+    r = refine_pose(bank, start, img[..., 0], INTR, normal_cam=PLANE.normal)
+    assert r.converged
+    assert rotation_angle_deg(r.pose.R, truth.R) <= REFINE_ANGLE_DEG
+    assert np.abs(r.pose.t_mm - truth.t_mm).max() <= REFINE_TRANS_MM
+    assert rest_gap_mm(bank, r.pose, PLANE) == pytest.approx(0.0, abs=PLANE_REST_TOL_MM)
 
 
 def test_the_plane_s_depths_in_view_are_where_the_corner_rays_meet_it():

@@ -40,6 +40,7 @@ from tests.tolerances import (
     REFINE_SAMPLE_ATOL,
     REFINE_SEGMENT_DT_ATOL,
     REFINE_TRANS_MM,
+    ROUND_TRIP_ATOL,
 )
 
 INTR = Intrinsics(fx=1100.0, fy=1100.0, cx=643.0, cy=477.0)
@@ -149,20 +150,35 @@ def _jac_agrees(fun, x, n):
     return ok.mean()
 
 
-@pytest.mark.parametrize("kind", ["free", "held_distance", "symmetric"])
+# A plane's normal (camera frame) for the parametrisation on a plane: any unit vector serves the algebra.
+PLANE_NORMAL_CAM = np.array([0.2, -0.6, -0.77]) / np.linalg.norm([0.2, -0.6, -0.77])
+KINDS = ["free", "held_distance", "symmetric", "on_plane", "symmetric_on_plane"]
+
+
+def params_of(kind: str, bank, start: Pose) -> PoseParams:
+    """The parametrisation a refinement of ``kind`` moves ``start`` in."""
+    return PoseParams(start, bank.centre_obj, bank.symmetry_axis_obj,
+                      float(start.t_mm[2]) if kind == "held_distance" else None,
+                      PLANE_NORMAL_CAM if kind.endswith("on_plane") else None)
+
+
+@pytest.mark.parametrize("kind", KINDS)
 def test_residuals_and_jacobian_agree_with_finite_differences(kind, tless_bank, sprayer_bank):
-    bank, pose = (sprayer_bank, SPRAYER_POSE) if kind == "symmetric" else (tless_bank, TLESS_POSE)
+    bank, pose = (sprayer_bank, SPRAYER_POSE) if kind.startswith("symmetric") else (tless_bank, TLESS_POSE)
     img = synthetic(bank, pose)
     start = perturb(pose, np.random.default_rng(5), 2.0, 3.0)
     border = border_points(bank, start, INTR, SIZE)
     seg = detect_segments(img, scale=1.0)
     dtt = segment_distance_tensor(seg, (0, 0, SIZE[0], SIZE[1]), n_channels=16)
-    params = PoseParams(start, bank.centre_obj, bank.symmetry_axis_obj,
-                        float(start.t_mm[2]) if kind == "held_distance" else None)
+    params = params_of(kind, bank, start)
     x = np.random.default_rng(6).normal(0.0, 1.0, params.n) * np.r_[np.full(params.nr, 0.01), np.ones(
         params.n - params.nr)]
     if kind == "held_distance":
         assert params.pose(x).t_mm[2] == pytest.approx(start.t_mm[2], abs=1e-9)
+    if kind.endswith("on_plane"):  # spun about the normal and slid along the plane: no point's height moves
+        assert params.n == params.nr + 2 and params.nr == 1
+        np.testing.assert_allclose(params.pose(x).apply(bank.vertices_mm) @ PLANE_NORMAL_CAM,
+                                   start.apply(bank.vertices_mm) @ PLANE_NORMAL_CAM, atol=ROUND_TRIP_ATOL)
     assert _jac_agrees(lambda x: dt_residuals(params, x, border, INTR, dtt), x, params.n) >= REFINE_JAC_ROWS
     uv, th, _, _ = project_border(params, x, border, INTR, with_jac=False)
     match = match_lines(uv, th, seg, gate_px=10.0)
@@ -331,17 +347,16 @@ def _line_residuals_numpy(params, x, border, intr, match, with_jac):
     return r, match.normal[:, 0, None] * duv[:, 0] + match.normal[:, 1, None] * duv[:, 1]
 
 
-@pytest.mark.parametrize("kind", ["free", "held_distance", "symmetric"])
+@pytest.mark.parametrize("kind", KINDS)
 def test_compiled_residuals_equal_their_numpy_steps(kind, tless_bank, sprayer_bank):
-    bank, pose = (sprayer_bank, SPRAYER_POSE) if kind == "symmetric" else (tless_bank, TLESS_POSE)
+    bank, pose = (sprayer_bank, SPRAYER_POSE) if kind.startswith("symmetric") else (tless_bank, TLESS_POSE)
     img = synthetic(bank, pose)
     start = perturb(pose, np.random.default_rng(8), 2.0, 3.0)
     border = border_points(bank, start, INTR, SIZE)
     seg = detect_segments(img, scale=1.0)
     # A window smaller than the border's reach: some points read outside the grid (tau, zero gradient).
     dtt = segment_distance_tensor(seg, (500, 300, 200, 250), n_channels=16)
-    params = PoseParams(start, bank.centre_obj, bank.symmetry_axis_obj,
-                        float(start.t_mm[2]) if kind == "held_distance" else None)
+    params = params_of(kind, bank, start)
     x = np.random.default_rng(9).normal(0.0, 1.0, params.n) * np.r_[np.full(params.nr, 0.01), np.ones(
         params.n - params.nr)]
     uv, th, _, _ = project_border(params, x, border, INTR, with_jac=False)

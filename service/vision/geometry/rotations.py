@@ -33,31 +33,43 @@ def exp_so3(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return _I3 + a * W + b * WW, _I3 + b * W + c * WW
 
 
-class PoseParams:
-    """x -> pose about the start pose: R = exp([B x_r]) R0, centre c moves by the translation.
+# A symmetry axis this close to a resting part's plane normal (|cos|) makes its spin on the plane the
+# unobservable one: nothing of the rotation is left to refine.
+_SPIN_ON_AXIS_COS = 0.999
 
-    ``B`` is (3, 3) (free rotation) or (3, 2) (perpendicular to a symmetry axis, camera frame).
-    Translation parameters are the centre's camera-frame shift in mm: (dx, dy, dz), or (dx, dy)
-    with the object origin's camera z held at ``distance_mm``.
+
+class PoseParams:
+    """x -> pose about the start pose: R = exp([B x_r]) R0, centre c moves by ``T`` x_t.
+
+    ``B`` is (3, 3) (free rotation), (3, 2) (perpendicular to a symmetry axis, camera frame), or on a
+    plane (``normal_cam``, the plane's unit normal in the camera frame) (3, 1): the spin about the
+    normal, which keeps every point's height above the plane (none for a part whose symmetry axis is the
+    normal). Translation parameters are the centre's camera-frame shift in mm: (dx, dy, dz) (``T`` the
+    identity), (dx, dy) with the object origin's camera z held at ``distance_mm``, or on a plane two
+    shifts along it (``T``'s columns span the plane).
     """
 
     def __init__(self, pose0: Pose, centre_obj: np.ndarray, axis_obj: np.ndarray | None = None,
-                 distance_mm: float | None = None):
+                 distance_mm: float | None = None, normal_cam: np.ndarray | None = None):
         self.R0 = np.asarray(pose0.R, float)
         self.t0 = np.asarray(pose0.t_mm, float)
         self.c = np.asarray(centre_obj, float)
         self.c0 = self.R0 @ self.c + self.t0
-        if axis_obj is None:
-            self.B = np.eye(3)
+        a = None if axis_obj is None else self.R0 @ (np.asarray(axis_obj, float) / np.linalg.norm(axis_obj))
+        if normal_cam is not None:
+            if distance_mm is not None:
+                raise ValueError("a pose held on a plane cannot also hold its distance.")
+            nrm = np.asarray(normal_cam, float) / np.linalg.norm(normal_cam)
+            spun = a is None or abs(float(a @ nrm)) < _SPIN_ON_AXIS_COS
+            self.B = nrm[:, None] if spun else np.zeros((3, 0))
+            self.T = _perpendicular_basis(nrm)
+        elif a is None:
+            self.B, self.T = np.eye(3), _translation_basis(distance_mm)
         else:
-            a = self.R0 @ (np.asarray(axis_obj, float) / np.linalg.norm(axis_obj))
-            e = np.eye(3)[int(np.argmin(np.abs(a)))]
-            b1 = np.cross(a, e)
-            b1 /= np.linalg.norm(b1)
-            self.B = np.stack([b1, np.cross(a, b1)], 1)
+            self.B, self.T = _perpendicular_basis(a), _translation_basis(distance_mm)
         self.nr = self.B.shape[1]
         self.distance_mm = distance_mm
-        self.n = self.nr + (2 if distance_mm is not None else 3)
+        self.n = self.nr + self.T.shape[1]
 
     def pose(self, x: np.ndarray) -> Pose:
         return self._pose_jac(x)[0]
@@ -69,14 +81,10 @@ class PoseParams:
         E, Jl = exp_so3(w)
         R = E @ self.R0
         JB = Jl @ self.B  # (3, nr)
-        c_cam = self.c0.copy()
-        c_cam[0] += x[self.nr]
-        c_cam[1] += x[self.nr + 1]
+        c_cam = self.c0 + self.T @ x[self.nr:]
         Rc = R @ self.c
         dz_dr = np.zeros(self.nr)
-        if self.distance_mm is None:
-            c_cam[2] += x[self.nr + 2]
-        else:
+        if self.distance_mm is not None:
             c_cam[2] = self.distance_mm + Rc[2]
             dz_dr = (-skew(Rc) @ JB)[2]
         t = c_cam - Rc
@@ -103,8 +111,18 @@ class PoseParams:
         J[:, 1, :self.nr] = a2 * q0 - a0 * q2
         J[:, 2, :self.nr] = a0 * q1 - a1 * q0
         J[:, 2, :self.nr] += dz_dr
-        J[:, 0, self.nr] = 1.0
-        J[:, 1, self.nr + 1] = 1.0
-        if self.distance_mm is None:
-            J[:, 2, self.nr + 2] = 1.0
+        J[:, :, self.nr:] = self.T[None]
         return pc, J
+
+
+def _perpendicular_basis(a: np.ndarray) -> np.ndarray:
+    """(3, 2): two unit vectors perpendicular to the unit vector ``a`` and to each other."""
+    e = np.eye(3)[int(np.argmin(np.abs(a)))]
+    b1 = np.cross(a, e)
+    b1 /= np.linalg.norm(b1)
+    return np.stack([b1, np.cross(a, b1)], 1)
+
+
+def _translation_basis(distance_mm: float | None) -> np.ndarray:
+    """The centre's free camera-frame shifts: all three, or x and y with the distance held."""
+    return np.eye(3) if distance_mm is None else np.eye(3)[:, :2]

@@ -36,7 +36,7 @@ Unexplained = float | Callable[[], float]
 
 
 def refine(bank: TemplateBank, best: PoseCandidate, grey: np.ndarray, intr: Intrinsics, *,
-           distance_mm: float | None, n_channels: int, accept: Callable[[Pose], bool] | None = None
+           distance_mm: float | None, n_channels: int, plane: Plane | None = None
            ) -> tuple[RefinedPose, Unexplained]:
     """Refine a candidate -> (the kept pose, a callable waiting for its unexplained-edge ratio
     ``interior.unexplained_edge_ratio``, or the ratio itself).
@@ -46,11 +46,12 @@ def refine(bank: TemplateBank, best: PoseCandidate, grey: np.ndarray, intr: Intr
     full-resolution verification, the verdict's edge support. The candidate's own score is the coarse,
     half-resolution one and is not compared with it: a textured floor inflates it. The interior check
     runs on the background pool, waited for after the evidence: the calling thread measures the evidence
-    instead of idling."""
+    instead of idling. ``plane``: the candidate rests on it, and is refined on it (``refine_pose``'s
+    ``normal_cam``)."""
     from service.vision.estimate.refine import refine_pose
 
     r = refine_pose(bank, best.pose, grey, intr, None, distance_mm=distance_mm, n_channels=n_channels,
-                    interior_later=True, accept=accept)
+                    interior_later=True, normal_cam=None if plane is None else plane.normal)
     return RefinedPose(r.pose, float(r.cost), float(r.score), int(r.iterations), float(r.inlier_ratio)), \
         (r.unexplained_later if r.unexplained_later is not None else r.unexplained)
 
@@ -142,24 +143,23 @@ class Checker:
         return self.distance_mm is None and self.judge_kw.get("appearance") is not None
 
     def _refined(self, cand: PoseCandidate) -> tuple[RefinedPose, Unexplained]:
-        """``refine`` (on a plane, kept only if it stays on it: ``_on_plane``), held at the searched range's
-        bound its refinement passed (``_bound_passed``)."""
+        """``refine`` (a candidate resting on a plane refined on it: ``_resting_on``), held at the searched
+        range's bound its refinement passed (``_bound_passed``)."""
+        plane = self._resting_on(cand)
         kept, unexplained = refine(self.bank, cand, self.grey, self.intr, distance_mm=self.distance_mm,
-                                   n_channels=self.n_channels, accept=self._on_plane(cand))
+                                   n_channels=self.n_channels, plane=plane)
         bound = self._bound_passed(kept.pose)
         if bound is None:
             return kept, unexplained
         return self._refined_at(cand, kept.pose, bound)
 
-    def _on_plane(self, cand: PoseCandidate) -> Callable[[Pose], bool] | None:
-        """With a plane, and ``cand`` resting on it: a refined pose is kept only if it rests on it too."""
+    def _resting_on(self, cand: PoseCandidate) -> Plane | None:
+        """The request's plane if ``cand`` rests on it (within the plane tolerance), else None."""
         plane = self.judge_kw.get("plane")
-        if plane is None:
-            return None
         tolerance = self.judge_kw.get("plane_tolerance_mm", PLANE_TOLERANCE_MM)
-        if abs(rest_gap_mm(self.bank, cand.pose, plane)) > tolerance:
+        if plane is None or abs(rest_gap_mm(self.bank, cand.pose, plane)) > tolerance:
             return None
-        return lambda pose: abs(rest_gap_mm(self.bank, pose, plane)) <= tolerance
+        return plane
 
     def _refined_at(self, cand: PoseCandidate, pose: Pose, z_mm: float) -> tuple[RefinedPose, Unexplained]:
         """``refine`` from ``pose`` moved along its line of sight to depth ``z_mm``, the depth held there."""
