@@ -10,8 +10,10 @@ import trimesh
 from service.vision import pipeline
 from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.evidence import colour_frame
+from service.vision.estimate.plane import PLANE_TOLERANCE_MM
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz, rotation_angle_deg
+from service.vision.geometry.plane import Plane, rest_gap_mm
 from service.vision.geometry.render import render, render_shaded
 from service.vision.model.mirror import mirror_planes, twin_poses
 from service.vision.pipeline import PoseCandidate
@@ -160,3 +162,19 @@ def test_a_sphere_keeps_at_most_three_planes():
     # every plane through its centre is a mirror: the three best stand for them (one twin check each)
     planes = mirror_planes(trimesh.creation.icosphere(subdivisions=4, radius=50.0))
     assert len(planes.normals_obj) == 3
+
+
+def test_on_a_plane_a_twin_that_does_not_rest_on_it_is_not_checked(flipped_scene):
+    bank, img, truth, flipped = flipped_scene
+    # a plane under the truth, across the L's mirror normal: the twin goes 17 mm through it
+    normal = -truth.R[:, 2]
+    plane = Plane(normal, float((truth.apply(bank.vertices_mm) @ normal).min()))
+    assert rest_gap_mm(bank, truth, plane) == pytest.approx(0.0, abs=1e-9)
+    assert rest_gap_mm(bank, flipped, plane) < -PLANE_TOLERANCE_MM
+    kw = dict(distance_mm=None, distance_range_mm=(300.0, 600.0), min_score=0.0, n_channels=16)
+    frame = colour_frame(img)
+    on_plane = pipeline.check_candidate(bank, PoseCandidate(truth, 0.0, 1.0), img[..., 0], frame, INTR,
+                                        plane=plane, **kw)
+    free = pipeline.check_candidate(bank, PoseCandidate(truth, 0.0, 1.0), img[..., 0], frame, INTR, **kw)
+    assert on_plane.verdict.found and "twin_score" not in on_plane.verdict.evidence
+    assert "twin_score" in free.verdict.evidence

@@ -145,19 +145,18 @@ class Checker:
     def _refined(self, cand: PoseCandidate) -> tuple[RefinedPose, Unexplained]:
         """``refine`` (a candidate resting on a plane refined on it: ``_resting_on``), held at the searched
         range's bound its refinement passed (``_bound_passed``)."""
-        plane = self._resting_on(cand)
         kept, unexplained = refine(self.bank, cand, self.grey, self.intr, distance_mm=self.distance_mm,
-                                   n_channels=self.n_channels, plane=plane)
+                                   n_channels=self.n_channels, plane=self._resting_on(cand.pose))
         bound = self._bound_passed(kept.pose)
         if bound is None:
             return kept, unexplained
         return self._refined_at(cand, kept.pose, bound)
 
-    def _resting_on(self, cand: PoseCandidate) -> Plane | None:
-        """The request's plane if ``cand`` rests on it (within the plane tolerance), else None."""
+    def _resting_on(self, pose: Pose) -> Plane | None:
+        """The request's plane if ``pose`` rests on it (within the plane tolerance), else None."""
         plane = self.judge_kw.get("plane")
         tolerance = self.judge_kw.get("plane_tolerance_mm", PLANE_TOLERANCE_MM)
-        if plane is None or abs(rest_gap_mm(self.bank, cand.pose, plane)) > tolerance:
+        if plane is None or abs(rest_gap_mm(self.bank, pose, plane)) > tolerance:
             return None
         return plane
 
@@ -217,15 +216,19 @@ class Checker:
         ``evidence.twin_score``: the best score of the other poses (close to ``score``, the image hardly
         tells them apart). A twin whose unrefined evidence scores under ``policy.twin_unrefined_min_score``
         is not refined (that is its score); one refined back onto the found pose is that pose (no score).
-        Twins are checked while the deadline leaves time for a check."""
+        With a plane, a twin that does not rest on it is not checked: it would be refused there
+        (``off_plane``). Twins are checked while the deadline leaves time for a check."""
         if not c.verdict.found:
             return c
         appearance = self.judge_kw.get("appearance")
         found_pose = c.refined.pose
+        on_plane = self.judge_kw.get("plane") is not None
         scores: list[float] = []
         for twin in twin_poses(found_pose, mirror_planes_of(self.bank)):
             if not self.deadline.allows(timing.CHECK_MS.high):
                 break
+            if on_plane and self._resting_on(twin) is None:
+                continue
             unrefined = unrefined_score(self.bank, twin, self.frame, self.intr, others_depth_mm, appearance)
             if unrefined < self.policy.twin_unrefined_min_score:
                 scores.append(unrefined)
