@@ -350,7 +350,7 @@ class PlaneCalibrationInfo(BaseModel):
     wrong_max: float | None = Field(description="the highest agreement a wrong pose reached in its scenes")
     agreement_floor: float | None = Field(
         None, description="the least agreement a pose on a plane is found with, whatever its other evidence "
-        "(verdict reason edges_disagree below it): 0.12 under the lowest a right pose read in its scenes; "
+        "(verdict reason edges_disagree below it): 0.08 under the lowest a right pose read in its scenes; "
         "null until calibrated")
     agreement_along: Literal["edge_agreement", "outline_agreement"] | None = Field(
         None, description="the evidence agreement_min and agreement_floor read: edge_agreement (every "
