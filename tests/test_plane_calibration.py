@@ -80,25 +80,26 @@ def test_a_part_is_calibrated_along_the_edges_that_let_more_right_candidates_rea
                                                    "polarity": 1.0, "distinct_px": 2.0})
 
     n = MIN_WRONG_PER_SCENE
+    m = 0.12  # the margin these agreements are laid out around
     # creases that seldom show: the right poses' outlines agree, their edges much less
     wrong = [rec(0.4, 0.6, 50.0) for _ in range(n)]
     right = [rec(0.45, 0.9, 2.0), rec(0.5, 0.95, 1.0), rec(0.6, 0.7, 3.0)]
-    cal = calibrated([*wrong, *right], scenes=1)
+    cal = calibrated([*wrong, *right], scenes=1, margin=m)
     assert cal.agreement_along == "outline_agreement"
-    assert cal.agreement_min == pytest.approx(0.6 + MARGIN) and cal.right == 2
-    assert cal.agreement_floor == pytest.approx(0.7 - MARGIN)  # the floor reads the same agreement
-    assert calibrated([*wrong, *right], scenes=1, along=("edge_agreement",)).right == 1
+    assert cal.agreement_min == pytest.approx(0.6 + m) and cal.right == 2
+    assert cal.agreement_floor == pytest.approx(0.7 - m)  # the floor reads the same agreement
+    assert calibrated([*wrong, *right], scenes=1, margin=m, along=("edge_agreement",)).right == 1
     # look-alike outlines: the edges tell them apart
     wrong = [rec(0.4, 0.95, 50.0) for _ in range(n)]
-    assert calibrated([*wrong, *right], scenes=1).agreement_along == "edge_agreement"
+    assert calibrated([*wrong, *right], scenes=1, margin=m).agreement_along == "edge_agreement"
     # a tie keeps every edge's agreement
     wrong = [rec(0.4, 0.6, 50.0) for _ in range(n)]
     tie = [rec(0.9, 0.9, 2.0)]
-    assert calibrated([*wrong, *tie], scenes=1).agreement_along == "edge_agreement"
+    assert calibrated([*wrong, *tie], scenes=1, margin=m).agreement_along == "edge_agreement"
     # ... as does one more of many: the scenes' noise (``ALONG_MIN_GAIN``)
     many = [rec(0.6, 0.9, 2.0) for _ in range(11)] + [rec(0.45, 0.9, 2.0)]
     assert ALONG_MIN_GAIN * len(many) > 1
-    assert calibrated([*wrong, *many], scenes=1).agreement_along == "edge_agreement"
+    assert calibrated([*wrong, *many], scenes=1, margin=m).agreement_along == "edge_agreement"
 
 
 def test_the_least_agreement_found_lies_a_margin_below_the_lowest_right_candidates():
