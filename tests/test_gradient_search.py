@@ -118,7 +118,7 @@ def test_a_rendered_copy_is_found_at_its_placement_and_polished(bank, s, spin, x
 
 def test_edges_agree_at_the_true_pose_and_not_beside_it(bank):
     pose = resting(bank, 0, 30.0, 0.0, 0.0)
-    agreeing = agreeing_bits(scene(bank, [pose]))
+    agreeing = agreeing_bits(orientation_bits(scene(bank, [pose])))
     creases = crease_edges_of(bank)
     at = edge_agreement(bank.vertices_mm, bank.faces, creases, pose, INTR, agreeing)
     beside = edge_agreement(bank.vertices_mm, bank.faces, creases,

@@ -3,8 +3,7 @@ the edges the CAD model shows at a pose?
 
 Every visible edge of the posed model (``model/edge_points.visible_edges``: the outline, the part's own
 occluding edges and its creases) is projected; a point agrees when, within ``TOLERANCE_PX``, the image
-has a stable gradient orientation (``gradients.orientation_bits``, from ``MAG_THRESHOLD``) in the bin of
-the edge's normal.
+has a stable gradient orientation (``gradients.orientation_bits``) in the bin of the edge's normal.
 The polarity is not read: a shiny part is brighter or darker than the table with the light. Each point
 weighs 1 / (the points of its orientation bin), so a long straight side does not outvote the rest.
 
@@ -20,25 +19,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.vision.estimate.gradients import balanced_weights, orientation_bits, quantise, spread
+from service.vision.estimate.gradients import balanced_weights, quantise, spread
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
 from service.vision.model.edge_points import visible_edges
 
 TOLERANCE_PX = 1  # an agreeing gradient lies within this many pixels of the projected edge
-# Sobel (3 x 3, 0..255) magnitude from which a pixel's orientation is read: half the gradient search's
-# (``gradients.MAG_THRESHOLD``). A white part lying on a white table shows its outline a few grey levels
-# deep: at the search's threshold white sprayers on a white and lilac checker read 0.42-0.60 of their
-# outline at their truth (Blender piles: 112 -> 131 found right with this one, no wrong).
-MAG_THRESHOLD = 20.0
 MIN_INNER_POINTS = 20
 TANGENT_STEP_MM = 0.5  # an edge's direction is read from its projection over this step
 
 
-def agreeing_bits(image: np.ndarray) -> np.ndarray:
-    """The image's gradient orientation bits from ``MAG_THRESHOLD`` (``gradients.orientation_bits``) spread
-    over the tolerance: a point agrees where its own bin is set in this."""
-    return spread(orientation_bits(image, mag_threshold=MAG_THRESHOLD), 2 * TOLERANCE_PX + 1)
+def agreeing_bits(bits: np.ndarray) -> np.ndarray:
+    """The orientation bits spread over the tolerance: a point agrees where its own bin is set in this."""
+    return spread(bits, 2 * TOLERANCE_PX + 1)
 
 
 def edge_agreement(vertices_mm: np.ndarray, faces: np.ndarray, creases: np.ndarray, pose: Pose,

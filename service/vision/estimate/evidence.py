@@ -103,8 +103,8 @@ class ColourFrame:
 
     @functools.cached_property
     def agreeing(self) -> np.ndarray:
-        """The orientation bits ``edge_agreement`` reads (``agreeing_bits``), made once per frame."""
-        return agreeing_bits(self.bgr)
+        """The orientation bits spread over ``edge_agreement``'s tolerance, made once per frame."""
+        return agreeing_bits(self.orientations)
 
 
 @dataclass(frozen=True)
