@@ -477,9 +477,8 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     when the refined pose does not keep the verification score.
 
     ``normal_cam``: a plane's unit normal (camera frame) the part rests on at ``pose0``: the pose is
-    refined on the plane, spun about its normal and slid along it (3 DoF, ``PoseParams``). In a pile the
-    other parts' edges pull a free refinement off the plane (Blender piles: sprayers the verdict lost
-    ended 4-17 px off, the candidate kept; refined on the plane, 0.2-0.8 px).
+    refined on the plane, spun about its normal and slid along it (3 DoF, ``PoseParams``): in a pile the
+    other parts' edges pull a free refinement off the plane (docs/method.md).
 
     ``interior_later``: the interior check (``unexplained``, running on the background pool) is not
     waited for: ``unexplained`` is nan and ``unexplained_later()`` waits for it (the caller's evidence

@@ -63,10 +63,9 @@ class PoseParams:
             spun = a is None or abs(float(a @ nrm)) < _SPIN_ON_AXIS_COS
             self.B = nrm[:, None] if spun else np.zeros((3, 0))
             self.T = _perpendicular_basis(nrm)
-        elif a is None:
-            self.B, self.T = np.eye(3), _translation_basis(distance_mm)
         else:
-            self.B, self.T = _perpendicular_basis(a), _translation_basis(distance_mm)
+            self.B = np.eye(3) if a is None else _perpendicular_basis(a)
+            self.T = _translation_basis(distance_mm)
         self.nr = self.B.shape[1]
         self.distance_mm = distance_mm
         self.n = self.nr + self.T.shape[1]

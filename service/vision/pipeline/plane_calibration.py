@@ -33,8 +33,7 @@ REFUSED_FOR_PLACE = ("outside_distance_range", "outside_image", "off_plane")
 SCENES = 12  # about a minute a part on 2 cores
 # agreement above the highest wrong candidate's: the smallest that found no wrong instance on the fit sets
 # (sygrid_synth, the Blender piles) and the project's plane renders: at 0.06 a face-up flange is found on
-# a copy lying tilted and face down (docs/benchmarks.md). (Refined freely, wrong poses floated off the
-# plane where the refinement left them, and 0.12 was the smallest.)
+# a copy lying tilted and face down (docs/benchmarks.md)
 MARGIN = 0.08
 # Fewer wrong candidates than this a scene say too little of how high a wrong pose reads: not calibrated
 # (a part's scenes give 12-19 a scene where its outlines are distinct; a long spanner, 2)
