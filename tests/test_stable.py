@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import trimesh
 
-from service.vision.model.stable import MIN_PROBABILITY, stable_poses
+from service.vision.model.stable import MIN_PROBABILITY, _with_missed_facets, stable_poses
 from tests.tolerances import STABLE_ATOL
 
 
@@ -44,6 +46,41 @@ def test_a_revolved_part_on_its_side_is_one_family_not_one_per_facet():
     side, end = sp.R_rest_obj
     assert abs(side[2, 2]) < 1e-6 and abs(end[2, 2]) == pytest.approx(1.0, abs=STABLE_ATOL)
     assert sp.probability.sum() == pytest.approx(1.0, abs=1e-6)
+
+
+def test_a_facet_trimesh_missed_is_added_at_its_solid_angle():
+    # From a cube's centre each face subtends exactly 4 pi / 6 of the sphere: a face left out of the list
+    # comes back at probability 1/6, resting on it (its outward normal straight down), and nothing else.
+    cube = trimesh.creation.box((50.0, 50.0, 50.0))
+    T, p = trimesh.poses.compute_stable_poses(cube)
+    Rs = np.asarray(T)[:, :3, :3]
+    left_out = int(np.argmin(Rs[:, 2, 2]))  # the pose resting on the +z face: up is -z
+    keep = np.arange(len(Rs)) != left_out
+    R, prob = _with_missed_facets(cube.convex_hull, np.zeros(3), Rs[keep], np.asarray(p)[keep])
+    assert len(R) == len(Rs)
+    np.testing.assert_allclose(R[-1][2], [0.0, 0.0, -1.0], atol=STABLE_ATOL)
+    np.testing.assert_allclose(R[-1] @ R[-1].T, np.eye(3), atol=STABLE_ATOL)
+    assert prob[-1] == pytest.approx(1.0 / 6.0, abs=STABLE_ATOL)
+    # given every face, it adds none
+    R_all, _ = _with_missed_facets(cube.convex_hull, np.zeros(3), Rs, np.asarray(p))
+    assert len(R_all) == len(Rs)
+
+
+def test_a_flat_spanner_rests_on_both_faces(data_dir):
+    # A 4 mm plate, symmetric through its mid-plane: it lies on either face about equally often, and the
+    # two are not congruent (its outline is not mirror-symmetric), yet trimesh 4 lists only one of them
+    # (its toppling graph loses the other where the centre of mass falls on an edge between triangles).
+    # The service runs with numpy's warnings shown, not raised, and so does this: raised (the suite's
+    # setting), a failed square root inside trimesh makes it take another path that keeps both.
+    mesh = trimesh.load(data_dir / "sygrid_synth" / "models" / "sygrid_spanner.stl", force="mesh")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        raw, _ = trimesh.poses.compute_stable_poses(mesh.convex_hull, center_mass=mesh.center_mass)
+        sp = stable_poses(mesh)
+    assert sum(abs(R[2, 2]) > 0.99 for R in np.asarray(raw)[:, :3, :3]) == 1
+    flat = [(R[2, 2], q) for R, q in zip(sp.R_rest_obj, sp.probability, strict=True) if abs(R[2, 2]) > 0.99]
+    assert sorted(np.sign(up) for up, _ in flat) == [-1.0, 1.0]
+    assert flat[0][1] == pytest.approx(flat[1][1], abs=0.01)
 
 
 def test_negligible_families_are_dropped():

@@ -44,6 +44,8 @@ MAX_POSES = 64
 # ~10 ms per hull face (a 16,000-face ball: 47 s): a hull of more faces is simplified to about this many
 # first (quadric decimation, then its hull again), which moves its faces by a fraction of a millimetre.
 MAX_HULL_FACES = 2000
+# a hull facet whose up direction lies within about 1 deg of a pose trimesh found is that pose
+MISSED_FACET_COS = math.cos(math.radians(1.0))
 HEIGHT_QUANTILES = 16  # a congruence test first compares this many quantiles of the vertex heights
 
 
@@ -102,6 +104,62 @@ def _congruent(a: _Posed, b: _Posed, tol: float, sample: np.ndarray) -> bool:
     return False
 
 
+def _with_missed_facets(hull: trimesh.Trimesh, com: np.ndarray, Rs: np.ndarray, prob: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """``compute_stable_poses``' rotations and probabilities, with every hull facet it missed that the part
+    rests on (the centre of mass over it), at the probability of its own solid angle seen from the centre
+    of mass (its basin's least). Where the centre of mass projects onto a shared edge of a facet's coplanar
+    triangles, trimesh's toppling graph can lose the facet: a flat spanner's second face."""
+    ups = Rs[:, 2, :] if len(Rs) else np.zeros((0, 3))
+    groups = [list(f) for f in hull.facets]
+    grouped = set(i for g in groups for i in g)
+    groups += [[i] for i in range(len(hull.faces)) if i not in grouped]
+    added_R, added_p = [], []
+    for g in groups:
+        n = hull.face_normals[g[0]]
+        if len(ups) and np.max(ups @ -n) >= MISSED_FACET_COS:
+            continue
+        tri = hull.triangles[g] - com  # (k, 3, 3) about the centre of mass
+        foot = -(tri[0, 0] @ n) * n  # the centre of mass's foot on the facet's plane
+        if not any(_inside_triangle(foot, t) for t in tri):
+            continue
+        added_R.append(_resting_rotation(-n))
+        added_p.append(float(sum(_solid_angle(t) for t in tri)) / (4.0 * math.pi))
+    if not added_R:
+        return Rs, prob
+    return np.concatenate([Rs.reshape(-1, 3, 3), np.array(added_R)]), np.concatenate([prob, added_p])
+
+
+def _inside_triangle(p: np.ndarray, tri: np.ndarray) -> bool:
+    """Whether p, on the triangle's plane, lies inside it (edges included to 1e-9)."""
+    a, b, c = tri
+    v0, v1, v2 = c - a, b - a, p - a
+    d00, d01, d11, d20, d21 = v0 @ v0, v0 @ v1, v1 @ v1, v2 @ v0, v2 @ v1
+    den = d00 * d11 - d01 * d01
+    if den <= 0:
+        return False
+    v, w = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
+    return v >= -1e-9 and w >= -1e-9 and v + w <= 1 + 1e-9
+
+
+def _solid_angle(tri: np.ndarray) -> float:
+    """The solid angle of a triangle seen from the origin (Van Oosterom and Strackee)."""
+    a, b, c = tri
+    la, lb, lc = np.linalg.norm(a), np.linalg.norm(b), np.linalg.norm(c)
+    num = abs(float(a @ np.cross(b, c)))
+    den = la * lb * lc + (a @ b) * lc + (a @ c) * lb + (b @ c) * la
+    return 2.0 * math.atan2(num, den)
+
+
+def _resting_rotation(up: np.ndarray) -> np.ndarray:
+    """A rotation whose third row is ``up`` (the resting frame's +z in the object frame), built as
+    trimesh builds its stable poses' (its spin about +z is arbitrary)."""
+    x = np.array([-up[1], up[0], 0.0])
+    x = np.array([1.0, 0.0, 0.0]) if np.linalg.norm(x) == 0.0 else x / np.linalg.norm(x)
+    y = np.cross(up, x)
+    return np.array([x, y / np.linalg.norm(y), up])
+
+
 def stable_poses(mesh: trimesh.Trimesh, *, axis_obj: np.ndarray | None = None,
                  diameter_mm: float | None = None, min_probability: float = MIN_PROBABILITY) -> StablePoses:
     """The part's resting pose families, most probable first (see the module docstring).
@@ -121,12 +179,12 @@ def stable_poses(mesh: trimesh.Trimesh, *, axis_obj: np.ndarray | None = None,
                                                 target_reduction=1.0 - MAX_HULL_FACES / 2 / len(hull.faces))
             hull = trimesh.Trimesh(v, f).convex_hull
         T, prob = trimesh.poses.compute_stable_poses(hull, center_mass=com)
+        Rs, prob = _with_missed_facets(hull, com, np.asarray(T, float).reshape(-1, 4, 4)[:, :3, :3],
+                                       np.asarray(prob, float))
     except Exception:  # noqa: BLE001 - qhull or a degenerate hull: no resting poses to search
         return none
-    if len(T) == 0:
+    if len(Rs) == 0:
         return none
-    Rs = np.asarray(T, float)[:, :3, :3]
-    prob = np.asarray(prob, float)
     diameter = diameter_mm if diameter_mm is not None else float(np.linalg.norm(np.ptp(V, axis=0)))
     tol = CONGRUENT_FRACTION * diameter
     sample = np.random.default_rng(0).permutation(len(V))[:MAX_CHECK_POINTS]
