@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.vision.estimate.edge_agreement import agreeing_bits, edge_agreement
+from service.vision.estimate.edge_agreement import FAINT_MAG_THRESHOLD, agreeing_bits, edge_agreement
 from service.vision.estimate.evidence import colour_frame
 from service.vision.estimate.gradients import N_ORI, best_in_window, orientation_bits, response_maps, score_at
 from service.vision.estimate.plane import PlaneHypothesis
@@ -127,6 +127,23 @@ def test_edges_agree_at_the_true_pose_and_not_beside_it(bank):
     for k in ("edge_agreement", "inner_agreement", "outline_agreement"):
         assert at[k] > TRUE_AGREEMENT
     assert beside["edge_agreement"] < SHIFTED_AGREEMENT and beside["outline_agreement"] < SHIFTED_AGREEMENT
+
+
+def test_a_faint_edge_agrees_on_a_quiet_table_and_not_in_grain():
+    # A vertical step of 8 grey levels, under the search's magnitude and over the faint one; its lower
+    # half crosses horizontal grain of the same depth (8 levels, 8 px period) whose gradients are faint
+    # too, and dense: there the step's orientation is not added, on the plain upper half it is.
+    img = np.full((120, 160), 120.0)
+    img[:, 80:] += 8.0
+    img[60:] += 8.0 * np.sin(2 * np.pi * np.arange(60, 120) / 8.0)[:, None]
+    bgr = np.repeat(img.astype(np.uint8)[..., None], 3, axis=2)
+    bits, faint = orientation_bits(bgr), orientation_bits(bgr, mag_threshold=FAINT_MAG_THRESHOLD)
+    plain, read = agreeing_bits(bits), agreeing_bits(bits, faint)
+    step = 1  # bin 0: the gradient along +u
+    assert not (plain[10:50, 79:81] & step).any()  # the search's magnitude misses the step
+    assert (read[10:50, 79:81] & step).all()  # on the quiet half it agrees
+    assert np.mean(faint[75:105] > 0) > 0.5  # the grain is dense with faint gradients ...
+    np.testing.assert_array_equal(read[75:105], plain[75:105])  # ... and none of them is added
 
 
 def test_the_best_in_a_window_is_the_brute_force_best_over_its_cells():

@@ -29,7 +29,7 @@ import numpy as np
 
 from service.vision import threads
 from service.vision.bank import TemplateBank
-from service.vision.estimate.edge_agreement import agreeing_bits
+from service.vision.estimate.edge_agreement import FAINT_MAG_THRESHOLD, agreeing_bits
 from service.vision.estimate.gradients import orientation_bits
 from service.vision.estimate.shapes import distinct_px, genericity
 from service.vision.geometry.camera import Intrinsics
@@ -103,8 +103,9 @@ class ColourFrame:
 
     @functools.cached_property
     def agreeing(self) -> np.ndarray:
-        """The orientation bits spread over ``edge_agreement``'s tolerance, made once per frame."""
-        return agreeing_bits(self.orientations)
+        """The orientation bits ``edge_agreement`` reads (``agreeing_bits``, faint ones where the table is
+        quiet), made once per frame."""
+        return agreeing_bits(self.orientations, orientation_bits(self.bgr, mag_threshold=FAINT_MAG_THRESHOLD))
 
 
 @dataclass(frozen=True)
