@@ -146,6 +146,15 @@ def test_a_faint_edge_agrees_on_a_quiet_table_and_not_in_grain():
     np.testing.assert_array_equal(read[75:105], plain[75:105])  # ... and none of them is added
 
 
+def test_a_frame_reads_both_magnitudes_off_one_gradient_as_if_apart(bank):
+    img = scene(bank, [resting(bank, 0, 30.0, 0.0, 0.0)])
+    frame = colour_frame(img)
+    bits = orientation_bits(img)
+    np.testing.assert_array_equal(frame.orientations, bits)
+    np.testing.assert_array_equal(
+        frame.agreeing, agreeing_bits(bits, orientation_bits(img, mag_threshold=FAINT_MAG_THRESHOLD)))
+
+
 def test_the_best_in_a_window_is_the_brute_force_best_over_its_cells():
     rng = np.random.default_rng(5)
     bits = (1 << rng.integers(0, N_ORI, (48, 64))).astype(np.uint8) * (rng.random((48, 64)) < 0.4)

@@ -66,8 +66,18 @@ def _majority(q, mask, majority, out):  # pragma: no cover - compiled
                 out[v, u] = np.uint8(1 << best)
 
 
-def orientation_bits(image: np.ndarray, *, mag_threshold: float = MAG_THRESHOLD) -> np.ndarray:
-    """(h, w) uint8: bit b set where the image's strongest-channel gradient orientation is bin b."""
+@dataclass(frozen=True)
+class Gradient:
+    """An image's strongest-channel gradient, per pixel: its direction's bin and magnitude."""
+
+    q: np.ndarray  # (h, w) int32 orientation bin (``quantise``)
+    frac: np.ndarray  # (h, w) where in its bin the direction lies, 0..1
+    mag: np.ndarray  # (h, w) float32 Sobel magnitude on 0..255 channels
+
+
+def image_gradient(image: np.ndarray) -> Gradient:
+    """The gradient ``orientation_bits`` reads: blurred by ``BLUR_SIGMA``, Sobel 3 x 3 per channel, the
+    strongest channel's."""
     img = cv2.GaussianBlur(image.astype(np.float32), (0, 0), BLUR_SIGMA)
     gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
@@ -77,18 +87,24 @@ def orientation_bits(image: np.ndarray, *, mag_threshold: float = MAG_THRESHOLD)
     c = np.argmax(m2, axis=2)[..., None]
     gxs = np.take_along_axis(gx, c, 2)[..., 0]
     gys = np.take_along_axis(gy, c, 2)[..., 0]
-    mag = np.sqrt(np.take_along_axis(m2, c, 2)[..., 0])
     theta = np.arctan2(gys, gxs)
-    q = quantise(theta)
-    bits = np.zeros(q.shape, np.uint8)
-    _majority(q, mag > mag_threshold, MAJORITY, bits)
-    # an edge at 179 deg and one at 1 deg are the same edge: near a boundary the other bin is set too
     a = np.degrees(np.mod(theta, np.pi)) / (180.0 / N_ORI)
-    frac = a - np.floor(a)
+    return Gradient(quantise(theta), a - np.floor(a), np.sqrt(np.take_along_axis(m2, c, 2)[..., 0]))
+
+
+def orientation_bits(image: np.ndarray, *, mag_threshold: float = MAG_THRESHOLD,
+                     gradient: Gradient | None = None) -> np.ndarray:
+    """(h, w) uint8: bit b set where the image's strongest-channel gradient orientation is bin b
+    (``gradient``: the image's ``image_gradient``, when it is made already)."""
+    g = image_gradient(image) if gradient is None else gradient
+    q = g.q
+    bits = np.zeros(q.shape, np.uint8)
+    _majority(q, g.mag > mag_threshold, MAJORITY, bits)
+    # an edge at 179 deg and one at 1 deg are the same edge: near a boundary the other bin is set too
     soft = SOFT_DEG / (180.0 / N_ORI)
     on = bits > 0
-    lo = np.where(on & (frac < soft), 1 << ((q - 1) % N_ORI), 0)
-    hi = np.where(on & (frac > 1 - soft), 1 << ((q + 1) % N_ORI), 0)
+    lo = np.where(on & (g.frac < soft), 1 << ((q - 1) % N_ORI), 0)
+    hi = np.where(on & (g.frac > 1 - soft), 1 << ((q + 1) % N_ORI), 0)
     return bits | lo.astype(np.uint8) | hi.astype(np.uint8)
 
 
