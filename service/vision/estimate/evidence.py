@@ -30,7 +30,7 @@ import numpy as np
 from service.vision import threads
 from service.vision.bank import TemplateBank
 from service.vision.estimate.edge_agreement import FAINT_MAG_THRESHOLD, agreeing_bits
-from service.vision.estimate.gradients import Gradient, image_gradient, orientation_bits
+from service.vision.estimate.gradients import Gradient, gradient_bits, image_gradient
 from service.vision.estimate.shapes import distinct_px, genericity
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
@@ -104,14 +104,13 @@ class ColourFrame:
     @functools.cached_property
     def orientations(self) -> np.ndarray:
         """(H, W) uint8 gradient orientation bits (``gradients.orientation_bits``), made once per frame."""
-        return orientation_bits(self.bgr, gradient=self.gradient)
+        return gradient_bits(self.gradient)
 
     @functools.cached_property
     def agreeing(self) -> np.ndarray:
         """The orientation bits ``edge_agreement`` reads (``agreeing_bits``, faint ones where the table is
         quiet), made once per frame."""
-        faint = orientation_bits(self.bgr, mag_threshold=FAINT_MAG_THRESHOLD, gradient=self.gradient)
-        return agreeing_bits(self.orientations, faint)
+        return agreeing_bits(self.orientations, gradient_bits(self.gradient, FAINT_MAG_THRESHOLD))
 
 
 @dataclass(frozen=True)

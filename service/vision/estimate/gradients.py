@@ -92,11 +92,13 @@ def image_gradient(image: np.ndarray) -> Gradient:
     return Gradient(quantise(theta), a - np.floor(a), np.sqrt(np.take_along_axis(m2, c, 2)[..., 0]))
 
 
-def orientation_bits(image: np.ndarray, *, mag_threshold: float = MAG_THRESHOLD,
-                     gradient: Gradient | None = None) -> np.ndarray:
-    """(h, w) uint8: bit b set where the image's strongest-channel gradient orientation is bin b
-    (``gradient``: the image's ``image_gradient``, when it is made already)."""
-    g = image_gradient(image) if gradient is None else gradient
+def orientation_bits(image: np.ndarray, *, mag_threshold: float = MAG_THRESHOLD) -> np.ndarray:
+    """(h, w) uint8: bit b set where the image's strongest-channel gradient orientation is bin b."""
+    return gradient_bits(image_gradient(image), mag_threshold)
+
+
+def gradient_bits(g: Gradient, mag_threshold: float = MAG_THRESHOLD) -> np.ndarray:
+    """``orientation_bits`` of an image whose ``image_gradient`` is ``g``."""
     q = g.q
     bits = np.zeros(q.shape, np.uint8)
     _majority(q, g.mag > mag_threshold, MAJORITY, bits)

@@ -121,25 +121,15 @@ def _with_missed_facets(hull: trimesh.Trimesh, com: np.ndarray, Rs: np.ndarray, 
             continue
         tri = hull.triangles[g] - com  # (k, 3, 3) about the centre of mass
         foot = -(tri[0, 0] @ n) * n  # the centre of mass's foot on the facet's plane
-        if not any(_inside_triangle(foot, t) for t in tri):
+        with np.errstate(all="ignore"):  # a sliver triangle's coordinates are NaN: not inside
+            bary = trimesh.triangles.points_to_barycentric(tri, np.repeat(foot[None], len(tri), 0))
+        if not np.any(np.all(bary >= -1e-9, axis=1)):
             continue
         added_R.append(_resting_rotation(-n))
         added_p.append(float(sum(_solid_angle(t) for t in tri)) / (4.0 * math.pi))
     if not added_R:
         return Rs, prob
     return np.concatenate([Rs.reshape(-1, 3, 3), np.array(added_R)]), np.concatenate([prob, added_p])
-
-
-def _inside_triangle(p: np.ndarray, tri: np.ndarray) -> bool:
-    """Whether p, on the triangle's plane, lies inside it (edges included to 1e-9)."""
-    a, b, c = tri
-    v0, v1, v2 = c - a, b - a, p - a
-    d00, d01, d11, d20, d21 = v0 @ v0, v0 @ v1, v1 @ v1, v2 @ v0, v2 @ v1
-    den = d00 * d11 - d01 * d01
-    if den <= 0:
-        return False
-    v, w = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
-    return v >= -1e-9 and w >= -1e-9 and v + w <= 1 + 1e-9
 
 
 def _solid_angle(tri: np.ndarray) -> float:
