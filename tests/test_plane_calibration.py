@@ -174,3 +174,25 @@ def test_calibration_records_the_copies_it_finds_as_right_and_the_estimate_reads
     out = estimate(bank, sc.bgr, sc.intr, plane=sc.plane, max_instances=len(sc.poses),
                    agreement=PlaneAgreement(a, None))
     assert out.found
+
+
+@pytest.mark.parametrize("up_axis", [2, 0])
+def test_a_stretched_look_alike_is_stretched_along_the_table_so_its_outline_from_above_differs(up_axis):
+    # a 60 x 30 x 4 mm plate resting with its object axis ``up_axis`` along the table's normal
+    import trimesh
+    from types import SimpleNamespace
+
+    from service.vision.pipeline.calibration_scenes import _part_alike
+
+    plate = trimesh.creation.box([60.0, 30.0, 4.0])
+    R_rest = np.eye(3) if up_axis == 2 else np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+    part = SimpleNamespace(vertices_mm=np.asarray(plate.vertices, float), faces=np.asarray(plate.faces),
+                           rest_probability=[1.0], R_rest_obj=R_rest[None])
+    footprint = np.ptp(part.vertices_mm @ R_rest.T, axis=0)
+    for i in range(60):
+        V = _part_alike(np.random.default_rng([7, i]), part, stretched=True).vertices_mm
+        ratio = np.ptp(V, axis=0) / footprint
+        assert ratio[2] == pytest.approx(1.0)  # its height is the part's
+        # stretched by 0.5-0.75 or 1.3-2 along the table: its outline from above is not the part's
+        assert min(abs(np.log(ratio[:2]))) == pytest.approx(0.0, abs=1e-9)
+        assert max(abs(np.log(ratio[:2]))) >= math.log(1.3) - 1e-9

@@ -41,7 +41,10 @@ SPREAD_DIAMETERS = 1.0
 OVERLAP = 0.3
 STACKED = (0, 2)  # copies lying on top of another object
 STACKED_TILT_DEG = (5.0, 25.0)
-STACKED_SINK = (0.5, 0.9)  # the stacked copy's lowest point at this share of the object's height under it
+STACKED_SINK = (0.5, 0.9)
+# a part stretched along an axis standing up more than this (the axis's share of the table's normal) is
+# stretched along its flattest axis instead (``_along_table``)
+MAX_STRETCH_UP = 0.5  # the stacked copy's lowest point at this share of the object's height under it
 SHINY_SHARE = 0.5
 
 
@@ -93,16 +96,25 @@ def _part_alike(rng: np.random.Generator, bank, stretched: bool) -> _Solid:
     by 0.5-0.75 or 1.3-2): a look-alike no true pose of it explains."""
     low, high = ((0.5, 0.75), (1.3, 2.0)) if stretched else ((0.6, 0.8), (1.25, 1.6))
     s = rng.uniform(*(low if rng.uniform() < 0.5 else high))
-    scale = np.ones(3)
-    if stretched:
-        scale[int(rng.integers(0, 3))] = s
-    else:
-        scale[:] = s
+    axis = int(rng.integers(0, 3)) if stretched else 0
     prob = np.asarray(bank.rest_probability, float)
     R_rest = np.asarray(bank.R_rest_obj[int(rng.choice(len(prob), p=prob / prob.sum()))], float)
+    scale = np.ones(3)
+    if stretched:
+        scale[_along_table(R_rest, axis)] = s
+    else:
+        scale[:] = s
     V = (np.asarray(bank.vertices_mm, float) * scale) @ R_rest.T
     V -= np.array([*V[:, :2].mean(axis=0), V[:, 2].min()])
     return _Solid(V, np.asarray(bank.faces, np.int64))
+
+
+def _along_table(R_rest_obj: np.ndarray, axis: int) -> int:
+    """``axis`` (an object axis) if it lies along the table at the resting pose ``R_rest_obj``, else the
+    object axis lying flattest: a part stretched in its height keeps its outline from above (a thinner
+    allen key's), it is the part to a camera, not a look-alike its agreement must stay under."""
+    up = np.abs(R_rest_obj[2])  # each object axis's share of the table's normal
+    return axis if up[axis] <= MAX_STRETCH_UP else int(np.argmin(up))
 
 
 def _camera(rng: np.random.Generator, distance_mm: float) -> tuple[np.ndarray, np.ndarray]:
