@@ -250,7 +250,8 @@ class VerdictJSON(BaseModel):
     evidence: dict[str, float] = Field(description="the evidence the score was computed from: edge_support, "
                                        "unexplained, colour_edge, polarity, region, region_low, in_image, "
                                        "generic (fractions; see docs/API.md), distinct_px (pixels); with "
-                                       "options.plane also edge_agreement, inner_agreement (fractions), "
+                                       "options.plane also edge_agreement, inner_agreement, "
+                                       "outline_agreement, edge_coverage, outline_coverage (fractions), "
                                        "plane_gap_mm, the height of the part's lowest point above the "
                                        "plane, mm; for a found part with a mirror plane also twin_score, "
                                        "the score of its mirror twin (the same outline, near and far "
@@ -352,10 +353,11 @@ class PlaneCalibrationInfo(BaseModel):
         None, description="the least agreement a pose on a plane is found with, whatever its other evidence "
         "(verdict reason edges_disagree below it): 0.08 under the lowest a right pose read in its scenes; "
         "null until calibrated")
-    agreement_along: Literal["edge_agreement", "outline_agreement"] | None = Field(
-        None, description="the evidence agreement_min and agreement_floor read: edge_agreement (every "
-        "visible edge) or outline_agreement (the outline alone) where that let a tenth more of its scenes' "
-        "right poses reach their point; null until calibrated")
+    agreement_along: Literal["edge_agreement", "outline_agreement", "edge_coverage", "outline_coverage"] | None = \
+        Field(None, description="the evidence agreement_min and agreement_floor read: edge_agreement (every "
+              "visible edge), or outline_agreement (the outline alone), edge_coverage or outline_coverage "
+              "(the same by the edges' extent) where that let a tenth more of its scenes' right poses reach "
+              "their point; null until calibrated")
     scenes: int | None = Field(description="rendered scenes it was calibrated on (null until calibrated)")
     error: str | None = Field(None, description="why it failed (status failed), else null")
 

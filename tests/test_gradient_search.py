@@ -11,7 +11,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.vision.estimate.edge_agreement import FAINT_MAG_THRESHOLD, agreeing_bits, edge_agreement
+from service.vision.estimate.edge_agreement import (
+    COVERAGE_RADIUS_PX,
+    FAINT_MAG_THRESHOLD,
+    agreeing_bits,
+    coverage_weights,
+    edge_agreement,
+    share_agreeing,
+)
 from service.vision.estimate.evidence import colour_frame
 from service.vision.estimate.gradients import N_ORI, best_in_window, orientation_bits, response_maps, score_at
 from service.vision.estimate.plane import PlaneHypothesis
@@ -124,9 +131,56 @@ def test_edges_agree_at_the_true_pose_and_not_beside_it(bank):
     beside = edge_agreement(bank.vertices_mm, bank.faces, creases,
                             Pose(pose.R, pose.t_mm + np.array([12.0 * pose.t_mm[2] / INTR.fx, 0.0, 0.0])),
                             INTR, agreeing)
-    for k in ("edge_agreement", "inner_agreement", "outline_agreement"):
+    for k in ("edge_agreement", "inner_agreement", "outline_agreement", "edge_coverage", "outline_coverage"):
         assert at[k] > TRUE_AGREEMENT
-    assert beside["edge_agreement"] < SHIFTED_AGREEMENT and beside["outline_agreement"] < SHIFTED_AGREEMENT
+    for k in ("edge_agreement", "outline_agreement", "edge_coverage", "outline_coverage"):
+        assert beside[k] < SHIFTED_AGREEMENT
+
+
+def test_coverage_weighs_each_stretch_of_an_orientation_once_however_many_its_points():
+    # three stretches of one orientation, of 1, 5 and 50 points within 3 px each, far apart (> 2 radii),
+    # and one stretch of another orientation beside the first: each weighs a quarter
+    rng = np.random.default_rng(3)
+    centres = np.array([[0.0, 0.0], [200.0, 0.0], [0.0, 200.0], [5.0, 0.0]])
+    sizes, bins = [1, 5, 50, 7], [2, 2, 2, 6]
+    uv = np.concatenate([c + rng.uniform(-1.5, 1.5, (n, 2)) for c, n in zip(centres, sizes, strict=True)])
+    ori = np.repeat(bins, sizes)
+    w = coverage_weights(uv, ori)
+    ends = np.cumsum([0, *sizes])
+    np.testing.assert_allclose([w[a:b].sum() for a, b in zip(ends[:-1], ends[1:], strict=True)], 0.25)
+    # brute force on random points: 1 / (same-bin points within the radius, itself included)
+    uv, ori = rng.uniform(0.0, 120.0, (300, 2)), rng.integers(0, N_ORI, 300)
+    d = np.linalg.norm(uv[:, None] - uv[None], axis=2)
+    n = ((d <= COVERAGE_RADIUS_PX) & (ori[:, None] == ori[None])).sum(axis=1)
+    np.testing.assert_allclose(coverage_weights(uv, ori), (1.0 / n) / (1.0 / n).sum())
+
+
+def test_a_longer_look_alike_differs_at_an_arm_end_which_coverage_weighs_as_a_stretch_of_side():
+    # An L of 6 px wide arms, 200 px along u and 100 px along v, posed on a longer L that has no edge at
+    # the long arm's end: that end's normal is the short arm's sides', 6 points among its 200
+    h, w = 160, 260
+    x0, y0, wid = 20, 130, 6
+    pts, ori = [], []
+    def side(us, vs, b):
+        pts.extend(zip(us, vs))
+        ori.extend([b] * len(us))
+    u = np.arange(x0, x0 + 200.0)
+    side(u, np.full(200, y0), 4)  # long arm, its two sides (normal along v: bin 4 of 0..7 over 180 deg)
+    side(u, np.full(200, y0 + wid), 4)
+    v = np.arange(y0 - 100.0, y0)
+    side(np.full(100, x0), v, 0)  # short arm, its two sides (normal along u: bin 0)
+    side(np.full(100, x0 + wid), v, 0)
+    side(np.full(wid, x0 + 200.0), np.arange(y0, y0 + wid, dtype=float), 0)  # the long arm's end
+    side(np.arange(x0, x0 + wid, dtype=float), np.full(wid, y0 - 100.0), 4)  # the short arm's end
+    uv, ori = np.array(pts, float), np.array(ori)
+    agreeing = np.zeros((h, w), np.uint8)
+    iu, iv = uv[:, 0].astype(int), uv[:, 1].astype(int)
+    np.bitwise_or.at(agreeing, (iv, iu), (1 << ori).astype(np.uint8))  # every point agrees ...
+    agreeing[y0:y0 + wid, x0 + 200] = 0  # ... but at the end: the look-alike's arm goes on
+    by_orientation, by_extent = share_agreeing(uv, ori, agreeing), share_agreeing(uv, ori, agreeing,
+                                                                                  coverage_weights)
+    assert by_orientation == pytest.approx(1.0 - 0.5 * 6 / 206)
+    assert by_extent < by_orientation - 0.1
 
 
 def test_a_faint_edge_agrees_on_a_quiet_table_and_not_in_grain():

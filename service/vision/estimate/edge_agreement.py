@@ -14,14 +14,21 @@ weighs 1 / (the points of its orientation bin), so a long straight side does not
 - ``inner_agreement``: the same over the inner edges (creases and self-occlusions inside the outline);
   a part showing fewer than ``MIN_INNER_POINTS`` of them reads its ``edge_agreement``. A wrong pose
   on another part's outline or on the table's texture can fit an outline, seldom the edges within it.
+- ``edge_coverage`` and ``outline_coverage``: the same shares with each point weighing 1 / (the points
+  of its orientation bin within ``COVERAGE_RADIUS_PX``): each stretch of edge counts by its extent, not
+  by its points. An allen key's arm end is parallel to its other arm, so by orientation alone it weighs
+  a few points among that arm's hundred; a longer key fits the shorter one's pose everywhere but there.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
+import numba
 import numpy as np
 
-from service.vision.estimate.gradients import balanced_weights, quantise, spread
+from service.vision.estimate.gradients import N_ORI, balanced_weights, quantise, spread
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
 from service.vision.model.edge_points import visible_edges
@@ -35,6 +42,11 @@ FAINT_MAG_THRESHOLD = 20.0
 QUIET_WINDOW_PX = 15
 QUIET_SHARE = 0.3
 MIN_INNER_POINTS = 20
+# an orientation's points within this of one another weigh as one stretch of edge (``coverage_weights``):
+# a part's arm end counts like a stretch of its side this long (sygrid_synth's calibration scenes: more of
+# an allen key's right poses reach its point at 32 px than at 8 or 16, and a clamp's and a spark plug key's
+# as many as along the orientation-balanced agreement)
+COVERAGE_RADIUS_PX = 32.0
 TANGENT_STEP_MM = 0.5  # an edge's direction is read from its projection over this step
 
 
@@ -55,15 +67,19 @@ def edge_agreement(vertices_mm: np.ndarray, faces: np.ndarray, creases: np.ndarr
     h, w = agreeing.shape
     e = visible_edges(vertices_mm, faces, creases, pose, intr, (w, h))
     if e is None:
-        return {"edge_agreement": 0.0, "outline_agreement": 0.0, "inner_agreement": 0.0}
+        return dict.fromkeys(("edge_agreement", "outline_agreement", "inner_agreement", "edge_coverage",
+                              "outline_coverage"), 0.0)
     unit = e.tangent_cam / np.maximum(np.linalg.norm(e.tangent_cam, axis=1), 1e-9)[:, None]
     ori = quantise(edge_normals_px(e.p_cam, unit, intr)[1])
     every = share_agreeing(e.uv, ori, agreeing)
     inner = ~e.outline & _inside(e.uv, agreeing.shape)
+    out = e.outline
     return {"edge_agreement": every,
-            "outline_agreement": share_agreeing(e.uv[e.outline], ori[e.outline], agreeing),
+            "outline_agreement": share_agreeing(e.uv[out], ori[out], agreeing),
             "inner_agreement": share_agreeing(e.uv[inner], ori[inner], agreeing)
-            if inner.sum() >= MIN_INNER_POINTS else every}
+            if inner.sum() >= MIN_INNER_POINTS else every,
+            "edge_coverage": share_agreeing(e.uv, ori, agreeing, coverage_weights),
+            "outline_coverage": share_agreeing(e.uv[out], ori[out], agreeing, coverage_weights)}
 
 
 def edge_normals_px(p_cam: np.ndarray, tangent_cam: np.ndarray, intr: Intrinsics
@@ -79,15 +95,46 @@ def edge_normals_px(p_cam: np.ndarray, tangent_cam: np.ndarray, intr: Intrinsics
     return uv, np.arctan2(d[:, 0], -d[:, 1])
 
 
-def share_agreeing(uv: np.ndarray, ori: np.ndarray, agreeing: np.ndarray) -> float:
-    """The weighted share (``gradients.balanced_weights``) of the points at pixels ``uv`` inside the image
-    whose orientation bin ``ori`` is set in ``agreeing`` (a frame's ``agreeing_bits``); 0 with none."""
+def coverage_weights(uv: np.ndarray, ori: np.ndarray) -> np.ndarray:
+    """Weights of points at pixels ``uv`` with orientation bins ``ori``: 1 / (the points of the same bin
+    within ``COVERAGE_RADIUS_PX``, itself included), summing to 1."""
+    order = np.argsort(ori, kind="stable")
+    starts = np.searchsorted(ori[order], np.arange(N_ORI + 1))
+    n = np.empty(len(uv))
+    n[order] = _neighbours_in_bin(np.ascontiguousarray(uv[order], np.float64), starts, COVERAGE_RADIUS_PX ** 2)
+    w = 1.0 / n
+    return w / w.sum()
+
+
+@numba.njit(cache=True)
+def _neighbours_in_bin(uv, starts, r2):  # pragma: no cover - compiled
+    """Points sorted by bin (bin b: ``starts[b]:starts[b + 1]``) -> each one's points of its bin within
+    sqrt(r2), itself included."""
+    out = np.zeros(uv.shape[0])
+    for b in range(starts.shape[0] - 1):
+        for i in range(starts[b], starts[b + 1]):
+            c = 0
+            for j in range(starts[b], starts[b + 1]):
+                du = uv[i, 0] - uv[j, 0]
+                dv = uv[i, 1] - uv[j, 1]
+                if du * du + dv * dv <= r2:
+                    c += 1
+            out[i] = c
+    return out
+
+
+def share_agreeing(uv: np.ndarray, ori: np.ndarray, agreeing: np.ndarray,
+                   weights: Callable[..., np.ndarray] | None = None) -> float:
+    """The weighted share of the points at pixels ``uv`` inside the image whose orientation bin ``ori`` is
+    set in ``agreeing`` (a frame's ``agreeing_bits``); 0 with none. ``weights(uv, ori)`` of the points
+    inside (None: ``gradients.balanced_weights`` of their bins)."""
     inside = _inside(uv, agreeing.shape)
     if not inside.any():
         return 0.0
     iu, iv = np.rint(uv[inside, 0]).astype(int), np.rint(uv[inside, 1]).astype(int)
     agree = (agreeing[iv, iu] >> ori[inside]) & 1
-    return float((balanced_weights(ori[inside]) * agree).sum())
+    w = balanced_weights(ori[inside]) if weights is None else weights(uv[inside], ori[inside])
+    return float((w * agree).sum())
 
 
 def _inside(uv: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

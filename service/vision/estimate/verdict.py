@@ -31,13 +31,14 @@ FEATURES = ("edge_support", "unexplained", "colour_edge", "polarity", "region", 
             # the taught appearance's (``evidence.appearance``): only for a part with reference photos
             "appearance", "appearance_known",
             # with a plane: the gradient orientation along every visible CAD edge, along the inner ones
-            # and along the outline alone (``edge_agreement.py``): evidence that assumes no material
-            "edge_agreement", "inner_agreement", "outline_agreement")
+            # and along the outline alone, and along every edge and the outline by their extent
+            # (``edge_agreement.py``): evidence that assumes no material
+            "edge_agreement", "inner_agreement", "outline_agreement", "edge_coverage", "outline_coverage")
 # Evidence an older record (a bench cache made before it existed) may lack: read as 0 in a feature vector.
 # Of these, reported only for a part with taught colours (scored by ``APPEARANCE_WEIGHTS`` then).
 TAUGHT_FEATURES = ("appearance", "appearance_known")
 # Reported only with a plane (``pipeline/check.judge``).
-PLANE_FEATURES = ("edge_agreement", "inner_agreement", "outline_agreement")
+PLANE_FEATURES = ("edge_agreement", "inner_agreement", "outline_agreement", "edge_coverage", "outline_coverage")
 LATER_FEATURES = ("distinct_px", *TAUGHT_FEATURES, *PLANE_FEATURES)
 # Evidence the verification score of an untaught part may use, and which of it counts against a pose.
 MODEL_FEATURES = ("edge_support", "unexplained", "colour_edge", "region_low", "region_global", "coherence",
@@ -118,8 +119,9 @@ def distinct(ev: dict) -> bool:
 
 
 # The agreements a part's calibration may judge it on (``pipeline/plane_calibration``): along every visible
-# edge, or along the outline alone (a part whose creases seldom show reads its outline undiluted).
-AGREEMENT_EVIDENCE = ("edge_agreement", "outline_agreement")
+# edge, or along the outline alone (a part whose creases seldom show reads its outline undiluted), each by
+# its orientations or by its extent (a look-alike longer or shorter than the part differs at an end only).
+AGREEMENT_EVIDENCE = ("edge_agreement", "outline_agreement", "edge_coverage", "outline_coverage")
 
 
 def material_free(ev: dict, along: str = "edge_agreement") -> float:
