@@ -353,11 +353,12 @@ class PlaneCalibrationInfo(BaseModel):
         None, description="the least agreement a pose on a plane is found with, whatever its other evidence "
         "(verdict reason edges_disagree below it): 0.08 under the lowest a right pose read in its scenes; "
         "null until calibrated")
-    agreement_along: Literal["edge_agreement", "outline_agreement", "edge_coverage", "outline_coverage"] | None = \
-        Field(None, description="the evidence agreement_min and agreement_floor read: edge_agreement (every "
-              "visible edge), or outline_agreement (the outline alone), edge_coverage or outline_coverage "
-              "(the same by the edges' extent) where that let a tenth more of its scenes' right poses reach "
-              "their point; null until calibrated")
+    agreement_along: Literal["edge_agreement", "outline_agreement", "edge_coverage",
+                             "outline_coverage"] | None = Field(
+        None, description="the evidence agreement_min and agreement_floor read: edge_agreement (every "
+        "visible edge), or outline_agreement (the outline alone), edge_coverage or outline_coverage "
+        "(the same by the edges' extent) where that let a tenth more of its scenes' right poses reach "
+        "their point; null until calibrated")
     scenes: int | None = Field(description="rendered scenes it was calibrated on (null until calibrated)")
     error: str | None = Field(None, description="why it failed (status failed), else null")
 

@@ -162,7 +162,7 @@ def test_a_longer_look_alike_differs_at_an_arm_end_which_coverage_weighs_as_a_st
     x0, y0, wid = 20, 130, 6
     pts, ori = [], []
     def side(us, vs, b):
-        pts.extend(zip(us, vs))
+        pts.extend(zip(us, vs, strict=True))
         ori.extend([b] * len(us))
     u = np.arange(x0, x0 + 200.0)
     side(u, np.full(200, y0), 4)  # long arm, its two sides (normal along v: bin 4 of 0..7 over 180 deg)

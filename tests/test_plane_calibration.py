@@ -8,15 +8,17 @@ Scenes: the L-shaped block of tests/conftest.py among look-alike shapes, drawn b
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import trimesh
 
 from service.vision.estimate.verdict import MIN_SCORE, PlaneAgreement, agreement_score, decide, material_free
 from service.vision.geometry.camera import project
 from service.vision.geometry.plane import rest_gap_mm
 from service.vision.pipeline import estimate
-from service.vision.pipeline.calibration_scenes import scene
+from service.vision.pipeline.calibration_scenes import _part_alike, scene
 from service.vision.pipeline.plane_calibration import (
     ALONG_MIN_GAIN,
     MARGIN,
@@ -179,11 +181,6 @@ def test_calibration_records_the_copies_it_finds_as_right_and_the_estimate_reads
 @pytest.mark.parametrize("up_axis", [2, 0])
 def test_a_stretched_look_alike_is_stretched_along_the_table_so_its_outline_from_above_differs(up_axis):
     # a 60 x 30 x 4 mm plate resting with its object axis ``up_axis`` along the table's normal
-    import trimesh
-    from types import SimpleNamespace
-
-    from service.vision.pipeline.calibration_scenes import _part_alike
-
     plate = trimesh.creation.box([60.0, 30.0, 4.0])
     R_rest = np.eye(3) if up_axis == 2 else np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
     part = SimpleNamespace(vertices_mm=np.asarray(plate.vertices, float), faces=np.asarray(plate.faces),

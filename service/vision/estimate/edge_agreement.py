@@ -101,7 +101,8 @@ def coverage_weights(uv: np.ndarray, ori: np.ndarray) -> np.ndarray:
     order = np.argsort(ori, kind="stable")
     starts = np.searchsorted(ori[order], np.arange(N_ORI + 1))
     n = np.empty(len(uv))
-    n[order] = _neighbours_in_bin(np.ascontiguousarray(uv[order], np.float64), starts, COVERAGE_RADIUS_PX ** 2)
+    n[order] = _neighbours_in_bin(np.ascontiguousarray(uv[order], np.float64), starts,
+                                  COVERAGE_RADIUS_PX ** 2)
     w = 1.0 / n
     return w / w.sum()
 

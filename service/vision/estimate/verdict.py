@@ -38,7 +38,8 @@ FEATURES = ("edge_support", "unexplained", "colour_edge", "polarity", "region", 
 # Of these, reported only for a part with taught colours (scored by ``APPEARANCE_WEIGHTS`` then).
 TAUGHT_FEATURES = ("appearance", "appearance_known")
 # Reported only with a plane (``pipeline/check.judge``).
-PLANE_FEATURES = ("edge_agreement", "inner_agreement", "outline_agreement", "edge_coverage", "outline_coverage")
+PLANE_FEATURES = ("edge_agreement", "inner_agreement", "outline_agreement", "edge_coverage",
+                  "outline_coverage")
 LATER_FEATURES = ("distinct_px", *TAUGHT_FEATURES, *PLANE_FEATURES)
 # Evidence the verification score of an untaught part may use, and which of it counts against a pose.
 MODEL_FEATURES = ("edge_support", "unexplained", "colour_edge", "region_low", "region_global", "coherence",
