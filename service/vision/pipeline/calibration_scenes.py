@@ -5,11 +5,12 @@ A scene: a camera 20-50 deg from straight down, its distance putting the part's 
 (held inside the distance range a request without one searches, so a small part appears smaller);
 2-5 copies of the part in its resting poses (the bank's families, by their probability), any spin,
 and 3-7 distractors on a plain, noisy, grained or checked table: cylinders, bars, rings, discs and plates
-sized like the part, and the part itself scaled or stretched (a short screw's wrong poses lie on long
-ones, a nozzle's on larger nozzles); and 0-2 more copies lying tilted on top of those objects (a pose
-on the table fits a stacked copy's outline at the wrong height and turn). Each object has its own
-material: matte or shiny (Blinn-Phong highlights with a reflected sky gradient for metal), any colour,
-one light. Copies and distractors may touch and hide each other. Everything is drawn from the ``rng`` given.
+sized like the part, and the part itself scaled, or stretched along the table (a short screw's wrong
+poses lie on long ones, a nozzle's on larger nozzles); and 0-2 more copies lying tilted on top of those
+objects (a pose on the table fits a stacked copy's outline at the wrong height and turn). Each object
+has its own material: matte or shiny (Blinn-Phong highlights with a reflected sky gradient for metal),
+any colour, one light. Copies and distractors may touch and hide each other. Everything is drawn from
+the ``rng`` given.
 """
 
 from __future__ import annotations
@@ -41,10 +42,10 @@ SPREAD_DIAMETERS = 1.0
 OVERLAP = 0.3
 STACKED = (0, 2)  # copies lying on top of another object
 STACKED_TILT_DEG = (5.0, 25.0)
-STACKED_SINK = (0.5, 0.9)
+STACKED_SINK = (0.5, 0.9)  # the stacked copy's lowest point at this share of the object's height under it
 # a part stretched along an axis standing up more than this (the axis's share of the table's normal) is
 # stretched along its flattest axis instead (``_along_table``)
-MAX_STRETCH_UP = 0.5  # the stacked copy's lowest point at this share of the object's height under it
+MAX_STRETCH_UP = 0.5
 SHINY_SHARE = 0.5
 
 
@@ -92,10 +93,13 @@ def _distractor(rng: np.random.Generator, bank) -> _Solid:
 
 
 def _part_alike(rng: np.random.Generator, bank, stretched: bool) -> _Solid:
-    """The part in one of its resting poses, scaled by 0.6-0.8 or 1.25-1.6 (or along one of its axes only,
-    by 0.5-0.75 or 1.3-2): a look-alike no true pose of it explains."""
+    """The part in one of its resting poses, scaled by 0.6-0.8 or 1.25-1.6 (or along one of its axes
+    lying along the table only, by 0.5-0.75 or 1.3-2: ``_along_table``): a look-alike no true pose of it
+    explains."""
     low, high = ((0.5, 0.75), (1.3, 2.0)) if stretched else ((0.6, 0.8), (1.25, 1.6))
     s = rng.uniform(*(low if rng.uniform() < 0.5 else high))
+    # (drawn in the order the draws had before the axis was kept along the table: a scaled look-alike,
+    # and a stretched one whose axis already lay along it, come out as they did)
     axis = int(rng.integers(0, 3)) if stretched else 0
     prob = np.asarray(bank.rest_probability, float)
     R_rest = np.asarray(bank.R_rest_obj[int(rng.choice(len(prob), p=prob / prob.sum()))], float)
