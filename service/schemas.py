@@ -26,6 +26,7 @@ from pydantic import (
 from service.cell import extent_warnings, nearest_rotation, rigid, snap_warning, watertight_warnings
 from service.plane_calibrations import plane_calibration_info
 from service.vision.estimate.plane import PLANE_TOLERANCE_MM
+from service.vision.estimate.verdict import AGREEMENT_EVIDENCE
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, euler_xyz_deg_from_R, quat_xyzw_from_R
 from service.vision.pipeline import EstimateOutput, PoseCandidate, RefinedPose
@@ -353,8 +354,7 @@ class PlaneCalibrationInfo(BaseModel):
         None, description="the least agreement a pose on a plane is found with, whatever its other evidence "
         "(verdict reason edges_disagree below it): 0.08 under the lowest a right pose read in its scenes; "
         "null until calibrated")
-    agreement_along: Literal["edge_agreement", "outline_agreement", "edge_coverage",
-                             "outline_coverage"] | None = Field(
+    agreement_along: Literal[AGREEMENT_EVIDENCE] | None = Field(
         None, description="the evidence agreement_min and agreement_floor read: edge_agreement (every "
         "visible edge), or outline_agreement (the outline alone), edge_coverage or outline_coverage "
         "(the same by the edges' extent) where that let a tenth more of its scenes' right poses reach "

@@ -103,7 +103,8 @@ class ColourFrame:
 
     @functools.cached_property
     def orientations(self) -> np.ndarray:
-        """(H, W) uint8 gradient orientation bits (``gradients.orientation_bits``), made once per frame."""
+        """(H, W) uint8 gradient orientation bits (``gradients.gradient_bits`` of ``gradient``), made once
+        per frame."""
         return gradient_bits(self.gradient)
 
     @functools.cached_property
