@@ -8,6 +8,7 @@ the project's rasteriser at 640 x 480.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 
@@ -20,7 +21,14 @@ from service.vision.estimate.edge_agreement import (
     share_agreeing,
 )
 from service.vision.estimate.evidence import colour_frame
-from service.vision.estimate.gradients import N_ORI, best_in_window, orientation_bits, response_maps, score_at
+from service.vision.estimate.gradients import (
+    N_ORI,
+    best_in_window,
+    best_on_grid,
+    orientation_bits,
+    response_maps,
+    score_at,
+)
 from service.vision.estimate.plane import PlaneHypothesis
 from service.vision.estimate.plane_match import (
     GradientSearch,
@@ -228,6 +236,65 @@ def test_the_best_in_a_window_is_the_brute_force_best_over_its_cells():
                  for gx in range(2, 9) for gy in range(3, 8)}
         assert scores[k] == pytest.approx(max(brute.values()), abs=1e-5)
         assert brute[tuple(at[k])] == pytest.approx(scores[k], abs=1e-5)
+
+
+def _random_templates(rng, M, P):
+    dx = rng.integers(-12, 12, (M, P)).astype(np.int32)
+    dy = rng.integers(-12, 12, (M, P)).astype(np.int32)
+    # coarse orientations and equal weights: many templates tie at a cell, where the first must win
+    ori = rng.integers(0, 2, (M, P)).astype(np.int32)
+    wt = np.full((M, P), 1 / P, np.float32)
+    return dx, dy, ori, wt, rng.integers(4, P + 1, M).astype(np.int32)
+
+
+@pytest.mark.parametrize("n_threads", [1, 2])
+def test_the_grid_keeps_each_cells_brute_force_best_template_the_first_on_a_tie(n_threads):
+    rng = np.random.default_rng(8)
+    bits = (1 << rng.integers(0, 2, (48, 64))).astype(np.uint8) * (rng.random((48, 64)) < 0.5)
+    t = 4
+    rm = response_maps(bits, t, 8)
+    gh, gw = rm.grid_shape
+    M, P = 40, 12
+    dx, dy, ori, wt, n_pts = _random_templates(rng, M, P)
+    g0, h0 = rng.integers(0, gw // 2, M), rng.integers(0, gh // 2, M)
+    cells = np.stack([g0, h0, g0 + rng.integers(1, gw // 2, M), h0 + rng.integers(1, gh // 2, M)], 1)
+    cells = cells.astype(np.int64)
+    best, best_m = np.full((gh, gw), -1.0, np.float32), np.full((gh, gw), -1, np.int64)
+    numba.set_num_threads(n_threads)
+    try:
+        best_on_grid(rm.lin, rm.pad, t, dx, dy, ori, wt, n_pts, cells, best, best_m)
+    finally:
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    for gy in range(gh):
+        for gx in range(gw):
+            here = [m for m in range(M) if cells[m, 0] <= gx < cells[m, 2] and cells[m, 1] <= gy < cells[m, 3]]
+            s = [score_at(rm.lin, rm.pad, t, dx[m], dy[m], ori[m], wt[m], int(n_pts[m]), gx * t, gy * t)
+                 for m in here]
+            if not here:
+                assert best_m[gy, gx] == -1
+                continue
+            top = max(s)
+            first = here[int(np.flatnonzero(np.isclose(s, top, atol=1e-6))[0])]
+            assert best[gy, gx] == pytest.approx(top, abs=1e-5) and best_m[gy, gx] == first
+
+
+def test_a_window_reads_the_same_best_templates_on_one_thread_as_on_two():
+    rng = np.random.default_rng(9)
+    bits = (1 << rng.integers(0, N_ORI, (48, 64))).astype(np.uint8) * (rng.random((48, 64)) < 0.4)
+    t = 4
+    rm = response_maps(bits, t, 8)
+    dx, dy, ori, wt, n_pts = _random_templates(rng, 30, 12)
+    ids = rng.permutation(30)[:25].astype(np.int64)
+    assert numba.config.NUMBA_NUM_THREADS >= 2, "the machine has a second core to split over"
+    read = []
+    for n in (1, 2):
+        numba.set_num_threads(n)
+        try:
+            read.append(best_in_window(rm.lin, rm.pad, t, dx, dy, ori, wt, n_pts, ids, 1, 2, 10, 9))
+        finally:
+            numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    np.testing.assert_array_equal(read[0][0], read[1][0])
+    np.testing.assert_array_equal(read[0][1], read[1][1])
 
 
 # Family 2 spun 90 deg shows, from this camera, the outline of family 3 at the same place: the grid

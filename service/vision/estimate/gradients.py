@@ -23,6 +23,8 @@ import cv2
 import numba
 import numpy as np
 
+from service.vision import threads
+
 N_ORI = 8  # orientation bins over 180 deg
 MAG_THRESHOLD = 40.0  # Sobel (3 x 3) magnitude on 0..255 channels below which a pixel has no orientation
 BLUR_SIGMA = 1.0  # Gaussian blur before the gradient (px)
@@ -152,11 +154,12 @@ def response_maps(bits: np.ndarray, t: int, pad: int) -> ResponseMaps:
 
 
 @numba.njit(cache=True, nogil=True)
-def score_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, best, best_m):  # pragma: no cover - compiled
-    """Every template m at every grid cell of its rectangle ``cells[m]`` = (gx0, gy0, gx1, gy1): keeps
-    the best score and its template per cell in ``best`` / ``best_m`` (Gh, Gw)."""
+def score_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, best, best_m, m0, m1):  # pragma: no cover - compiled
+    """Every template m in [m0, m1) at every grid cell of its rectangle ``cells[m]`` = (gx0, gy0, gx1,
+    gy1): keeps the best score and its template per cell in ``best`` / ``best_m`` (Gh, Gw), the first
+    template on a tie."""
     acc = np.zeros(best.shape, np.float32)
-    for m in range(dx.shape[0]):
+    for m in range(m0, m1):
         g0, h0, g1, h1 = cells[m, 0], cells[m, 1], cells[m, 2], cells[m, 3]
         for gy in range(h0, h1):
             for gx in range(g0, g1):
@@ -181,6 +184,48 @@ def score_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, best, best_m):  # prag
                     best_m[gy, gx] = m
 
 
+def best_on_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, best, best_m) -> None:
+    """``score_grid`` over every template, the templates split into contiguous runs of about equal work
+    scored on the process's threads (numba's count in the calling thread: ``threads.use_budget``), each
+    run on its own copy of ``best`` / ``best_m``, then merged in template order: a later run's cell
+    replaces the earlier ones' only where it scores higher, as one run over them all leaves it."""
+    work = np.asarray(npts, np.float64) * _cell_counts(cells)
+    starts = _runs(work, numba.get_num_threads())
+    if len(starts) <= 2:
+        score_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, best, best_m, 0, len(npts))
+        return
+    runs = [(best.copy(), best_m.copy(), int(m0), int(m1)) for m0, m1 in zip(starts[:-1], starts[1:], strict=True)]
+
+    def scored(run):
+        score_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, *run)
+
+    pool = threads.background()
+    later = [pool.submit(scored, run) for run in runs[1:]]
+    scored(runs[0])
+    for f in later:
+        f.result()
+    for b, bm, _, _ in runs:
+        higher = b > best
+        best[higher] = b[higher]
+        best_m[higher] = bm[higher]
+
+
+def _cell_counts(cells: np.ndarray) -> np.ndarray:
+    """(M,) grid cells of each template's rectangle (gx0, gy0, gx1, gy1)."""
+    c = np.asarray(cells, np.float64)
+    return np.maximum(c[:, 2] - c[:, 0], 0.0) * np.maximum(c[:, 3] - c[:, 1], 0.0)
+
+
+def _runs(work: np.ndarray, n: int) -> np.ndarray:
+    """Boundaries 0 = s_0 < ... < s_k = len(work) of at most ``n`` contiguous runs of about equal total
+    ``work``."""
+    total = float(work.sum())
+    if n <= 1 or len(work) < 2 or total <= 0.0:
+        return np.array([0, len(work)])
+    cut = np.searchsorted(np.cumsum(work), total * np.arange(1, n) / n)
+    return np.unique(np.concatenate([[0], np.clip(cut + 1, 1, len(work) - 1), [len(work)]]))
+
+
 @numba.njit(cache=True, nogil=True)
 def score_at(lin, pad, t, dx, dy, ori, wt, n, u, v):  # pragma: no cover - compiled
     """One template's score at anchor pixel (u, v), any pixel; 0 for points beyond the padding."""
@@ -199,8 +244,22 @@ def score_at(lin, pad, t, dx, dy, ori, wt, n, u, v):  # pragma: no cover - compi
     return s / 4.0
 
 
+def best_in_window(lin, pad, t, dx, dy, ori, wt, npts, ids, g0, h0, g1, h1) -> tuple[np.ndarray, np.ndarray]:
+    """``_best_in_window`` of the templates ``ids``, split into contiguous runs of about equal work scored
+    on the process's threads (as ``best_on_grid``): each template's best is its own."""
+    starts = _runs(np.asarray(npts, np.float64)[ids], numba.get_num_threads())
+    if len(starts) <= 2:
+        return _best_in_window(lin, pad, t, dx, dy, ori, wt, npts, ids, g0, h0, g1, h1)
+    pool = threads.background()
+    later = [pool.submit(_best_in_window, lin, pad, t, dx, dy, ori, wt, npts, ids[a:b], g0, h0, g1, h1)
+             for a, b in zip(starts[1:-1], starts[2:], strict=True)]
+    first = _best_in_window(lin, pad, t, dx, dy, ori, wt, npts, ids[:starts[1]], g0, h0, g1, h1)
+    parts = [first, *(f.result() for f in later)]
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
 @numba.njit(cache=True, nogil=True)
-def best_in_window(lin, pad, t, dx, dy, ori, wt, npts, ids, g0, h0, g1, h1):  # pragma: no cover - compiled
+def _best_in_window(lin, pad, t, dx, dy, ori, wt, npts, ids, g0, h0, g1, h1):  # pragma: no cover - compiled
     """Each template ``ids[k]``'s best score over the grid cells [g0, g1) x [h0, h1) -> ((K,) scores,
     (K, 2) its cell (gx, gy))."""
     scores = np.full(ids.shape[0], -1.0, np.float32)

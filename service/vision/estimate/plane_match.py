@@ -29,10 +29,10 @@ from service.vision.estimate.gradients import (
     ResponseMaps,
     balanced_weights,
     best_in_window,
+    best_on_grid,
     quantise,
     response_maps,
     score_at,
-    score_grid,
 )
 from service.vision.estimate.plane import PlaneHypothesis, rotations
 from service.vision.geometry.camera import Intrinsics
@@ -165,7 +165,7 @@ def match(rm: ResponseMaps, tpl: PlaneTemplates, bank: TemplateBank, intr: Intri
     cells[:, 3] = np.minimum(cells[:, 3], gh)
     best = np.full((gh, gw), -1.0, np.float32)
     best_m = np.full((gh, gw), -1, np.int64)
-    score_grid(rm.lin, rm.pad, t, tpl.dx, tpl.dy, tpl.ori, tpl.weight, tpl.n_pts, cells, best, best_m)
+    best_on_grid(rm.lin, rm.pad, t, tpl.dx, tpl.dy, tpl.ori, tpl.weight, tpl.n_pts, cells, best, best_m)
     peaks = np.argwhere((best >= cv2.dilate(best, np.ones((3, 3), np.uint8)) - 1e-9) & (best >= min_score))
     peaks = peaks[np.argsort(-best[peaks[:, 0], peaks[:, 1]], kind="stable")]
     picked: list[tuple[float, int, int, int]] = []
