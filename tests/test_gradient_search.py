@@ -267,7 +267,8 @@ def test_the_grid_keeps_each_cells_brute_force_best_template_the_first_on_a_tie(
         numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
     for gy in range(gh):
         for gx in range(gw):
-            here = [m for m in range(M) if cells[m, 0] <= gx < cells[m, 2] and cells[m, 1] <= gy < cells[m, 3]]
+            here = [m for m in range(M)
+                    if cells[m, 0] <= gx < cells[m, 2] and cells[m, 1] <= gy < cells[m, 3]]
             s = [score_at(rm.lin, rm.pad, t, dx[m], dy[m], ori[m], wt[m], int(n_pts[m]), gx * t, gy * t)
                  for m in here]
             if not here:

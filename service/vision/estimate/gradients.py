@@ -154,7 +154,7 @@ def response_maps(bits: np.ndarray, t: int, pad: int) -> ResponseMaps:
 
 
 @numba.njit(cache=True, nogil=True)
-def score_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, best, best_m, m0, m1):  # pragma: no cover - compiled
+def score_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, best, best_m, m0, m1):  # pragma: no cover
     """Every template m in [m0, m1) at every grid cell of its rectangle ``cells[m]`` = (gx0, gy0, gx1,
     gy1): keeps the best score and its template per cell in ``best`` / ``best_m`` (Gh, Gw), the first
     template on a tie."""
@@ -194,7 +194,8 @@ def best_on_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, best, best_m) -> Non
     if len(starts) <= 2:
         score_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, best, best_m, 0, len(npts))
         return
-    runs = [(best.copy(), best_m.copy(), int(m0), int(m1)) for m0, m1 in zip(starts[:-1], starts[1:], strict=True)]
+    runs = [(best.copy(), best_m.copy(), int(m0), int(m1))
+            for m0, m1 in zip(starts[:-1], starts[1:], strict=True)]
 
     def scored(run):
         score_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, *run)
