@@ -192,8 +192,9 @@ def run_set(name: str, *, stride: int = 1, start: int = 0, models: set[str] | No
                 cal = plane_calibration(banks[model], model, set_dir / "models" / f"{model}.stl",
                                         calibration_scenes, calibration_margin, policy, calibration_along)
                 agreement[model] = cal.agreement
-                print(f"{Path(name).name} {model}: agreement_min {cal.agreement_min}, floor "
-                      f"{cal.agreement_floor}, along {cal.agreement_along}, right "
+                by_rest = ", ".join("-" if a is None else f"{a:.3f}" for a in cal.agreement_min_by_rest)
+                print(f"{Path(name).name} {model}: agreement_min {cal.agreement_min}, by rest [{by_rest}], "
+                      f"floor {cal.agreement_floor}, along {cal.agreement_along}, right "
                       f"{cal.right}/{cal.right_total}, wrong max {cal.wrong_max:.3f} of {cal.wrong_total}",
                       file=sys.stderr)
         info = load_model_info(set_dir, model, meta, minfo)

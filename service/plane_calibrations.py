@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from service.stores.base import Store
 
 # The calibration's method: a calibration of another is made again.
-VERSION = 6
+VERSION = 7
 KEY = "plane_calibration"
 
 
@@ -53,6 +53,12 @@ def agreement_floor_of(record: dict[str, Any]) -> float | None:
     return _calibrated_value(record, "agreement_floor")
 
 
+def agreement_min_by_rest_of(record: dict[str, Any]) -> tuple[float | None, ...]:
+    """Each resting family's agreement to reach (None: ``agreement_min``); empty until calibrated."""
+    kept = (_calibrated(record) or {}).get("agreement_min_by_rest") or ()
+    return tuple(None if a is None else float(a) for a in kept)
+
+
 def agreement_along_of(record: dict[str, Any]) -> str | None:
     """Along which edges the part's agreement is read (``verdict.AGREEMENT_EVIDENCE``); None until
     calibrated."""
@@ -65,7 +71,8 @@ def plane_agreement_of(record: dict[str, Any]) -> PlaneAgreement | None:
     along = agreement_along_of(record)
     if along is None:
         return None
-    return PlaneAgreement(agreement_min_of(record), agreement_floor_of(record), along)
+    return PlaneAgreement(agreement_min_of(record), agreement_floor_of(record), along,
+                          agreement_min_by_rest_of(record))
 
 
 def _calibrated(record: dict[str, Any]) -> dict[str, Any] | None:
@@ -112,6 +119,8 @@ def plane_calibration_info(record: dict[str, Any], scenes: int | None) -> dict[s
             "agreement_min": agreement_min_of(record),
             "agreement_floor": agreement_floor_of(record),
             "agreement_along": agreement_along_of(record),
+            "agreement_min_by_rest": list(agreement_min_by_rest_of(record))
+            if status == "calibrated" else None,
             "wrong_max": cal.get("wrong_max") if current else None,
             "scenes": int(cal.get("scenes") or 0) if status == "calibrated" else None,
             "error": cal.get("error") if status == "failed" else None}
@@ -130,6 +139,7 @@ def calibrate_plane_stored(store: Store, mid: str, bank: TemplateBank, scenes: i
     cal = calibrate_plane(bank, scenes, progress=told)
     kept = {"version": VERSION, "status": "calibrated", "agreement_min": cal.agreement_min,
             "agreement_floor": cal.agreement_floor, "agreement_along": cal.agreement_along,
+            "agreement_min_by_rest": list(cal.agreement_min_by_rest),
             "wrong_max": float(cal.wrong_max), "right": cal.right, "right_total": cal.right_total,
             "wrong_total": cal.wrong_total, "scenes": cal.scenes}
     return store.update(mid, **{KEY: kept})

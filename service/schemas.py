@@ -359,6 +359,11 @@ class PlaneCalibrationInfo(BaseModel):
         "visible edge), or outline_agreement (the outline alone), edge_coverage or outline_coverage "
         "(the same by the edges' extent) where that let a tenth more of its scenes' right poses reach "
         "their point; null until calibrated")
+    agreement_min_by_rest: list[float | None] | None = Field(
+        None, description="the agreement_min of a pose in each of the part's resting families (in the "
+        "order of its stable poses), 0.08 above the highest a wrong pose in that family reached, where its "
+        "scenes held at least 4 wrong poses in it a scene; null entries read agreement_min; null until "
+        "calibrated")
     scenes: int | None = Field(description="rendered scenes it was calibrated on (null until calibrated)")
     error: str | None = Field(None, description="why it failed (status failed), else null")
 

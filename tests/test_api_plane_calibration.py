@@ -87,8 +87,11 @@ def test_a_ready_part_is_calibrated_in_the_background_and_an_estimate_on_a_plane
     assert kept["status"] == "calibrated" and kept["scenes"] == SCENES
     if kept["wrong_total"] >= MIN_WRONG_PER_SCENE * SCENES:
         assert info["agreement_min"] == pytest.approx(kept["wrong_max"] + MARGIN)
+        # a family's wrong poses are some of the part's: its point is never above the part's
+        assert all(a is None or a <= info["agreement_min"] + 1e-12 for a in info["agreement_min_by_rest"])
     else:  # too few wrong candidates to say how high a wrong one reads: not calibrated
-        assert info["agreement_min"] is None
+        assert info["agreement_min"] is None and info["agreement_min_by_rest"] == []
+    assert info["agreement_min_by_rest"] == kept["agreement_min_by_rest"]
     # the floor, a margin under every right candidate's agreement (none with too few of them), as kept
     assert info["agreement_floor"] == kept["agreement_floor"]
     assert info["agreement_along"] == kept["agreement_along"] in AGREEMENT_EVIDENCE
@@ -108,4 +111,5 @@ def test_without_scenes_no_calibration_is_made_and_get_says_not_requested(tmp_pa
         wait_built(c, r.json()["id"])
         info = c.get(f"/models/{r.json()['id']}").json()["plane_calibration"]
         assert info == {"status": "not_requested", "progress": 0.0, "agreement_min": None, "wrong_max": None,
-                        "agreement_floor": None, "agreement_along": None, "scenes": None, "error": None}
+                        "agreement_floor": None, "agreement_along": None, "agreement_min_by_rest": None,
+                        "scenes": None, "error": None}

@@ -16,13 +16,16 @@ import trimesh
 
 from service.vision.estimate.verdict import MIN_SCORE, PlaneAgreement, agreement_score, decide, material_free
 from service.vision.geometry.camera import project
-from service.vision.geometry.plane import rest_gap_mm
+from service.vision.geometry.frames import Rx, Rz
+from service.vision.geometry.plane import Plane, R_cam_rest, rest_gap_mm
 from service.vision.pipeline import estimate
 from service.vision.pipeline.calibration_scenes import _part_alike, scene
+from service.vision.pipeline.part import rest_family
 from service.vision.pipeline.plane_calibration import (
     ALONG_MIN_GAIN,
     MARGIN,
     MIN_RIGHT_PER_SCENE,
+    MIN_WRONG_PER_REST_SCENE,
     MIN_WRONG_PER_SCENE,
     RIGHT_PX,
     PlaneRecord,
@@ -74,6 +77,56 @@ def test_the_agreement_to_reach_lies_a_margin_above_the_highest_wrong_candidates
     assert calibrated(records[1:], scenes=3).agreement_min is None  # too few wrong candidates
     assert cal.agreement_along == "edge_agreement"  # records without an outline's agreement read 0 there
     assert cal.agreement == PlaneAgreement(cal.agreement_min, cal.agreement_floor, "edge_agreement")
+
+
+def test_each_resting_family_has_its_own_point_where_its_scenes_hold_enough_wrong_poses():
+    def rec(agreement, error_px, rest):
+        return PlaneRecord(error_px, "low_score", {"edge_agreement": agreement, "polarity": 1.0,
+                                                   "distinct_px": 2.0}, rest)
+
+    scenes = 2
+    n = MIN_WRONG_PER_REST_SCENE * scenes
+    # family 0's wrong poses read low, family 1's high; family 2 has one: too few to say
+    wrong = ([rec(0.30, 50.0, 0) for _ in range(n)] + [rec(0.60, 50.0, 1) for _ in range(n)]
+             + [rec(0.20, 50.0, 2)] + [rec(0.25, 50.0, 3) for _ in range(MIN_WRONG_PER_SCENE * scenes)])
+    right = [rec(0.50, 2.0, 0), rec(0.50, 2.0, 2), rec(0.70, 2.0, 1)]
+    cal = calibrated([*wrong, *right], scenes=scenes)
+    assert cal.agreement_min == pytest.approx(0.60 + MARGIN)  # the part's: its highest wrong pose's
+    assert cal.agreement_min_by_rest == pytest.approx((0.30 + MARGIN, 0.60 + MARGIN, None, 0.25 + MARGIN))
+    assert cal.right == 2  # family 0's 0.5 reaches its 0.38; family 2's reads the part's 0.68
+    at = cal.agreement
+    assert at.at_rest(0).point == pytest.approx(0.30 + MARGIN) and at.at_rest(2).point == cal.agreement_min
+    assert at.at_rest(7).point == at.at_rest(-1).point == cal.agreement_min  # no such family: the part's
+    ev = {"edge_agreement": 0.5, "polarity": 1.0, "distinct_px": 2.0, "edge_support": 0.0, "unexplained": 1.0,
+          "colour_edge": 0.0, "region_low": 0.0, "region_global": 0.0, "coherence": 0.0, "shading_r2": 0.0,
+          "shading_std": 0.0, "generic": 1.0, "region": 0.0}
+    on_plane = {"plane_gap_mm": 0.0, "plane_tolerance_mm": 5.0}
+    assert decide(ev, **on_plane, agreement=at.at_rest(0)).found
+    assert not decide(ev, **on_plane, agreement=at.at_rest(2)).found
+    # records of no known family (-1) give no family a point
+    assert calibrated([rec(r.evidence["edge_agreement"], r.error_px, -1) for r in [*wrong, *right]],
+                      scenes=scenes).agreement_min_by_rest == ()
+
+
+def test_a_pose_on_a_plane_is_in_the_resting_family_it_was_turned_from():
+    plane = Plane(np.array([0.0, -0.5, -1.0]) / np.linalg.norm([0.0, -0.5, -1.0]), -400.0)
+    # a cylinder along its object z: standing on either end, or lying (any roll about its axis)
+    cylinder = SimpleNamespace(R_rest_obj=np.stack([np.eye(3), Rx(180.0), Rx(90.0)]),
+                               symmetry_axis_obj=np.array([0.0, 0.0, 1.0]))
+    box = SimpleNamespace(R_rest_obj=np.stack([np.eye(3), Rx(90.0), Rx(180.0), Rx(-90.0)]),
+                          symmetry_axis_obj=None)
+    for part in (cylinder, box):
+        for s, R_rest_obj in enumerate(part.R_rest_obj):
+            for spin in (0.0, 70.0, 200.0):
+                R_cam_obj = R_cam_rest(plane) @ Rz(spin) @ R_rest_obj
+                assert rest_family(part, R_cam_obj, plane.normal) == s
+    # the lying cylinder rolled about its own axis is still lying; tilted 10 deg, still in its family
+    lying = R_cam_rest(plane) @ Rz(30.0) @ Rx(90.0)
+    for roll in (35.0, 120.0, 250.0):
+        assert rest_family(cylinder, lying @ Rz(roll), plane.normal) == 2
+    assert rest_family(cylinder, R_cam_rest(plane) @ Rx(10.0), plane.normal) == 0
+    assert rest_family(SimpleNamespace(R_rest_obj=np.zeros((0, 3, 3)), symmetry_axis_obj=None),
+                       np.eye(3), plane.normal) == -1
 
 
 def test_a_part_is_calibrated_along_the_edges_that_let_more_right_candidates_reach_their_point():
@@ -168,6 +221,7 @@ def test_a_pose_whose_edges_disagree_is_not_found_on_a_plane_however_its_shading
 def test_calibration_records_the_copies_it_finds_as_right_and_the_estimate_reads_its_agreement(bank):
     records = plane_records(bank, n_scenes=1, seed=7)
     assert records and all(math.isfinite(r.error_px) for r in records)
+    assert all(0 <= r.rest < len(bank.R_rest_obj) for r in records)  # each in a resting family of the part
     right = [r for r in records if r.error_px < RIGHT_PX]
     assert right, "the calibration scene's copies are among the checked candidates"
     # the same scene, estimated with the lowest agreement a right candidate read: it is found there

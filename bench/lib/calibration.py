@@ -28,15 +28,15 @@ def _method(policy: Policy) -> str:
     and check that end each candidate, and of the gradient search that proposes on them: a change makes
     the records again (the operating point is derived from them at every load: ``calibrated``)."""
     scenes = b"".join((ROOT / "service/vision" / f).read_bytes()
-                      for f in ("pipeline/calibration_scenes.py", "estimate/edge_agreement.py",
-                                "estimate/refine.py", "pipeline/check.py"))
+                      for f in ("pipeline/calibration_scenes.py", "pipeline/plane_calibration.py",
+                                "estimate/edge_agreement.py", "estimate/refine.py", "pipeline/check.py"))
     search = repr(policy.gradient).encode()
     return f"{hashlib.sha1(scenes).hexdigest()[:8]}-g{hashlib.sha1(search).hexdigest()[:6]}"
 
 
 def _record(row: dict) -> PlaneRecord:
     """A kept row (rows kept before the record lost its ``agreement``, the evidence's, carry it too)."""
-    return PlaneRecord(row["error_px"], row["reason"], row["evidence"])
+    return PlaneRecord(row["error_px"], row["reason"], row["evidence"], row["rest"])
 
 
 def plane_calibration(bank: TemplateBank, model: str, mesh_path: Path | None, scenes: int,

@@ -17,7 +17,7 @@ apart the two outlines lie (``distinct_px``) are reported and not scored (docs/d
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -137,10 +137,20 @@ def material_free(ev: dict, along: str = "edge_agreement") -> float:
 class PlaneAgreement:
     """A part's material-free operating point on a plane, calibrated on rendered scenes of it
     (``pipeline/plane_calibration``): a pose is also found when its agreement ``along`` reaches
-    ``point``, and never found under ``floor``, whatever its other evidence."""
+    ``point`` (its resting family's: ``at_rest``), and never found under ``floor``, whatever its other
+    evidence."""
     point: float | None  # None: not calibrated (too few wrong poses to say how high one reads)
     floor: float | None  # None: too few right poses to say how low one reads
     along: str = "edge_agreement"  # one of ``AGREEMENT_EVIDENCE``
+    # the point of a pose in each resting family (``part.rest_family``), where its scenes said how high a
+    # wrong pose in it reads; None (or no entry): ``point``
+    points_by_rest: tuple[float | None, ...] = ()
+
+    def at_rest(self, family: int) -> PlaneAgreement:
+        """The operating point of a pose in resting family ``family``."""
+        if not 0 <= family < len(self.points_by_rest) or self.points_by_rest[family] is None:
+            return self
+        return replace(self, point=self.points_by_rest[family])
 
 
 def agreement_score(ev: dict, agreement: PlaneAgreement) -> float:

@@ -6,11 +6,11 @@ A scene: a camera 20-50 deg from straight down, its distance putting the part's 
 2-5 copies of the part in its resting poses (the bank's families, by their probability), any spin,
 and 3-7 distractors on a plain, noisy, grained or checked table: cylinders, bars, rings, discs and plates
 sized like the part, and the part itself scaled, or stretched along the table (a short screw's wrong
-poses lie on long ones, a nozzle's on larger nozzles); and 0-2 more copies lying tilted on top of those
-objects (a pose on the table fits a stacked copy's outline at the wrong height and turn). Each object
-has its own material: matte or shiny (Blinn-Phong highlights with a reflected sky gradient for metal),
-any colour, one light. Copies and distractors may touch and hide each other. Everything is drawn from
-the ``rng`` given.
+poses lie on long ones, a nozzle's on larger nozzles); and 0-2 more copies lying on top of those
+objects, flat or tilted (a pose on the table fits a stacked copy's outline at the wrong height and
+turn). Each object has its own material: matte or shiny (Blinn-Phong highlights with a reflected sky
+gradient for metal), any colour, one light. Copies and distractors may touch and hide each other.
+Everything is drawn from the ``rng`` given.
 """
 
 from __future__ import annotations
@@ -41,7 +41,9 @@ SPREAD_DIAMETERS = 1.0
 # two objects' footprint circles may overlap by this share of their radii: touching, hiding each other
 OVERLAP = 0.3
 STACKED = (0, 2)  # copies lying on top of another object
-STACKED_TILT_DEG = (5.0, 25.0)
+# a stacked copy lies on its object turned by up to this: flat too, as a clamp on an air diverter's disc lies
+# (a pose on the table under it fits its outline a few mm too low)
+STACKED_TILT_DEG = (0.0, 25.0)
 STACKED_SINK = (0.5, 0.9)  # the stacked copy's lowest point at this share of the object's height under it
 # a part stretched along an axis standing up more than this (the axis's share of the table's normal) is
 # stretched along its flattest axis instead (``_along_table``)

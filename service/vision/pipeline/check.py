@@ -24,7 +24,7 @@ from service.vision.geometry.plane import Plane, rest_gap_mm
 from service.vision.model.appearance import Appearance
 from service.vision.model.mirror import twin_poses
 from service.vision.pipeline import timing
-from service.vision.pipeline.part import crease_edges_of, mirror_planes_of
+from service.vision.pipeline.part import crease_edges_of, mirror_planes_of, rest_family
 from service.vision.pipeline.policy import DEFAULT_POLICY, Policy
 from service.vision.pipeline.types import Checked, PoseCandidate, RefinedPose
 from service.vision.pipeline.unrefined import face_bgr_of, unrefined_score
@@ -67,8 +67,8 @@ def judge(bank: TemplateBank, c: Checked, frame: ColourFrame, intr: Intrinsics, 
     plane. ``unexplained`` may be a callable giving it (read after the evidence is measured).
     ``weights``: the score's weights for a part without taught colours (``Policy.verdict_weights``;
     None: the service's). On a plane the evidence also reports ``edge_agreement``, and a part whose
-    agreement is calibrated (``agreement``, ``pipeline/plane_calibration``) is also scored on it, and
-    not found under its floor."""
+    agreement is calibrated (``agreement``, ``pipeline/plane_calibration``) is also scored on it (at the
+    point of the resting family the pose is in), and not found under its floor."""
     pose = c.refined.pose
     ev = evidence(bank, pose, intr, frame, others_depth_mm, face_bgr_of(appearance)).as_dict()
     ev |= {"edge_support": edge_support, "unexplained": float(unexplained() if callable(unexplained)
@@ -76,6 +76,8 @@ def judge(bank: TemplateBank, c: Checked, frame: ColourFrame, intr: Intrinsics, 
     if plane is not None:  # reported: the evidence a material-free score of a part on a plane will read
         ev |= edge_agreement(bank.vertices_mm, bank.faces, crease_edges_of(bank), pose, intr, frame.agreeing)
     gap = rest_gap_mm(bank, pose, plane) if plane is not None else None
+    if plane is not None and agreement is not None and agreement.points_by_rest:
+        agreement = agreement.at_rest(rest_family(bank, pose.R, plane.normal))
     untaught = weights is not None and "appearance" not in ev  # taught: ``verdict.APPEARANCE_WEIGHTS``
     v = decide(ev, z_mm=float(pose.t_mm[2]), distance_range_mm=distance_range_mm, min_score=min_score,
                weights=dict(weights) if untaught else None, plane_gap_mm=gap,

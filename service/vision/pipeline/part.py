@@ -1,5 +1,5 @@
-"""What the estimate reads of the part beyond its templates: mirror planes, resting poses, face areas,
-crease edges.
+"""What the estimate reads of the part beyond its templates: mirror planes, resting poses (and which one a
+pose on a plane is in), face areas, crease edges.
 
 Each is the bank's, or, for a bank built before banks held it, made from its mesh once per bank.
 """
@@ -42,6 +42,22 @@ def resting_rotations(bank: TemplateBank) -> np.ndarray:
                             diameter_mm=bank.diameter_mm).R_rest_obj
 
     return _MADE.get(bank, "rest", make)
+
+
+def rest_family(bank: TemplateBank, R_cam_obj: np.ndarray, normal_cam: np.ndarray) -> int:
+    """The index of the resting family (``resting_rotations``) whose table normal, in the object frame,
+    lies nearest the plane's (``normal_cam``) at rotation ``R_cam_obj``; -1 for a part without any. For a
+    part with a symmetry axis, nearest by the normal's angle to the axis: a turn about it is the same pose."""
+    rest = resting_rotations(bank)
+    if not len(rest):
+        return -1
+    up_obj = np.asarray(R_cam_obj, float).T @ np.asarray(normal_cam, float)
+    rest_up_obj = rest[:, 2, :]  # each family's table normal in the object frame
+    if bank.symmetry_axis_obj is None:
+        return int(np.argmax(rest_up_obj @ up_obj))
+    axis = np.asarray(bank.symmetry_axis_obj, float)
+    angle = np.arccos(np.clip(rest_up_obj @ axis, -1.0, 1.0)) - np.arccos(np.clip(up_obj @ axis, -1.0, 1.0))
+    return int(np.argmin(np.abs(angle)))
 
 
 def face_areas_mm2(bank: TemplateBank) -> np.ndarray:

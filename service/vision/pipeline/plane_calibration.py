@@ -8,6 +8,8 @@ scenes (every candidate judged, as a request on a plane judges them), raised by 
 scenes are cleaner than a cell's photos, where wrong poses read a little higher. The agreement is read
 along every visible edge, or along the outline alone where that lets more of the scenes' right poses reach
 their point: a smooth moulding's creases seldom show under one light, and dilute what its outline says.
+A resting family whose scenes hold enough wrong poses in it has its own point (look-alikes fit an allen
+key in one of its lying poses better than in the other).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from service.vision.bank import TemplateBank
 from service.vision.estimate.verdict import AGREEMENT_EVIDENCE, PlaneAgreement, distinct, material_free
 from service.vision.pipeline.calibration_scenes import scene
 from service.vision.pipeline.estimate import estimate
+from service.vision.pipeline.part import rest_family
 from service.vision.pipeline.policy import DEFAULT_POLICY, Policy
 from service.vision.pipeline.teach import pose_error_px
 
@@ -40,6 +43,12 @@ MARGIN = 0.08
 MIN_WRONG_PER_SCENE = 8
 # ... and fewer right ones than this a scene, of how low a right pose reads: no floor
 MIN_RIGHT_PER_SCENE = 1
+# A resting family has its own point where its scenes gave at least this many wrong candidates in it a
+# scene: how high a wrong pose reads depends on the view (an allen key's look-alikes fit it in one of its
+# lying poses better than in the other: 0.59 against 0.53), and a pose is found in the family it is in.
+# The highest of fewer says too little: at 2 a scene an allen key's family of 32 wrong poses and no
+# right one read 0.40 at most, sygrid_synth's wrong poses in it 0.50 and 0.60
+MIN_WRONG_PER_REST_SCENE = 4
 # Another agreement than the first of ``along`` is read only where it lets this share more of the scenes'
 # right candidates reach their point: one or two more is the scenes' noise (a sygrid clamp's outline let
 # 26 of 39 reach it against its edges' 25, and found 18 of its copies against 24)
@@ -51,6 +60,7 @@ class PlaneRecord:
     error_px: float  # MSPD to the nearest copy, 640 px wide
     reason: str
     evidence: dict
+    rest: int = -1  # the resting family the candidate's pose is in (``part.rest_family``); -1: not known
 
 
 def plane_records(bank: TemplateBank, n_scenes: int, seed: int = 0,
@@ -70,7 +80,8 @@ def plane_records(bank: TemplateBank, n_scenes: int, seed: int = 0,
         for c in est.checked:
             err = min((pose_error_px(bank, c.refined.pose, q, sc.intr, sc.bgr.shape[1], policy)
                        for q in sc.poses), default=math.inf)
-            out.append(PlaneRecord(float(err), c.verdict.reason, c.verdict.evidence))
+            out.append(PlaneRecord(float(err), c.verdict.reason, c.verdict.evidence,
+                                   rest_family(bank, c.refined.pose.R, sc.plane.normal)))
     return out
 
 
@@ -85,11 +96,15 @@ class PlaneCalibration:
     # the least a found pose may read, whatever its other evidence; None: no right candidate to say
     agreement_floor: float | None = None
     agreement_along: str = "edge_agreement"  # the agreement both are read on (``verdict.AGREEMENT_EVIDENCE``)
+    # each resting family's agreement to reach, where its scenes had enough wrong candidates in it
+    # (``MIN_WRONG_PER_REST_SCENE``); None: ``agreement_min``
+    agreement_min_by_rest: tuple[float | None, ...] = ()
 
     @property
     def agreement(self) -> PlaneAgreement:
         """The operating point as the verdict takes it."""
-        return PlaneAgreement(self.agreement_min, self.agreement_floor, self.agreement_along)
+        return PlaneAgreement(self.agreement_min, self.agreement_floor, self.agreement_along,
+                              self.agreement_min_by_rest)
 
 
 def calibrated(records: list[PlaneRecord], scenes: int, margin: float = MARGIN,
@@ -106,20 +121,36 @@ def calibrated(records: list[PlaneRecord], scenes: int, margin: float = MARGIN,
 
 def _calibrated_along(records: list[PlaneRecord], scenes: int, margin: float, along: str) -> PlaneCalibration:
     """The agreement a part's pose must reach to be found on it: ``margin`` above the highest wrong
-    candidate's; and the least it may read to be found at all: ``margin`` below the lowest right one's (a
-    pose whose visible edges mostly disagree is not the part, however its shading reads)."""
+    candidate's, over its scenes and over those in each resting family (``_points_by_rest``); and the
+    least it may read to be found at all: ``margin`` below the lowest right one's (a pose whose visible
+    edges mostly disagree is not the part, however its shading reads)."""
     # (a pose whose outline a plain shape has too is never found on agreement: ``verdict.distinct``)
-    wrong = [material_free(r.evidence, along) for r in records
+    wrong = [r for r in records
              if r.error_px >= WRONG_PX and r.reason not in REFUSED_FOR_PLACE and distinct(r.evidence)]
-    right = [material_free(r.evidence, along) for r in records
-             if r.error_px < RIGHT_PX and distinct(r.evidence)]
-    top = max(wrong, default=0.0)
+    right = [r for r in records if r.error_px < RIGHT_PX and distinct(r.evidence)]
+    top = max((material_free(r.evidence, along) for r in wrong), default=0.0)
     agreement_min = top + margin if len(wrong) >= MIN_WRONG_PER_SCENE * scenes else None
-    reached = sum(a >= agreement_min for a in right) if agreement_min is not None else 0
+    by_rest = _points_by_rest(wrong, scenes, margin, along) if agreement_min is not None else ()
+    point = PlaneAgreement(agreement_min, None, along, by_rest)
+    reached = sum(material_free(r.evidence, along) >= point.at_rest(r.rest).point for r in right) \
+        if agreement_min is not None else 0
     # every right candidate, an outline a plain shape has too or not: the floor holds for all of them
     every_right = [material_free(r.evidence, along) for r in records if r.error_px < RIGHT_PX]
     floor = min(every_right) - margin if len(every_right) >= MIN_RIGHT_PER_SCENE * scenes else None
-    return PlaneCalibration(agreement_min, top, reached, len(right), len(wrong), scenes, floor, along)
+    return PlaneCalibration(agreement_min, top, reached, len(right), len(wrong), scenes, floor, along,
+                            by_rest)
+
+
+def _points_by_rest(wrong: list[PlaneRecord], scenes: int, margin: float, along: str
+                    ) -> tuple[float | None, ...]:
+    """Per resting family (0 .. the highest a record is in), ``margin`` above the highest wrong candidate's
+    agreement in it; None for a family with fewer than ``MIN_WRONG_PER_REST_SCENE`` a scene."""
+    n = max((r.rest for r in wrong), default=-1) + 1
+    out: list[float | None] = []
+    for family in range(n):
+        read = [material_free(r.evidence, along) for r in wrong if r.rest == family]
+        out.append(max(read) + margin if len(read) >= MIN_WRONG_PER_REST_SCENE * scenes else None)
+    return tuple(out)
 
 
 def calibrate_plane(bank: TemplateBank, n_scenes: int = SCENES, seed: int = 0,
