@@ -185,30 +185,28 @@ def score_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, best, best_m, m0, m1):
 
 
 def best_on_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, best, best_m) -> None:
-    """``score_grid`` over every template, the templates split into contiguous runs of about equal work
-    scored on the process's threads (numba's count in the calling thread: ``threads.use_budget``), each
-    run on its own copy of ``best`` / ``best_m``, then merged in template order: a later run's cell
+    """``score_grid`` over every template, in runs of templates on the process's threads (``_in_runs``),
+    each run on its own copy of ``best`` / ``best_m``, then merged in template order: a later run's cell
     replaces the earlier ones' only where it scores higher, as one run over them all leaves it."""
-    work = np.asarray(npts, np.float64) * _cell_counts(cells)
-    starts = _runs(work, numba.get_num_threads())
-    if len(starts) <= 2:
-        score_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, best, best_m, 0, len(npts))
-        return
-    runs = [(best.copy(), best_m.copy(), int(m0), int(m1))
-            for m0, m1 in zip(starts[:-1], starts[1:], strict=True)]
+    def scored(m0: int, m1: int) -> tuple[np.ndarray, np.ndarray]:
+        b, bm = best.copy(), best_m.copy()
+        score_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, b, bm, m0, m1)
+        return b, bm
 
-    def scored(run):
-        score_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, *run)
-
-    pool = threads.background()
-    later = [pool.submit(scored, run) for run in runs[1:]]
-    scored(runs[0])
-    for f in later:
-        f.result()
-    for b, bm, _, _ in runs:
+    for b, bm in _in_runs(np.asarray(npts, np.float64) * _cell_counts(cells), scored):
         higher = b > best
         best[higher] = b[higher]
         best_m[higher] = bm[higher]
+
+
+def _in_runs(work: np.ndarray, call) -> list:
+    """``call(a, b)`` for each contiguous run [a, b) of items of about equal total ``work`` (``_runs``,
+    one a thread of numba's count in the calling thread: ``threads.use_budget``), the later runs on the
+    process's background pool while the calling thread does the first -> their results in run order."""
+    starts = _runs(work, numba.get_num_threads())
+    bounds = [(int(a), int(b)) for a, b in zip(starts[:-1], starts[1:], strict=True)]
+    later = [threads.background().submit(call, a, b) for a, b in bounds[1:]]
+    return [call(*bounds[0]), *(f.result() for f in later)]
 
 
 def _cell_counts(cells: np.ndarray) -> np.ndarray:
@@ -246,16 +244,12 @@ def score_at(lin, pad, t, dx, dy, ori, wt, n, u, v):  # pragma: no cover - compi
 
 
 def best_in_window(lin, pad, t, dx, dy, ori, wt, npts, ids, g0, h0, g1, h1) -> tuple[np.ndarray, np.ndarray]:
-    """``_best_in_window`` of the templates ``ids``, split into contiguous runs of about equal work scored
-    on the process's threads (as ``best_on_grid``): each template's best is its own."""
-    starts = _runs(np.asarray(npts, np.float64)[ids], numba.get_num_threads())
-    if len(starts) <= 2:
-        return _best_in_window(lin, pad, t, dx, dy, ori, wt, npts, ids, g0, h0, g1, h1)
-    pool = threads.background()
-    later = [pool.submit(_best_in_window, lin, pad, t, dx, dy, ori, wt, npts, ids[a:b], g0, h0, g1, h1)
-             for a, b in zip(starts[1:-1], starts[2:], strict=True)]
-    first = _best_in_window(lin, pad, t, dx, dy, ori, wt, npts, ids[:starts[1]], g0, h0, g1, h1)
-    parts = [first, *(f.result() for f in later)]
+    """``_best_in_window`` of the templates ``ids``, in runs of them on the process's threads
+    (``_in_runs``): each template's best is its own."""
+    def run(a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        return _best_in_window(lin, pad, t, dx, dy, ori, wt, npts, ids[a:b], g0, h0, g1, h1)
+
+    parts = _in_runs(np.asarray(npts, np.float64)[ids], run)
     return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
