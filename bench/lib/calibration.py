@@ -24,13 +24,12 @@ from service.vision.pipeline.policy import DEFAULT_POLICY, Policy
 
 
 def _method(policy: Policy) -> str:
-    """A hash of the calibration's scenes, of the agreement evidence the records keep, of the refinement
-    and check that end each candidate, and of the gradient search that proposes on them: a change makes
-    the records again (the operating point is derived from them at every load: ``calibrated``)."""
-    scenes = b"".join((ROOT / "service/vision" / f).read_bytes()
-                      for f in ("pipeline/calibration_scenes.py", "pipeline/plane_calibration.py",
-                                "estimate/edge_agreement.py", "estimate/refine.py", "pipeline/check.py"))
-    search = repr(policy.gradient).encode()
+    """A hash of the vision core's code and of the policy: any change to what proposes, refines, checks or
+    renders a calibration's candidates makes the records again (the operating point is derived from them
+    at every load: ``calibrated``). A hash of a few files let records outlive a change to the gradient
+    search that proposes their candidates."""
+    scenes = b"".join(f.read_bytes() for f in sorted((ROOT / "service/vision").rglob("*.py")))
+    search = repr(policy).encode()
     return f"{hashlib.sha1(scenes).hexdigest()[:8]}-g{hashlib.sha1(search).hexdigest()[:6]}"
 
 
