@@ -68,16 +68,15 @@ def test_a_facet_trimesh_missed_is_added_at_its_solid_angle():
 
 def test_a_flat_spanner_rests_on_both_faces(data_dir):
     # A 4 mm plate, symmetric through its mid-plane: it lies on either face about equally often, and the
-    # two are not congruent (its outline is not mirror-symmetric), yet trimesh 4 lists only one of them
-    # (its toppling graph loses the other where the centre of mass falls on an edge between triangles).
+    # two are not congruent (its outline is not mirror-symmetric), yet trimesh 4 may list only one of them
+    # (its toppling graph loses the other where the centre of mass falls on an edge between triangles:
+    # on some machines, not on others, by the rounding of that test).
     # The service runs with numpy's warnings shown, not raised, and so does this: raised (the suite's
     # setting), a failed square root inside trimesh makes it take another path that keeps both.
     mesh = trimesh.load(data_dir / "sygrid_synth" / "models" / "sygrid_spanner.stl", force="mesh")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        raw, _ = trimesh.poses.compute_stable_poses(mesh.convex_hull, center_mass=mesh.center_mass)
         sp = stable_poses(mesh)
-    assert sum(abs(R[2, 2]) > 0.99 for R in np.asarray(raw)[:, :3, :3]) == 1
     flat = [(R[2, 2], q) for R, q in zip(sp.R_rest_obj, sp.probability, strict=True) if abs(R[2, 2]) > 0.99]
     assert sorted(np.sign(up) for up, _ in flat) == [-1.0, 1.0]
     assert flat[0][1] == pytest.approx(flat[1][1], abs=0.01)
