@@ -157,8 +157,13 @@ def response_maps(bits: np.ndarray, t: int, pad: int) -> ResponseMaps:
 def score_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, best, best_m, m0, m1):  # pragma: no cover
     """Every template m in [m0, m1) at every grid cell of its rectangle ``cells[m]`` = (gx0, gy0, gx1,
     gy1): keeps the best score and its template per cell in ``best`` / ``best_m`` (Gh, Gw), the first
-    template on a tie."""
+    template on a tie.
+
+    A cell's score is summed over the points in order in float32. Each term (a quarter weight times a
+    response of 0, 1 or 4) is exact in float32, so a float32 add rounds as a float64 add stored in float32
+    would; the rows are added as contiguous slices, which the compiler vectorises."""
     acc = np.zeros(best.shape, np.float32)
+    quarter = np.float32(0.25)
     for m in range(m0, m1):
         g0, h0, g1, h1 = cells[m, 0], cells[m, 1], cells[m, 2], cells[m, 3]
         for gy in range(h0, h1):
@@ -167,16 +172,17 @@ def score_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, best, best_m, m0, m1):
         for p in range(npts[m]):
             ox = dx[m, p]
             oy = dy[m, p]
-            w = wt[m, p] * 0.25
+            w = wt[m, p] * quarter
             rx = ox % t
             ry = oy % t
             cx = (ox - rx) // t + pad
             cy = (oy - ry) // t + pad
             plane = lin[ori[m, p], ry, rx]
             for gy in range(h0, h1):
-                row = plane[gy + cy]
-                for gx in range(g0, g1):
-                    acc[gy, gx] += w * row[gx + cx]
+                row = plane[gy + cy, g0 + cx:g1 + cx]
+                a = acc[gy, g0:g1]
+                for k in range(g1 - g0):
+                    a[k] += w * np.float32(row[k])
         for gy in range(h0, h1):
             for gx in range(g0, g1):
                 if acc[gy, gx] > best[gy, gx]:
