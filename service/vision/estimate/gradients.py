@@ -262,24 +262,39 @@ def best_in_window(lin, pad, t, dx, dy, ori, wt, npts, ids, g0, h0, g1, h1) -> t
 @numba.njit(cache=True, nogil=True)
 def _best_in_window(lin, pad, t, dx, dy, ori, wt, npts, ids, g0, h0, g1, h1):  # pragma: no cover - compiled
     """Each template ``ids[k]``'s best score over the grid cells [g0, g1) x [h0, h1) -> ((K,) scores,
-    (K, 2) its cell (gx, gy))."""
+    (K, 2) its cell (gx, gy)). A point's place in the flattened maps is worked out once per template
+    (``_flat_offsets``), not once per cell."""
     scores = np.full(ids.shape[0], -1.0, np.float32)
     at = np.zeros((ids.shape[0], 2), np.int64)
+    flat = lin.ravel()
+    row = lin.shape[4]
+    offsets = np.empty(dx.shape[1], np.int64)
     for k in range(ids.shape[0]):
         m = ids[k]
+        n = npts[m]
+        _flat_offsets(lin.shape, pad, t, dx[m], dy[m], ori[m], n, offsets)
         for gy in range(h0, h1):
             for gx in range(g0, g1):
                 s = 0.0
-                for p in range(npts[m]):
-                    ox = dx[m, p]
-                    oy = dy[m, p]
-                    rx = ox % t
-                    ry = oy % t
-                    cy = gy + (oy - ry) // t + pad
-                    s += wt[m, p] * lin[ori[m, p], ry, rx, cy, gx + (ox - rx) // t + pad]
+                cell = gy * row + gx
+                for p in range(n):
+                    s += wt[m, p] * flat[offsets[p] + cell]
                 s *= 0.25
                 if s > scores[k]:
                     scores[k] = s
                     at[k, 0] = gx
                     at[k, 1] = gy
     return scores, at
+
+
+@numba.njit(cache=True, nogil=True)
+def _flat_offsets(shape, pad, t, dx, dy, ori, n, out):  # pragma: no cover - compiled
+    """``out[p]``: where point p of a template anchored at grid cell (0, 0) reads the flattened response
+    maps of ``shape`` (N_ORI, t, t, Gh + 2 pad, Gw + 2 pad); cell (gx, gy) reads it ``gy * shape[4] + gx``
+    further on."""
+    for p in range(n):
+        rx = dx[p] % t
+        ry = dy[p] % t
+        cy = (dy[p] - ry) // t + pad
+        cx = (dx[p] - rx) // t + pad
+        out[p] = (((ori[p] * t + ry) * t + rx) * shape[3] + cy) * shape[4] + cx
