@@ -249,6 +249,21 @@ def score_at(lin, pad, t, dx, dy, ori, wt, n, u, v):  # pragma: no cover - compi
     return s / 4.0
 
 
+
+@numba.njit(cache=True, nogil=True)
+def best_near(lin, pad, t, dx, dy, ori, wt, npts, ids, u, v, reach, m):  # pragma: no cover - compiled
+    """The best (score, u, v, template) of the templates ``ids`` (``score_at``) at the anchor pixels within
+    ``reach`` of (u, v) in u and in v, template by template, row by row: the first on a tie;
+    (-1, u, v, m) if none scores above -1."""
+    best, bu, bv, bm = -1.0, u, v, m
+    for mm in ids:
+        for dv in range(-reach, reach + 1):
+            for du in range(-reach, reach + 1):
+                s = score_at(lin, pad, t, dx[mm], dy[mm], ori[mm], wt[mm], npts[mm], u + du, v + dv)
+                if s > best:
+                    best, bu, bv, bm = s, u + du, v + dv, mm
+    return best, bu, bv, bm
+
 def best_in_window(lin, pad, t, dx, dy, ori, wt, npts, ids, g0, h0, g1, h1) -> tuple[np.ndarray, np.ndarray]:
     """``_best_in_window`` of the templates ``ids``, in runs of them on the process's threads
     (``_in_runs``): each template's best is its own."""

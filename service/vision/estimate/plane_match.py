@@ -29,10 +29,10 @@ from service.vision.estimate.gradients import (
     ResponseMaps,
     balanced_weights,
     best_in_window,
+    best_near,
     best_on_grid,
     quantise,
     response_maps,
-    score_at,
 )
 from service.vision.estimate.plane import PlaneHypothesis, rotations
 from service.vision.geometry.camera import Intrinsics
@@ -234,16 +234,9 @@ def refine_placement(rm: ResponseMaps, tpl: PlaneTemplates, u: int, v: int, m: i
     neighbouring spins (same family and zone)."""
     same = np.flatnonzero((tpl.family == tpl.family[m]) & (tpl.zone == tpl.zone[m]))
     dpsi = _spin_gap(tpl.psi_deg[same], tpl.psi_deg[m])
-    best = (-1.0, u, v, m)
-    for mm in same[dpsi <= tpl.spin_step_deg + 1e-6]:
-        n = int(tpl.n_pts[mm])
-        for dv in range(-reach_px, reach_px + 1):
-            for du in range(-reach_px, reach_px + 1):
-                s = score_at(rm.lin, rm.pad, rm.t, tpl.dx[mm], tpl.dy[mm], tpl.ori[mm], tpl.weight[mm], n,
-                             u + du, v + dv)
-                if s > best[0]:
-                    best = (float(s), u + du, v + dv, int(mm))
-    return best
+    s, u, v, m = best_near(rm.lin, rm.pad, rm.t, tpl.dx, tpl.dy, tpl.ori, tpl.weight, tpl.n_pts,
+                           same[dpsi <= tpl.spin_step_deg + 1e-6], int(u), int(v), int(reach_px), int(m))
+    return float(s), int(u), int(v), int(m)
 
 
 def lift(tpl: PlaneTemplates, m: int, uv: tuple[float, float], bank: TemplateBank, intr: Intrinsics,
