@@ -322,32 +322,21 @@ def polish_on_gradients(bank: TemplateBank, tpl: PlaneTemplates, R_rest_obj: np.
     """A pattern search over (spin, u, v) on the plane from each hypothesis, on the agreement of the edge
     points of its family's nearest template spin (``agreement_on_plane``): the grid search's placement is
     good to its step, this to a fraction of a pixel."""
-    Rc = R_cam_rest(plane)
-    heights = rest_heights_mm(bank, R_rest_obj)
+    on_plane = _OnPlane(bank, tpl, R_rest_obj, intr, plane, agreeing)
     moves = [(-1, 0, 0), (1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)]
-
-    def pose_of(s: int, psi: float, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
-        R = Rc @ Rz(psi) @ R_rest_obj[s]
-        t, ok = placements(R[None], heights[s:s + 1], uv[None], bank, intr, plane)
-        return R, t[0], bool(ok[0])
-
-    def points_of(s: int, psi: float) -> EdgePoints:
-        same = np.flatnonzero(tpl.family == s)
-        gap = np.abs((tpl.psi_deg[same] - psi + 180.0) % 360.0 - 180.0)
-        return tpl.points[tpl.rotation[same[np.argmin(gap)]]]
-
     out = []
     for hyp in hs:
         psi, uv = float(hyp.psi_deg), np.asarray(hyp.uv, float)
-        R, t, _ = pose_of(hyp.s, psi, uv)
-        best = agreement_on_plane(points_of(hyp.s, psi), R, t, intr, agreeing)
+        scored: dict = {}  # a step back, or a halved step, lands on a placement already scored
+        best, R, t, ok = on_plane.scored(hyp.s, psi, uv, scored)
+        if not ok:
+            best = agreement_on_plane(on_plane.points_of(hyp.s, psi), R, t, intr, agreeing)
         d_px, d_deg = step_px, step_deg
         for _ in range(max_iter):
             moved = False
             for dpsi, du, dv in moves:
                 psi2, uv2 = psi + dpsi * d_deg, uv + np.array([du, dv]) * d_px
-                R2, t2, ok = pose_of(hyp.s, psi2, uv2)
-                score = agreement_on_plane(points_of(hyp.s, psi2), R2, t2, intr, agreeing) if ok else -1.0
+                score, R2, t2, _ = on_plane.scored(hyp.s, psi2, uv2, scored)
                 if score > best + 1e-9:
                     best, psi, uv, R, t, moved = score, psi2, uv2, R2, t2, True
             if not moved:
@@ -356,3 +345,40 @@ def polish_on_gradients(bank: TemplateBank, tpl: PlaneTemplates, R_rest_obj: np.
                 d_px, d_deg = d_px / 2, d_deg / 2
         out.append(PlaneHypothesis(hyp.s, psi, uv, R, t, hyp.cost, best))
     return out
+
+
+class _OnPlane:
+    """``polish_on_gradients``' placements: a family at a spin and an anchor pixel, posed on the plane and
+    scored on the frame's agreeing bits."""
+
+    def __init__(self, bank: TemplateBank, tpl: PlaneTemplates, R_rest_obj: np.ndarray, intr: Intrinsics,
+                 plane: Plane, agreeing: np.ndarray):
+        self.bank, self.tpl, self.R_rest_obj, self.intr, self.plane = bank, tpl, R_rest_obj, intr, plane
+        self.agreeing = agreeing
+        self.Rc = R_cam_rest(plane)
+        self.heights = rest_heights_mm(bank, R_rest_obj)
+        self.family: dict[int, np.ndarray] = {}
+
+    def pose_of(self, s: int, psi: float, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+        R = self.Rc @ Rz(psi) @ self.R_rest_obj[s]
+        t, ok = placements(R[None], self.heights[s:s + 1], uv[None], self.bank, self.intr, self.plane)
+        return R, t[0], bool(ok[0])
+
+    def points_of(self, s: int, psi: float) -> EdgePoints:
+        """The edge points of family s's template spin nearest ``psi``."""
+        if s not in self.family:
+            self.family[s] = np.flatnonzero(self.tpl.family == s)
+        same = self.family[s]
+        gap = np.abs((self.tpl.psi_deg[same] - psi + 180.0) % 360.0 - 180.0)
+        return self.tpl.points[self.tpl.rotation[same[np.argmin(gap)]]]
+
+    def scored(self, s: int, psi: float, uv: np.ndarray, memo: dict
+               ) -> tuple[float, np.ndarray, np.ndarray, bool]:
+        """(agreement, or -1 off the plane; R; t; on the plane) of family s at (psi, uv), from ``memo``
+        (one family's, keyed by the exact spin and pixel) when it holds them."""
+        key = (psi, float(uv[0]), float(uv[1]))
+        if key not in memo:
+            R, t, ok = self.pose_of(s, psi, uv)
+            score = agreement_on_plane(self.points_of(s, psi), R, t, self.intr, self.agreeing) if ok else -1.0
+            memo[key] = (score, R, t, ok)
+        return memo[key]
