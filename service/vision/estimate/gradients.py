@@ -153,35 +153,39 @@ def response_maps(bits: np.ndarray, t: int, pad: int) -> ResponseMaps:
     return ResponseMaps(lin, pad, (gh, gw), t)
 
 
+CHUNK = 8  # score_grid adds a row's cells in whole chunks of this many: fixed-width vector adds
+
+
 @numba.njit(cache=True, nogil=True)
-def score_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, best, best_m, m0, m1):  # pragma: no cover
+def score_grid(flat, shape, pad, t, dx, dy, ori, wt, npts, cells, best, best_m, m0, m1):  # pragma: no cover
     """Every template m in [m0, m1) at every grid cell of its rectangle ``cells[m]`` = (gx0, gy0, gx1,
     gy1): keeps the best score and its template per cell in ``best`` / ``best_m`` (Gh, Gw), the first
-    template on a tie.
+    template on a tie. ``flat``: the response maps of ``shape`` flattened, then ``CHUNK`` more bytes.
 
     A cell's score is summed over the points in order in float32. Each term (a quarter weight times a
     response of 0, 1 or 4) is exact in float32, so a float32 add rounds as a float64 add stored in float32
-    would; the rows are added as contiguous slices, which the compiler vectorises."""
-    acc = np.zeros(best.shape, np.float32)
+    would. A row is added in whole chunks, the cells past its end included (they read the next row, or
+    the slack, and are never compared): the compiler vectorises an add of a few chunks, not of a row's
+    odd length."""
+    row_len = shape[4]
+    plane_len = shape[3] * row_len
+    acc = np.zeros((best.shape[0], best.shape[1] + CHUNK), np.float32)
     quarter = np.float32(0.25)
     for m in range(m0, m1):
         g0, h0, g1, h1 = cells[m, 0], cells[m, 1], cells[m, 2], cells[m, 3]
+        n = (g1 - g0 + CHUNK - 1) // CHUNK * CHUNK
         for gy in range(h0, h1):
-            for gx in range(g0, g1):
-                acc[gy, gx] = 0.0
+            acc[gy, g0:g0 + n] = 0.0
         for p in range(npts[m]):
-            ox = dx[m, p]
-            oy = dy[m, p]
             w = wt[m, p] * quarter
-            rx = ox % t
-            ry = oy % t
-            cx = (ox - rx) // t + pad
-            cy = (oy - ry) // t + pad
-            plane = lin[ori[m, p], ry, rx]
+            rx = dx[m, p] % t
+            ry = dy[m, p] % t
+            start = (((ori[m, p] * t + ry) * t + rx) * plane_len + ((dy[m, p] - ry) // t + pad) * row_len
+                     + (dx[m, p] - rx) // t + pad + g0)
             for gy in range(h0, h1):
-                row = plane[gy + cy, g0 + cx:g1 + cx]
-                a = acc[gy, g0:g1]
-                for k in range(g1 - g0):
+                row = flat[start + gy * row_len:start + gy * row_len + n]
+                a = acc[gy, g0:g0 + n]
+                for k in range(n):
                     a[k] += w * np.float32(row[k])
         for gy in range(h0, h1):
             for gx in range(g0, g1):
@@ -194,9 +198,11 @@ def best_on_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, best, best_m) -> Non
     """``score_grid`` over every template, in runs of templates on the process's threads (``_in_runs``),
     each run on its own copy of ``best`` / ``best_m``, then merged in template order: a later run's cell
     replaces the earlier ones' only where it scores higher, as one run over them all leaves it."""
+    flat = np.concatenate([lin.ravel(), np.zeros(CHUNK, np.uint8)])
+
     def scored(m0: int, m1: int) -> tuple[np.ndarray, np.ndarray]:
         b, bm = best.copy(), best_m.copy()
-        score_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, b, bm, m0, m1)
+        score_grid(flat, lin.shape, pad, t, dx, dy, ori, wt, npts, cells, b, bm, m0, m1)
         return b, bm
 
     for b, bm in _in_runs(np.asarray(npts, np.float64) * _cell_counts(cells), scored):
