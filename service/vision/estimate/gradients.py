@@ -133,6 +133,9 @@ class ResponseMaps:
     pad: int
     grid_shape: tuple[int, int]  # (Gh, Gw)
     t: int
+    # (N_ORI, (Gh + 2 pad) t, (Gw + 2 pad) t) uint8: the same responses by pixel, (v, u) at
+    # [o, v + pad t, u + pad t]: read at any anchor pixel without splitting it by t
+    pixels: np.ndarray
 
 
 def response_maps(bits: np.ndarray, t: int, pad: int) -> ResponseMaps:
@@ -150,7 +153,8 @@ def response_maps(bits: np.ndarray, t: int, pad: int) -> ResponseMaps:
         for ry in range(t):
             for rx in range(t):
                 lin[o, ry, rx, pad:pad + gh, pad:pad + gw] = r[ry::t, rx::t]
-    return ResponseMaps(lin, pad, (gh, gw), t)
+    pixels = lin.transpose(0, 3, 1, 4, 2).reshape(N_ORI, (gh + 2 * pad) * t, (gw + 2 * pad) * t)
+    return ResponseMaps(lin, pad, (gh, gw), t, pixels)
 
 
 CHUNK = 8  # score_grid adds a row's cells in whole chunks of this many: fixed-width vector adds
@@ -257,18 +261,27 @@ def score_at(lin, pad, t, dx, dy, ori, wt, n, u, v):  # pragma: no cover - compi
 
 
 @numba.njit(cache=True, nogil=True)
-def best_near(lin, pad, t, dx, dy, ori, wt, npts, ids, u, v, reach, m):  # pragma: no cover - compiled
-    """The best (score, u, v, template) of the templates ``ids`` (``score_at``) at the anchor pixels within
-    ``reach`` of (u, v) in u and in v, template by template, row by row: the first on a tie;
-    (-1, u, v, m) if none scores above -1."""
+def best_near(pixels, off, dx, dy, ori, wt, npts, ids, u, v, reach, m):  # pragma: no cover - compiled
+    """The best (score, u, v, template) of the templates ``ids`` at the anchor pixels within ``reach`` of
+    (u, v) in u and in v, template by template, row by row: the first on a tie; (-1, u, v, m) if none
+    scores above -1. ``pixels``: ``ResponseMaps.pixels``, pixel (v, u) at [v + off, u + off]. A score is
+    ``score_at``'s, summed in the same order (0 for points beyond the padding)."""
     best, bu, bv, bm = -1.0, u, v, m
+    lim_y, lim_x = pixels.shape[1], pixels.shape[2]
     for mm in ids:
         for dv in range(-reach, reach + 1):
             for du in range(-reach, reach + 1):
-                s = score_at(lin, pad, t, dx[mm], dy[mm], ori[mm], wt[mm], npts[mm], u + du, v + dv)
+                s = 0.0
+                for p in range(npts[mm]):
+                    y = v + dv + dy[mm, p] + off
+                    x = u + du + dx[mm, p] + off
+                    if 0 <= y < lim_y and 0 <= x < lim_x:
+                        s += wt[mm, p] * pixels[ori[mm, p], y, x]
+                s = s / 4.0
                 if s > best:
                     best, bu, bv, bm = s, u + du, v + dv, mm
     return best, bu, bv, bm
+
 
 def best_in_window(lin, pad, t, dx, dy, ori, wt, npts, ids, g0, h0, g1, h1) -> tuple[np.ndarray, np.ndarray]:
     """``_best_in_window`` of the templates ``ids``, in runs of them on the process's threads

@@ -234,7 +234,7 @@ def refine_placement(rm: ResponseMaps, tpl: PlaneTemplates, u: int, v: int, m: i
     neighbouring spins (same family and zone)."""
     same = np.flatnonzero((tpl.family == tpl.family[m]) & (tpl.zone == tpl.zone[m]))
     dpsi = _spin_gap(tpl.psi_deg[same], tpl.psi_deg[m])
-    s, u, v, m = best_near(rm.lin, rm.pad, rm.t, tpl.dx, tpl.dy, tpl.ori, tpl.weight, tpl.n_pts,
+    s, u, v, m = best_near(rm.pixels, rm.pad * rm.t, tpl.dx, tpl.dy, tpl.ori, tpl.weight, tpl.n_pts,
                            same[dpsi <= tpl.spin_step_deg + 1e-6], int(u), int(v), int(reach_px), int(m))
     return float(s), int(u), int(v), int(m)
 
