@@ -357,7 +357,7 @@ class _OnPlane:
         self.agreeing = agreeing
         self.Rc = R_cam_rest(plane)
         self.heights = rest_heights_mm(bank, R_rest_obj)
-        self.family: dict[int, np.ndarray] = {}
+        self.nearest: dict[tuple[int, float], EdgePoints] = {}
 
     def pose_of(self, s: int, psi: float, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
         R = self.Rc @ Rz(psi) @ self.R_rest_obj[s]
@@ -365,12 +365,12 @@ class _OnPlane:
         return R, t[0], bool(ok[0])
 
     def points_of(self, s: int, psi: float) -> EdgePoints:
-        """The edge points of family s's template spin nearest ``psi``."""
-        if s not in self.family:
-            self.family[s] = np.flatnonzero(self.tpl.family == s)
-        same = self.family[s]
-        gap = np.abs((self.tpl.psi_deg[same] - psi + 180.0) % 360.0 - 180.0)
-        return self.tpl.points[self.tpl.rotation[same[np.argmin(gap)]]]
+        """The edge points of family s's template spin nearest ``psi`` (most steps keep the spin)."""
+        if (s, psi) not in self.nearest:
+            same = np.flatnonzero(self.tpl.family == s)
+            gap = np.abs((self.tpl.psi_deg[same] - psi + 180.0) % 360.0 - 180.0)
+            self.nearest[s, psi] = self.tpl.points[self.tpl.rotation[same[np.argmin(gap)]]]
+        return self.nearest[s, psi]
 
     def scored(self, s: int, psi: float, uv: np.ndarray, memo: dict
                ) -> tuple[float, np.ndarray, np.ndarray, bool]:
