@@ -51,18 +51,18 @@ def _bin_edges(n_ch):
 @nb.njit(inline="always")
 def _channel(x, y, cos_b, sin_b):
     """The orientation channel of the direction (x, y): int(th n / pi + 1/2) mod n for th its angle
-    modulo pi (atan2), as the number of channel edges at or below th, found by bisection on the sign
-    of y cos(b) - x sin(b) (th >= b for th, b in [0, pi]) instead of an atan2."""
+    modulo pi (atan2), as the number of channel edges at or below th, each told by the sign of
+    y cos(b) - x sin(b) (th >= b for th, b in [0, pi]) instead of an atan2. The edges are counted, all
+    n of them, rather than bisected: the signs run true then false along the edges (a rounding can flip
+    only the one edge th lies on), so the count is where a bisection ends, and a loop of n comparisons
+    has no branch to mispredict."""
     if y < 0.0:
         x, y = -x, -y
-    lo, hi = 0, cos_b.shape[0]  # edges [0, lo) are at or below th, [hi, n) above it
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if y * cos_b[mid] - x * sin_b[mid] >= 0.0:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo if lo < cos_b.shape[0] else 0
+    n = cos_b.shape[0]
+    below = 0
+    for k in range(n):
+        below += 1 if y * cos_b[k] - x * sin_b[k] >= 0.0 else 0
+    return below if below < n else 0
 
 
 @nb.njit(parallel=True, cache=True)
