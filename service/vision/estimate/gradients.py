@@ -259,7 +259,6 @@ def score_at(lin, pad, t, dx, dy, ori, wt, n, u, v):  # pragma: no cover - compi
     return s / 4.0
 
 
-
 @numba.njit(cache=True, nogil=True)
 def best_near(pixels, off, dx, dy, ori, wt, npts, ids, u, v, reach, m):  # pragma: no cover - compiled
     """The best (score, u, v, template) of the templates ``ids`` at the anchor pixels within ``reach`` of

@@ -329,7 +329,7 @@ def polish_on_gradients(bank: TemplateBank, tpl: PlaneTemplates, R_rest_obj: np.
         psi, uv = float(hyp.psi_deg), np.asarray(hyp.uv, float)
         scored: dict = {}  # a step back, or a halved step, lands on a placement already scored
         best, R, t, ok = on_plane.scored(hyp.s, psi, uv, scored)
-        if not ok:
+        if not ok:  # the start is scored where it lies, even where its ray misses the plane
             best = agreement_on_plane(on_plane.points_of(hyp.s, psi), R, t, intr, agreeing)
         d_px, d_deg = step_px, step_deg
         for _ in range(max_iter):
@@ -375,7 +375,7 @@ class _OnPlane:
     def scored(self, s: int, psi: float, uv: np.ndarray, memo: dict
                ) -> tuple[float, np.ndarray, np.ndarray, bool]:
         """(agreement, or -1 off the plane; R; t; on the plane) of family s at (psi, uv), from ``memo``
-        (one family's, keyed by the exact spin and pixel) when it holds them."""
+        (one hypothesis's, keyed by the exact spin and pixel) when it holds them."""
         key = (psi, float(uv[0]), float(uv[1]))
         if key not in memo:
             R, t, ok = self.pose_of(s, psi, uv)
