@@ -449,7 +449,10 @@ def _segment_dt(dt, p0, p1, chan, lam, tau):  # pragma: no cover - compiled
 
     Work items are bands of ``SEGMENT_DT_BAND`` rows, each visiting every segment's part in it: threads
     never write the same pixel, and a pixel's value, a min, does not depend on the order segments
-    reach it (the one-thread loop over segments gives the same array)."""
+    reach it (the one-thread loop over segments gives the same array).
+
+    A segment steeper than 1 in 8 visits, on each row of its box, only the pixels within ``tau`` and a
+    pixel of its line: the others lie at ``tau`` or more from the segment, where nothing is written."""
     C, h, w = dt.shape
     n_bands = (h + SEGMENT_DT_BAND - 1) // SEGMENT_DT_BAND
     ftau = np.float32(tau)
@@ -471,8 +474,15 @@ def _segment_dt(dt, p0, p1, chan, lam, tau):  # pragma: no cover - compiled
             v_lo = max(int(math.floor(min(ay, ay + dy) - tau)), b0)
             v_hi = min(int(math.ceil(max(ay, ay + dy) + tau)), b1)
             cs = chan[s]
+            steep = abs(dy) * 8.0 > math.sqrt(L2)
+            half = (tau + 1.0) * math.sqrt(L2) / abs(dy) if steep else 0.0
             for v in range(v_lo, v_hi + 1):
-                for u in range(u_lo, u_hi + 1):
+                r_lo, r_hi = u_lo, u_hi
+                if steep:
+                    mid = ax + (v - ay) * dx / dy
+                    r_lo = max(u_lo, int(math.floor(mid - half)))
+                    r_hi = min(u_hi, int(math.ceil(mid + half)))
+                for u in range(r_lo, r_hi + 1):
                     t = 0.0
                     if L2 > 0.0:
                         t = ((u - ax) * dx + (v - ay) * dy) / L2
@@ -485,12 +495,12 @@ def _segment_dt(dt, p0, p1, chan, lam, tau):  # pragma: no cover - compiled
                     if d < dt[cs, v, u]:
                         dt[cs, v, u] = d
                     reach = min(int((tau - d) / lam) if lam > 0 else C, C // 2)
-                    for j in range(1, reach + 1):
+                    for j in range(1, reach + 1):  # reach <= C // 2: one wrap at most either way
                         val = d + lam * j
-                        k = (cs + j) % C
+                        k = cs + j - C if cs + j >= C else cs + j
                         if val < dt[k, v, u]:
                             dt[k, v, u] = val
-                        k = (cs - j) % C
+                        k = cs - j + C if cs - j < 0 else cs - j
                         if val < dt[k, v, u]:
                             dt[k, v, u] = val
 
