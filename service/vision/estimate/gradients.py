@@ -168,34 +168,36 @@ def score_grid(flat, shape, pad, t, dx, dy, ori, wt, npts, cells, best, best_m, 
 
     A cell's score is summed over the points in order in float32. Each term (a quarter weight times a
     response of 0, 1 or 4) is exact in float32, so a float32 add rounds as a float64 add stored in float32
-    would. A row is added in whole chunks, the cells past its end included (they read the next row, or
-    the slack, and are never compared): the compiler vectorises an add of a few chunks, not of a row's
-    odd length."""
+    would. A row of cells takes every point's term before the next row (the row's sums stay in the
+    cache), in whole chunks, the cells past its end included (they read the next row, or the slack, and
+    are never compared): the compiler vectorises an add of a few chunks, not of a row's odd length."""
     row_len = shape[4]
     plane_len = shape[3] * row_len
-    acc = np.zeros((best.shape[0], best.shape[1] + CHUNK), np.float32)
     quarter = np.float32(0.25)
+    start = np.empty(dx.shape[1], np.int64)
+    w = np.empty(dx.shape[1], np.float32)
+    acc = np.empty(best.shape[1] + CHUNK, np.float32)
     for m in range(m0, m1):
         g0, h0, g1, h1 = cells[m, 0], cells[m, 1], cells[m, 2], cells[m, 3]
         n = (g1 - g0 + CHUNK - 1) // CHUNK * CHUNK
-        for gy in range(h0, h1):
-            acc[gy, g0:g0 + n] = 0.0
         for p in range(npts[m]):
-            w = wt[m, p] * quarter
+            w[p] = wt[m, p] * quarter
             rx = dx[m, p] % t
             ry = dy[m, p] % t
-            start = (((ori[m, p] * t + ry) * t + rx) * plane_len + ((dy[m, p] - ry) // t + pad) * row_len
-                     + (dx[m, p] - rx) // t + pad + g0)
-            for gy in range(h0, h1):
-                row = flat[start + gy * row_len:start + gy * row_len + n]
-                a = acc[gy, g0:g0 + n]
-                for k in range(n):
-                    a[k] += w * np.float32(row[k])
+            start[p] = (((ori[m, p] * t + ry) * t + rx) * plane_len + ((dy[m, p] - ry) // t + pad) * row_len
+                        + (dx[m, p] - rx) // t + pad + g0)
+        a = acc[:max(n, 0)]
         for gy in range(h0, h1):
-            for gx in range(g0, g1):
-                if acc[gy, gx] > best[gy, gx]:
-                    best[gy, gx] = acc[gy, gx]
-                    best_m[gy, gx] = m
+            a[:] = 0.0
+            for p in range(npts[m]):
+                row = flat[start[p] + gy * row_len:start[p] + gy * row_len + n]
+                wp = w[p]
+                for k in range(n):
+                    a[k] += wp * np.float32(row[k])
+            for k in range(g1 - g0):
+                if a[k] > best[gy, g0 + k]:
+                    best[gy, g0 + k] = a[k]
+                    best_m[gy, g0 + k] = m
 
 
 def best_on_grid(lin, pad, t, dx, dy, ori, wt, npts, cells, best, best_m) -> None:
