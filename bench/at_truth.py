@@ -34,6 +34,8 @@ from service.vision.geometry.frames import Pose  # noqa: E402
 from service.vision.pipeline.part import crease_edges_of, rest_family  # noqa: E402
 from service.vision.pipeline.plane_calibration import SCENES  # noqa: E402
 
+KEPT_EVIDENCE = (*AGREEMENT_EVIDENCE, "polarity", "distinct_px")  # each row's, for reading other points
+
 
 def truth_reads(name: str, *, stride: int = 1, min_visible: float = MIN_VISIBLE) -> list[dict]:
     """One row per target copy: its part, image, visible share, agreement at the truth, point, distinct."""
@@ -56,13 +58,15 @@ def truth_reads(name: str, *, stride: int = 1, min_visible: float = MIN_VISIBLE)
                 continue
             pose = Pose(np.asarray(g["R"], float), np.asarray(g["t_mm"], float))
             ev = evidence(bank, pose, intr, frame).as_dict()
-            ev |= edge_agreement(bank.vertices_mm, bank.faces, crease_edges_of(bank), pose, intr, frame.agreeing)
-            point = c.agreement.at_rest(rest_family(bank, pose.R, plane.normal)).point
-            rows.append({"model": model, "image": image, "copy": k, "visible": float(g.get("visible_fraction", 1)),
-                         "agreement": material_free(ev, c.agreement_along), "point": point,
-                         "distinct": distinct(ev), "along": c.agreement_along,
-                         "evidence": {k: float(ev[k]) for k in (*AGREEMENT_EVIDENCE, "polarity", "distinct_px")},
-                         "rest": rest_family(bank, pose.R, plane.normal)})
+            ev |= edge_agreement(bank.vertices_mm, bank.faces, crease_edges_of(bank), pose, intr,
+                                 frame.agreeing)
+            rest = rest_family(bank, pose.R, plane.normal)
+            rows.append({"model": model, "image": image, "copy": k,
+                         "visible": float(g.get("visible_fraction", 1.0)),
+                         "agreement": material_free(ev, c.agreement_along),
+                         "point": c.agreement.at_rest(rest).point, "distinct": distinct(ev),
+                         "along": c.agreement_along, "rest": rest,
+                         "evidence": {e: float(ev[e]) for e in KEPT_EVIDENCE}})
     return rows
 
 
@@ -72,12 +76,14 @@ def run_states(path: Path) -> dict:
     for line in path.read_text().splitlines():
         r = json.loads(line)
         for k, c in enumerate(r["copies"]):
-            out[(r["image"], r["model"], k)] = "found" if c["right"] else "checked" if c["proposed"] else "missed"
+            state = "found" if c["right"] else "checked" if c["proposed"] else "missed"
+            out[(r["image"], r["model"], k)] = state
     return out
 
 
 def table(rows: list[dict], states: dict | None) -> str:
-    head = ["part", "targets", "plain outline", "not calibrated", "truth over its point", "truth median - point"]
+    head = ["part", "targets", "plain outline", "not calibrated", "truth over its point",
+            "truth median - point"]
     if states is not None:
         head += ["found", "over, checked not found", "over, not reached"]
     out = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
