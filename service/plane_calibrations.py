@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from service.stores.base import Store
 
 # The calibration's method: a calibration of another is made again.
-VERSION = 7
+VERSION = 8
 KEY = "plane_calibration"
 
 

@@ -17,11 +17,13 @@ from service.vision.estimate.contour_region import region_contour_refine
 from service.vision.estimate.edge_agreement import edge_agreement
 from service.vision.estimate.evidence import ColourFrame, evidence
 from service.vision.estimate.plane import PLANE_TOLERANCE_MM
+from service.vision.estimate.plane_polish import polish_on_plane
 from service.vision.estimate.verdict import PlaneAgreement, decide
 from service.vision.geometry.camera import Intrinsics, project
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz
 from service.vision.geometry.plane import Plane, rest_gap_mm
 from service.vision.model.appearance import Appearance
+from service.vision.model.edge_points import edge_points_at
 from service.vision.model.mirror import twin_poses
 from service.vision.pipeline import timing
 from service.vision.pipeline.part import crease_edges_of, mirror_planes_of, rest_family
@@ -124,7 +126,7 @@ class Checker:
         if unless_at is not None and same_place(self.bank, kept.pose, unless_at, self.intr.K,
                                                 self.policy.same_place_px, self.policy.same_place_vertices):
             return None
-        c = self._judged(cand, kept, unexplained, others_depth_mm)
+        c = self.polished_on_plane(self._judged(cand, kept, unexplained, others_depth_mm), others_depth_mm)
         c = self.outlined_on_colours(self.polished(c, others_depth_mm), others_depth_mm)
         timing.CHECK_MS.add(timing.ms_since(t0))
         self.deadline.checked()
@@ -177,6 +179,29 @@ class Checker:
         if rng[0] <= z <= rng[1] or not rng[0] * (1 - slack) <= z <= rng[1] * (1 + slack):
             return None
         return float(rng[0] if z < rng[0] else rng[1])
+
+    def polished_on_plane(self, c: Checked, others_depth_mm: np.ndarray | None) -> Checked:
+        """A candidate resting on the plane and refused (not for its place), refined again on the plane from
+        its pose polished on the edge points it shows (``polish_on_plane``) where their agreeing share
+        rises by ``policy.plane_polish_min_gain``, and judged there; the better scored of the two. The
+        refinement follows the image's segments, which a pile's other parts pull at; the polish follows
+        the part's own edges."""
+        plane = self.judge_kw.get("plane")
+        pose = c.refined.pose
+        if (plane is None or c.verdict.found or c.verdict.reason in NOT_POLISHED
+                or self._resting_on(pose) is None or not self.deadline.allows(timing.CHECK_MS.high)):
+            return c
+        size = (self.grey.shape[1], self.grey.shape[0])
+        edges = edge_points_at(self.bank.vertices_mm, self.bank.faces, crease_edges_of(self.bank), pose,
+                               self.intr, size)
+        polished, agrees, before = polish_on_plane(self.bank.vertices_mm, self.bank.centre_obj, edges, pose,
+                                                   plane, self.intr, self.frame.agreeing)
+        if agrees < before + self.policy.plane_polish_min_gain:
+            return c
+        kept, unexplained = refine(self.bank, replace(c.candidate, pose=polished), self.grey, self.intr,
+                                   distance_mm=self.distance_mm, n_channels=self.n_channels, plane=plane)
+        again = self._judged(c.candidate, kept, unexplained, others_depth_mm)
+        return again if again.verdict.score > c.verdict.score else c
 
     def outlined_on_colours(self, c: Checked, others_depth_mm: np.ndarray | None) -> Checked:
         """A taught part's found answer (the distance not given) moved to its colours' outline and refined

@@ -111,6 +111,9 @@ class Policy:
     # -- the check of one candidate
     # a twin is refined only if its unrefined pose scores this: better twins scored 0.97-0.99 unrefined
     twin_unrefined_min_score: float = 0.5
+    # a refused candidate on a plane is refined again from its pose polished on its own edge points
+    # (``estimate/plane_polish.py``) where that raises their agreeing share by this
+    plane_polish_min_gain: float = 0.05
     # a refinement ending beyond the searched range by at most this share is refined again held at the
     # bound: refined depths on real photos scatter by +-5 %, proposals lie up to ~10 % past the range
     range_hold_max: float = 0.10
