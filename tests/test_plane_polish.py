@@ -12,10 +12,10 @@ import pytest
 
 from service.vision.estimate.edge_agreement import agreeing_bits
 from service.vision.estimate.gradients import orientation_bits
-from service.vision.estimate.plane_polish import polish_on_plane, spun_and_slid, touching
+from service.vision.estimate.plane_polish import polish_on_plane, spun_and_slid
 from service.vision.geometry.camera import project
 from service.vision.geometry.frames import Pose, R_from_rotvec, rotation_angle_deg
-from service.vision.geometry.plane import rest_gap_mm
+from service.vision.geometry.plane import rest_gap_mm, touching
 from service.vision.model.edge_points import edge_points_at
 from service.vision.pipeline.part import crease_edges_of
 from tests.scenes import INTR, PLANE, SIZE, resting, scene

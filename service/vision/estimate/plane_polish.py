@@ -16,24 +16,11 @@ import numpy as np
 from service.vision.estimate.plane_match import agreement_on_plane
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose, R_from_rotvec
-from service.vision.geometry.plane import Plane, R_cam_rest
+from service.vision.geometry.plane import Plane, R_cam_rest, touching
 from service.vision.model.edge_points import EdgePoints
 
 STEPS = (4.0, 2.0)  # the first spin step (deg) and slide step (px at the part's depth), halved together
 HALVINGS = 4
-
-
-def touching(vertices_mm: np.ndarray, centre_obj: np.ndarray, R: np.ndarray, t_mm: np.ndarray, plane: Plane
-             ) -> np.ndarray | None:
-    """The translation putting the part at (R, ``t_mm``) moved along its centre's line of sight until its
-    lowest point lies on the plane; None where that line runs along the plane or behind the camera."""
-    n = np.asarray(plane.normal, float)
-    c_cam = R @ centre_obj + t_mm
-    along = float(n @ c_cam)
-    if abs(along) < 1e-9:
-        return None
-    s = (plane.d_mm - float(((vertices_mm - centre_obj) @ R.T @ n).min())) / along
-    return s * c_cam - R @ centre_obj if s > 0 else None
 
 
 def spun_and_slid(R: np.ndarray, centre_obj: np.ndarray, t_mm: np.ndarray, plane: Plane, x: np.ndarray

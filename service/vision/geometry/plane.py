@@ -45,6 +45,19 @@ def rest_gap_mm(bank: Part, pose: Pose, plane: Plane) -> float:
     return float(plane.height_mm(pose.apply(np.asarray(bank.vertices_mm, float))).min())
 
 
+def touching(vertices_mm: np.ndarray, centre_obj: np.ndarray, R: np.ndarray, t_mm: np.ndarray, plane: Plane
+             ) -> np.ndarray | None:
+    """The translation putting the part at (R, ``t_mm``) moved along its centre's line of sight until its
+    lowest point lies on the plane; None where that line runs along the plane or behind the camera."""
+    n = np.asarray(plane.normal, float)
+    c_cam = R @ centre_obj + t_mm
+    along = float(n @ c_cam)
+    if abs(along) < 1e-9:
+        return None
+    s = (plane.d_mm - float(((vertices_mm - centre_obj) @ R.T @ n).min())) / along
+    return s * c_cam - R @ centre_obj if s > 0 else None
+
+
 def centre_height_mm(bank: Part, pose: Pose, plane: Plane) -> float:
     """Height of the part's reference point ``centre_obj`` above the plane, mm (``sort: height``)."""
     return float(plane.height_mm(pose.apply(np.asarray(bank.centre_obj, float)[None]))[0])
