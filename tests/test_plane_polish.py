@@ -15,7 +15,7 @@ from service.vision.estimate.gradients import orientation_bits
 from service.vision.estimate.plane_polish import polish_on_plane, spun_and_slid
 from service.vision.geometry.camera import project
 from service.vision.geometry.frames import Pose, R_from_rotvec, rotation_angle_deg
-from service.vision.geometry.plane import rest_gap_mm, touching
+from service.vision.geometry.plane import lowest_mm, rest_gap_mm, touching
 from service.vision.model.edge_points import edge_points_at
 from service.vision.pipeline.part import crease_edges_of
 from tests.scenes import INTR, PLANE, SIZE, resting, scene
@@ -35,7 +35,8 @@ def bank(l_block_bank):
 def test_a_pose_turned_off_the_plane_is_moved_along_its_centre_s_line_of_sight_onto_it(bank):
     pose = resting(bank, 0, 20.0, 10.0, -5.0)
     R = R_from_rotvec(np.array([0.2, -0.1, 0.05])) @ pose.R
-    t = touching(np.asarray(bank.vertices_mm, float), bank.centre_obj, R, pose.t_mm, PLANE)
+    low = lowest_mm(np.asarray(bank.vertices_mm, float), bank.centre_obj, R, PLANE)
+    t = touching(low, bank.centre_obj, R, pose.t_mm, PLANE)
     assert abs(rest_gap_mm(bank, Pose(R, t), PLANE)) < ON_PLANE_MM
     before, after = R @ bank.centre_obj + pose.t_mm, R @ bank.centre_obj + t
     assert np.linalg.norm(np.cross(before, after)) / np.linalg.norm(before) / np.linalg.norm(after) < 1e-12

@@ -45,16 +45,24 @@ def rest_gap_mm(bank: Part, pose: Pose, plane: Plane) -> float:
     return float(plane.height_mm(pose.apply(np.asarray(bank.vertices_mm, float))).min())
 
 
-def touching(vertices_mm: np.ndarray, centre_obj: np.ndarray, R: np.ndarray, t_mm: np.ndarray, plane: Plane
+def lowest_mm(vertices_mm: np.ndarray, centre_obj: np.ndarray, R: np.ndarray, plane: Plane) -> float:
+    """Height of the part's lowest point above its centre ``centre_obj`` along the plane's normal at rotation
+    R, mm (<= 0): where the part at R touches the plane does not depend on where it is."""
+    n = np.asarray(plane.normal, float)
+    return float(((vertices_mm - centre_obj) @ R.T @ n).min())
+
+
+def touching(low_mm: float, centre_obj: np.ndarray, R: np.ndarray, t_mm: np.ndarray, plane: Plane
              ) -> np.ndarray | None:
     """The translation putting the part at (R, ``t_mm``) moved along its centre's line of sight until its
-    lowest point lies on the plane; None where that line runs along the plane or behind the camera."""
+    lowest point (``low_mm``: its ``lowest_mm`` at R) lies on the plane; None where that line runs along
+    the plane or behind the camera."""
     n = np.asarray(plane.normal, float)
     c_cam = R @ centre_obj + t_mm
     along = float(n @ c_cam)
     if abs(along) < 1e-9:
         return None
-    s = (plane.d_mm - float(((vertices_mm - centre_obj) @ R.T @ n).min())) / along
+    s = (plane.d_mm - low_mm) / along
     return s * c_cam - R @ centre_obj if s > 0 else None
 
 
