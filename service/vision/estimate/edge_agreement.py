@@ -31,7 +31,7 @@ import numpy as np
 from service.vision.estimate.gradients import N_ORI, balanced_weights, quantise, spread
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
-from service.vision.model.edge_points import visible_edges
+from service.vision.model.edge_points import VisibleEdges, visible_edges
 
 TOLERANCE_PX = 1  # an agreeing gradient lies within this many pixels of the projected edge
 # A gradient from this Sobel magnitude, half the search's (``gradients.MAG_THRESHOLD``), also agrees where
@@ -65,7 +65,11 @@ def edge_agreement(vertices_mm: np.ndarray, faces: np.ndarray, creases: np.ndarr
                    intr: Intrinsics, agreeing: np.ndarray) -> dict[str, float]:
     """``edge_agreement`` and ``inner_agreement`` of ``pose`` on a frame's ``agreeing_bits``."""
     h, w = agreeing.shape
-    e = visible_edges(vertices_mm, faces, creases, pose, intr, (w, h))
+    return agreement_of_edges(visible_edges(vertices_mm, faces, creases, pose, intr, (w, h)), intr, agreeing)
+
+
+def agreement_of_edges(e: VisibleEdges | None, intr: Intrinsics, agreeing: np.ndarray) -> dict[str, float]:
+    """``edge_agreement`` of the edges ``e`` a pose shows (``visible_edges`` in the image of ``agreeing``)."""
     if e is None:
         return dict.fromkeys(("edge_agreement", "outline_agreement", "inner_agreement", "edge_coverage",
                               "outline_coverage"), 0.0)

@@ -111,8 +111,12 @@ def _window(V: np.ndarray, F: np.ndarray, pose: Pose, intr: Intrinsics, size: tu
 def edge_points_at(V: np.ndarray, F: np.ndarray, creases: np.ndarray, pose: Pose, intr: Intrinsics,
                    size: tuple[int, int], *, seed: int = 0) -> EdgePoints:
     """The edges the part shows at ``pose``, at most ``MAX_POINTS`` of them spread evenly, object frame."""
+    return edge_points_of(visible_edges(V, F, creases, pose, intr, size), pose, seed=seed)
+
+
+def edge_points_of(e: VisibleEdges | None, pose: Pose, *, seed: int = 0) -> EdgePoints:
+    """``edge_points_at`` of the edges ``e`` the part shows at ``pose`` (``visible_edges``)."""
     rng = np.random.default_rng(seed)
-    e = visible_edges(V, F, creases, pose, intr, size)
     if e is None:
         return EMPTY_EDGES
     norm = np.linalg.norm(e.tangent_cam, axis=1)

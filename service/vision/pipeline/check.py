@@ -14,7 +14,7 @@ import numpy as np
 from service.vision.bank import TemplateBank
 from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.contour_region import region_contour_refine
-from service.vision.estimate.edge_agreement import edge_agreement
+from service.vision.estimate.edge_agreement import agreement_of_edges
 from service.vision.estimate.evidence import ColourFrame, evidence
 from service.vision.estimate.plane import PLANE_TOLERANCE_MM
 from service.vision.estimate.plane_polish import polish_on_plane
@@ -23,10 +23,10 @@ from service.vision.geometry.camera import Intrinsics, project
 from service.vision.geometry.frames import Pose, Rx, Ry, Rz
 from service.vision.geometry.plane import Plane, rest_gap_mm
 from service.vision.model.appearance import Appearance
-from service.vision.model.edge_points import edge_points_at
+from service.vision.model.edge_points import edge_points_of
 from service.vision.model.mirror import twin_poses
 from service.vision.pipeline import timing
-from service.vision.pipeline.part import crease_edges_of, mirror_planes_of, rest_family
+from service.vision.pipeline.part import mirror_planes_of, rest_family, shown_edges
 from service.vision.pipeline.policy import DEFAULT_POLICY, Policy
 from service.vision.pipeline.types import Checked, PoseCandidate, RefinedPose
 from service.vision.pipeline.unrefined import face_bgr_of, unrefined_score
@@ -76,7 +76,8 @@ def judge(bank: TemplateBank, c: Checked, frame: ColourFrame, intr: Intrinsics, 
     ev |= {"edge_support": edge_support, "unexplained": float(unexplained() if callable(unexplained)
                                                               else unexplained)}
     if plane is not None:  # reported: the evidence a material-free score of a part on a plane will read
-        ev |= edge_agreement(bank.vertices_mm, bank.faces, crease_edges_of(bank), pose, intr, frame.agreeing)
+        h, w = frame.agreeing.shape
+        ev |= agreement_of_edges(shown_edges(bank, pose, intr, (w, h)), intr, frame.agreeing)
     gap = rest_gap_mm(bank, pose, plane) if plane is not None else None
     if plane is not None and agreement is not None and agreement.points_by_rest:
         agreement = agreement.at_rest(rest_family(bank, pose.R, plane.normal))
@@ -192,8 +193,7 @@ class Checker:
                 or self._resting_on(pose) is None or not self.deadline.allows(timing.CHECK_MS.high)):
             return c
         size = (self.grey.shape[1], self.grey.shape[0])
-        edges = edge_points_at(self.bank.vertices_mm, self.bank.faces, crease_edges_of(self.bank), pose,
-                               self.intr, size)
+        edges = edge_points_of(shown_edges(self.bank, pose, self.intr, size), pose)
         polished, agrees, before = polish_on_plane(self.bank.vertices_mm, self.bank.centre_obj, edges, pose,
                                                    plane, self.intr, self.frame.agreeing)
         if agrees < before + self.policy.plane_polish_min_gain:

@@ -1,5 +1,5 @@
 """What the estimate reads of the part beyond its templates: mirror planes, resting poses (and which one a
-pose on a plane is in), face areas, crease edges.
+pose on a plane is in), face areas, crease edges, the edges it shows at a pose.
 
 Each is the bank's, or, for a bank built before banks held it, made from its mesh once per bank.
 """
@@ -10,8 +10,10 @@ import numpy as np
 import trimesh
 
 from service.vision.bank import TemplateBank
+from service.vision.geometry.camera import Intrinsics
+from service.vision.geometry.frames import Pose
 from service.vision.memo import Memo
-from service.vision.model.edge_points import crease_edges
+from service.vision.model.edge_points import VisibleEdges, crease_edges, visible_edges
 from service.vision.model.mirror import MirrorPlanes, mirror_planes
 
 _MADE = Memo(8)
@@ -75,3 +77,15 @@ _EDGES = Memo(32)
 def crease_edges_of(bank: TemplateBank) -> np.ndarray:
     """(E, 2, 3) the part's crease edges (``model/edge_points.crease_edges``), made once per bank."""
     return _EDGES.get(bank, "creases", lambda: crease_edges(bank.vertices_mm, bank.faces))
+
+
+_SHOWN = Memo(2)  # a verdict and the polish after it: the latest poses only
+
+
+def shown_edges(bank: TemplateBank, pose: Pose, intr: Intrinsics, size: tuple[int, int]
+                ) -> VisibleEdges | None:
+    """The edges the part shows at ``pose`` in an image of ``size`` (``model/edge_points.visible_edges``):
+    a refused candidate's verdict reads them and its polish on the plane starts from them, rendered once."""
+    key = (pose.R.tobytes(), pose.t_mm.tobytes(), intr, size)
+    return _SHOWN.get(bank, key, lambda: visible_edges(bank.vertices_mm, bank.faces, crease_edges_of(bank),
+                                                       pose, intr, size))
