@@ -133,15 +133,22 @@ def share_agreeing(uv: np.ndarray, ori: np.ndarray, agreeing: np.ndarray,
     """The weighted share of the points at pixels ``uv`` inside the image whose orientation bin ``ori`` is
     set in ``agreeing`` (a frame's ``agreeing_bits``); 0 with none. ``weights(uv, ori)`` of the points
     inside (None: ``gradients.balanced_weights`` of their bins)."""
-    inside = _inside(uv, agreeing.shape)
+    iu, iv = _pixels(uv)
+    inside = _within(iu, iv, agreeing.shape)
     if not inside.any():
         return 0.0
-    iu, iv = np.rint(uv[inside, 0]).astype(int), np.rint(uv[inside, 1]).astype(int)
-    agree = (agreeing[iv, iu] >> ori[inside]) & 1
+    agree = (agreeing[iv[inside], iu[inside]] >> ori[inside]) & 1
     w = balanced_weights(ori[inside]) if weights is None else weights(uv[inside], ori[inside])
     return float((w * agree).sum())
 
 
 def _inside(uv: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    iu, iv = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
+    return _within(*_pixels(uv), shape)
+
+
+def _pixels(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
+
+
+def _within(iu: np.ndarray, iv: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return (iu >= 0) & (iu < shape[1]) & (iv >= 0) & (iv < shape[0])
