@@ -92,9 +92,11 @@ def placements(R: np.ndarray, h_mm: np.ndarray, uv: np.ndarray, bank: Part, intr
     """(M, 3, 3) rotations with centre heights (M,) placed at pixels uv (M, 2) -> ((M, 3) t_cam_obj, (M,)
     bool: the ray meets the plane in front of the camera). The reference point ``centre_obj`` lies on
     the ray through uv at height ``h_mm`` above the plane."""
-    r = np.stack([(uv[:, 0] - intr.cx) / intr.fx, (uv[:, 1] - intr.cy) / intr.fy, np.ones(len(uv))], 1)
+    # filled in place and its norm summed directly: the search and its polish place one pose at a time
+    r = np.empty((len(uv), 3))
+    r[:, 0], r[:, 1], r[:, 2] = (uv[:, 0] - intr.cx) / intr.fx, (uv[:, 1] - intr.cy) / intr.fy, 1.0
     nr = r @ plane.normal
-    ok = nr < -MIN_RAY_COS * np.linalg.norm(r, axis=1)
+    ok = nr < -MIN_RAY_COS * np.sqrt(np.add.reduce(r * r, axis=1))
     lam = (plane.d_mm + h_mm) / np.where(ok, nr, -1.0)
     ok &= lam > 0
     c_cam = lam[:, None] * r
