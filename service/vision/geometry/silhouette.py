@@ -20,6 +20,7 @@ import hashlib
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
@@ -74,7 +75,8 @@ def extract_border(invz_ss: np.ndarray, fid_ss: np.ndarray, origin_ss: tuple[int
     mask = fid_ss >= 0
     if not mask.any():
         return empty
-    mask_p = np.pad(mask, 1)
+    mask_p = np.zeros((mask.shape[0] + 2, mask.shape[1] + 2), bool)  # np.pad's bookkeeping costs more
+    mask_p[1:-1, 1:-1] = mask
     sigma = SMOOTH_SIGMA_PX * s
     uvs, thetas = [], []
     for c in _contours_ss(mask_p):
@@ -110,25 +112,39 @@ def extract_border(invz_ss: np.ndarray, fid_ss: np.ndarray, origin_ss: tuple[int
     uv, theta = uv[~on_frame], theta[~on_frame]
     # Depth of the nearest covered sub-pixel (5 x 5 window), then back along the ray (eq. 7).
     q = (uv + 0.5) * s - 0.5 - np.asarray(origin_ss, float)  # ROI sub-pixel coords
-    base = np.rint(q).astype(np.int64)
-    off = np.stack(np.meshgrid(np.arange(-2, 3), np.arange(-2, 3), indexing="xy"), axis=-1).reshape(-1, 2)
-    cand = base[:, None, :] + off[None, :, :]  # (M, 25, 2) as (i, j) = (col, row)
-    hh, ww = mask.shape
-    inb = (cand[..., 0] >= 0) & (cand[..., 0] < ww) & (cand[..., 1] >= 0) & (cand[..., 1] < hh)
-    ci = np.clip(cand[..., 0], 0, ww - 1)
-    cj = np.clip(cand[..., 1], 0, hh - 1)
-    covered = inb & mask[cj, ci]
-    dist2 = ((cand - q[:, None, :]) ** 2).sum(axis=2)
-    dist2 = np.where(covered, dist2, np.inf)
-    best = np.argmin(dist2, axis=1)
-    ok = np.isfinite(dist2[np.arange(len(q)), best])
-    z = 1.0 / invz_ss[cj[np.arange(len(q)), best], ci[np.arange(len(q)), best]].astype(np.float64)
+    ok, z = _nearest_covered_depth(np.ascontiguousarray(q), mask, invz_ss)
     uv, theta, z = uv[ok], theta[ok], z[ok]
     p_cam = unproject(uv, z, intr.K)
     if sil_edges_cam is not None and len(sil_edges_cam):
         uv, theta, p_cam = snap_to_edges(uv, theta, p_cam, sil_edges_cam, intr)
     p_obj = (p_cam - pose.t_mm) @ pose.R
     return uv, theta, p_obj
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_covered_depth(q, mask, invz):  # pragma: no cover - compiled
+    """Per point q (M, 2) (col, row) of the ROI's sub-pixels: whether a sub-pixel of the 5 x 5 window about
+    its rounded position is covered, and the depth (mm) of the nearest covered one (the first of equals,
+    rows then columns). One loop: the (M, 25) candidate arrays cost ~0.3 ms a border."""
+    hh, ww = mask.shape
+    M = q.shape[0]
+    ok = np.zeros(M, np.bool_)
+    z = np.zeros(M)
+    for m in range(M):
+        i0, j0 = int(np.rint(q[m, 0])), int(np.rint(q[m, 1]))
+        best, bi, bj = np.inf, 0, 0
+        for j in range(j0 - 2, j0 + 3):
+            for i in range(i0 - 2, i0 + 3):
+                if i < 0 or i >= ww or j < 0 or j >= hh or not mask[j, i]:
+                    continue
+                du, dv = i - q[m, 0], j - q[m, 1]
+                d2 = du * du + dv * dv
+                if d2 < best:
+                    best, bi, bj = d2, i, j
+        if best < np.inf:
+            ok[m] = True
+            z[m] = 1.0 / np.float64(invz[bj, bi])
+    return ok, z
 
 
 SNAP_MAX_PX = 0.75  # a border point further than this from every contour-generator edge is kept as traced
