@@ -373,15 +373,27 @@ def _rho(loss: str):
     return "linear" if loss == "median" else loss
 
 
-def _moved(border: Border, pose: Pose, intr: Intrinsics) -> tuple[float, float]:
-    """Largest image displacement (px) of the border points and rotation change (deg) since the
-    border was extracted."""
-    a = border.pose.apply(border.p_obj)
-    b = pose.apply(border.p_obj)
-    ua = np.stack([intr.fx * a[:, 0] / a[:, 2], intr.fy * a[:, 1] / a[:, 2]], 1)
-    ub = np.stack([intr.fx * b[:, 0] / b[:, 2], intr.fy * b[:, 1] / b[:, 2]], 1)
-    px = float(np.max(np.linalg.norm(ua - ub, axis=1))) if len(a) else 0.0
-    return px, rotation_angle_deg(border.pose.R, pose.R)
+class _Views:
+    """Border points seen by the ideal camera (fx x / z, fy y / z) at poses, each (points, pose) pair
+    projected once: a refinement compares each new pose with the one before and with its border's."""
+
+    def __init__(self, intr: Intrinsics):
+        self.intr = intr
+        self.seen: dict[tuple[int, int], tuple[np.ndarray, Pose, np.ndarray]] = {}
+
+    def of(self, p_obj: np.ndarray, pose: Pose) -> np.ndarray:
+        key = (id(p_obj), id(pose))
+        if key not in self.seen:  # the entry holds both objects: their ids stay theirs
+            a = pose.apply(p_obj)
+            uv = np.stack([self.intr.fx * a[:, 0] / a[:, 2], self.intr.fy * a[:, 1] / a[:, 2]], 1)
+            self.seen[key] = (p_obj, pose, uv)
+        return self.seen[key][2]
+
+    def moved_px(self, p_obj: np.ndarray, a: Pose, b: Pose) -> float:
+        """Largest image displacement (px) of the points from pose ``a`` to pose ``b``."""
+        if not len(p_obj):
+            return 0.0
+        return float(np.max(np.linalg.norm(self.of(p_obj, a) - self.of(p_obj, b), axis=1)))
 
 
 def verify(border: Border, pose: Pose, intr: Intrinsics, dtt: DistanceTensor, *, score_px: float
@@ -508,9 +520,11 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
     pose, iterations, converged, thr, last = pose0, 0, False, None, None
     kind = "dt"
 
+    views = _Views(ideal)
+
     def maybe_reextract(border, pose):
-        px, deg = _moved(border, pose, ideal)
-        if px > REEXTRACT_PX or deg > REEXTRACT_DEG:
+        if (views.moved_px(border.p_obj, border.pose, pose) > REEXTRACT_PX
+                or rotation_angle_deg(border.pose.R, pose.R) > REEXTRACT_DEG):
             return border_points(bank, pose, ideal, size), True
         return border, False
 
@@ -531,8 +545,7 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
         interior_pose = interior = None
 
     def interior_at(p: Pose) -> float:
-        if interior is not None and _moved(Border(border.p_obj, border.tan_obj, interior_pose), p,
-                                           ideal)[0] <= INTERIOR_REUSE_PX:
+        if interior is not None and views.moved_px(border.p_obj, interior_pose, p) <= INTERIOR_REUSE_PX:
             return interior.result()
         return unexplained_edge_ratio(bank, p, ideal, seg_roi, size)
 
@@ -554,7 +567,7 @@ def refine_pose(bank: TemplateBank, pose0: Pose, grey: np.ndarray, intr: Intrins
             pose_new, res, thr = out
             iterations += int(res.njev or 0)
             converged, last = res.status > 0, res
-            step_px, _ = _moved(Border(border.p_obj, border.tan_obj, pose), pose_new, ideal)
+            step_px = views.moved_px(border.p_obj, pose, pose_new)
             pose = pose_new
             border, moved = maybe_reextract(border, pose)
             if step_px < 0.05 and not moved and k >= 1:
