@@ -17,6 +17,7 @@ The bank's templates (``model/templates.py``) and the refinement (``estimate/ref
 from __future__ import annotations
 
 import hashlib
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -152,6 +153,32 @@ SNAP_MAX_DEPTH_FRACTION = 0.05  # ... and so is one whose edge point is this muc
 SNAP_SAMPLE_PX = 2.0  # edges are sampled this often to find the candidates (the 6 nearest samples' edges)
 
 
+@numba.njit(cache=True, nogil=True)
+def _closest_candidate(uv, a, b, cand):  # pragma: no cover - compiled
+    """Per point uv (M, 2): of its candidate edges ``cand`` (M, k) (ids into the projected edges a -> b,
+    (S, 2) each), the one passing closest (the first of equals): that distance, the edge and the point's
+    parameter on it in [0, 1]. One loop: the (M, k, 2) arrays cost ~0.2 ms a border."""
+    M, k = cand.shape
+    dmin, best, tb = np.empty(M), np.empty(M, cand.dtype), np.empty(M)
+    for m in range(M):
+        for c in range(k):
+            e = cand[m, c]
+            ab0, ab1 = b[e, 0] - a[e, 0], b[e, 1] - a[e, 1]
+            den = ab0 * ab0 + ab1 * ab1
+            if den < 1e-18:
+                den = 1e-18
+            t = ((uv[m, 0] - a[e, 0]) * ab0 + (uv[m, 1] - a[e, 1]) * ab1) / den
+            if t < 0.0:  # as np.clip: a -0.0 stays
+                t = 0.0
+            if t > 1.0:
+                t = 1.0
+            d0, d1 = (a[e, 0] + t * ab0) - uv[m, 0], (a[e, 1] + t * ab1) - uv[m, 1]
+            d = math.sqrt(d0 * d0 + d1 * d1)
+            if c == 0 or d < dmin[m]:
+                dmin[m], best[m], tb[m] = d, e, t
+    return dmin, best, tb
+
+
 def snap_to_edges(uv: np.ndarray, theta: np.ndarray, p_cam: np.ndarray, edges_cam: np.ndarray,
                   intr: Intrinsics):
     """Move traced border points onto the nearest projected contour-generator edge.
@@ -186,14 +213,7 @@ def snap_to_edges(uv: np.ndarray, theta: np.ndarray, p_cam: np.ndarray, edges_ca
     k = min(6, len(samples))
     _, idx = cKDTree(samples, balanced_tree=False, compact_nodes=False).query(uv, k=k)
     cand = seg[np.asarray(idx).reshape(len(uv), k)]  # (M, k) segment ids
-    ab = (b - a)[cand]  # (M, k, 2)
-    den = np.maximum((ab**2).sum(axis=2), 1e-18)
-    tt = np.clip(((uv[:, None, :] - a[cand]) * ab).sum(axis=2) / den, 0.0, 1.0)
-    q = a[cand] + tt[..., None] * ab
-    d = np.linalg.norm(q - uv[:, None, :], axis=2)
-    j = np.argmin(d, axis=1)
-    rows = np.arange(len(uv))
-    dmin, best, tb = d[rows, j], cand[rows, j], tt[rows, j]
+    dmin, best, tb = _closest_candidate(np.ascontiguousarray(uv, np.float64), a, b, cand)
     z0, z1 = P0[best, 2], P1[best, 2]
     lam = tb * z0 / np.maximum((1.0 - tb) * z1 + tb * z0, 1e-12)
     p_snap = P0[best] + lam[:, None] * (P1[best] - P0[best])
