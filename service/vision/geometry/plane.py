@@ -13,7 +13,7 @@ from typing import Protocol
 import numpy as np
 
 from service.vision.geometry.camera import Intrinsics
-from service.vision.geometry.frames import Pose
+from service.vision.geometry.frames import Pose, cross3
 
 
 class Part(Protocol):
@@ -77,7 +77,7 @@ def R_cam_rest(plane: Plane) -> np.ndarray:
     e = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x = e - (e @ n) * n
     x /= np.linalg.norm(x)
-    return np.column_stack([x, np.cross(n, x), n])
+    return np.column_stack([x, cross3(n, x), n])
 
 
 def rest_heights_mm(bank: Part, R_rest_obj: np.ndarray) -> np.ndarray:

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from service.vision.geometry.frames import Pose
+from service.vision.geometry.frames import Pose, cross3
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -117,9 +117,9 @@ class PoseParams:
 def _perpendicular_basis(a: np.ndarray) -> np.ndarray:
     """(3, 2): two unit vectors perpendicular to the unit vector ``a`` and to each other."""
     e = np.eye(3)[int(np.argmin(np.abs(a)))]
-    b1 = np.cross(a, e)
+    b1 = cross3(a, e)
     b1 /= np.linalg.norm(b1)
-    return np.stack([b1, np.cross(a, b1)], 1)
+    return np.stack([b1, cross3(a, b1)], 1)
 
 
 def _translation_basis(distance_mm: float | None) -> np.ndarray:
