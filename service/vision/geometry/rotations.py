@@ -15,14 +15,14 @@ from service.vision.geometry.frames import Pose, cross3
 
 def skew(v: np.ndarray) -> np.ndarray:
     """(3,) -> (3, 3) cross-product matrix."""
-    x, y, z = (float(c) for c in v)
+    x, y, z = np.asarray(v, float).tolist()
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 _I3 = np.eye(3)
 
 
 def exp_so3(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rotation exp([w]x) and the left Jacobian J_l(w) (d exp(w) v = -[exp(w) v]x J_l dw)."""
-    th = float(np.linalg.norm(w))
+    th = math.sqrt(float(w.dot(w)))  # np.linalg.norm's own sum for a vector, without its dispatch
     W = skew(w)
     WW = W @ W
     if th < 1e-8:
