@@ -28,8 +28,12 @@ def spun_and_slid(R: np.ndarray, centre_obj: np.ndarray, t_mm: np.ndarray, plane
     """(R, t) spun by ``x[0]`` deg about the plane's normal through the part's centre, the centre slid
     ``x[1]``, ``x[2]`` mm along the plane's axes (the object origin follows)."""
     Rc = R_cam_rest(plane)
-    R2 = R_from_rotvec(Rc[:, 2] * np.radians(x[0])) @ R
+    R2 = _spun(R, Rc, x[0])
     return R2, _slid(R @ centre_obj + t_mm, Rc, x) - R2 @ centre_obj
+
+
+def _spun(R: np.ndarray, Rc: np.ndarray, spin_deg: float) -> np.ndarray:
+    return R_from_rotvec(Rc[:, 2] * np.radians(spin_deg)) @ R
 
 
 def _slid(c_cam: np.ndarray, Rc: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -51,7 +55,7 @@ class _Moves:
         """(R, t touching the plane, or None: ``touching``) of ``pose`` moved by x."""
         spin = float(x[0])
         if spin not in self.spins:
-            R = R_from_rotvec(self.Rc[:, 2] * np.radians(x[0])) @ self.R0
+            R = _spun(self.R0, self.Rc, x[0])
             self.spins[spin] = R, R @ self.centre_obj, lowest_mm(self.V, self.centre_obj, R, self.plane)
         R, Rc_obj, low = self.spins[spin]
         return R, touching(low, self.centre_obj, R, _slid(self.c_cam, self.Rc, x) - Rc_obj, self.plane)
