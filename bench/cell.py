@@ -194,6 +194,7 @@ def run_set(name: str, *, stride: int = 1, start: int = 0, models: set[str] | No
                 agreement[model] = cal.agreement
                 by_rest = ", ".join("-" if a is None else f"{a:.3f}" for a in cal.agreement_min_by_rest)
                 print(f"{Path(name).name} {model}: agreement_min {cal.agreement_min}, by rest [{by_rest}], "
+                      f"at a place {cal.agreement_min_place}, "
                       f"floor {cal.agreement_floor}, along {cal.agreement_along}, right "
                       f"{cal.right}/{cal.right_total}, wrong max {cal.wrong_max:.3f} of {cal.wrong_total}",
                       file=sys.stderr)

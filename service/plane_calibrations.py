@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from service.stores.base import Store
 
 # The calibration's method: a calibration of another is made again.
-VERSION = 8
+VERSION = 9
 KEY = "plane_calibration"
 
 
@@ -59,6 +59,11 @@ def agreement_min_by_rest_of(record: dict[str, Any]) -> tuple[float | None, ...]
     return tuple(None if a is None else float(a) for a in kept)
 
 
+def agreement_min_place_of(record: dict[str, Any]) -> float | None:
+    """The agreement a pose no other candidate at its place outagrees must reach; None: none."""
+    return _calibrated_value(record, "agreement_min_place")
+
+
 def agreement_along_of(record: dict[str, Any]) -> str | None:
     """Along which edges the part's agreement is read (``verdict.AGREEMENT_EVIDENCE``); None until
     calibrated."""
@@ -72,7 +77,7 @@ def plane_agreement_of(record: dict[str, Any]) -> PlaneAgreement | None:
     if along is None:
         return None
     return PlaneAgreement(agreement_min_of(record), agreement_floor_of(record), along,
-                          agreement_min_by_rest_of(record))
+                          agreement_min_by_rest_of(record), agreement_min_place_of(record))
 
 
 def _calibrated(record: dict[str, Any]) -> dict[str, Any] | None:
@@ -121,6 +126,7 @@ def plane_calibration_info(record: dict[str, Any], scenes: int | None) -> dict[s
             "agreement_along": agreement_along_of(record),
             "agreement_min_by_rest": list(agreement_min_by_rest_of(record))
             if status == "calibrated" else None,
+            "agreement_min_place": agreement_min_place_of(record),
             "wrong_max": cal.get("wrong_max") if current else None,
             "scenes": int(cal.get("scenes") or 0) if status == "calibrated" else None,
             "error": cal.get("error") if status == "failed" else None}
@@ -140,6 +146,7 @@ def calibrate_plane_stored(store: Store, mid: str, bank: TemplateBank, scenes: i
     kept = {"version": VERSION, "status": "calibrated", "agreement_min": cal.agreement_min,
             "agreement_floor": cal.agreement_floor, "agreement_along": cal.agreement_along,
             "agreement_min_by_rest": list(cal.agreement_min_by_rest),
+            "agreement_min_place": cal.agreement_min_place,
             "wrong_max": float(cal.wrong_max), "right": cal.right, "right_total": cal.right_total,
             "wrong_total": cal.wrong_total, "scenes": cal.scenes}
     return store.update(mid, **{KEY: kept})

@@ -246,8 +246,8 @@ class VerdictJSON(BaseModel):
                          "candidate when nothing is found")
     reason: str = Field(description="found | no_candidate | outside_distance_range | outside_image | "
                         "off_plane | low_support | interior_edges | region_mismatch | shading_mismatch | "
-                        "appearance_mismatch | generic_outline | low_score | edges_disagree | deadline (the "
-                        "search stopped at options.deadline_ms before finding one)")
+                        "appearance_mismatch | generic_outline | low_score | edges_disagree | rival_at_place | "
+                        "deadline (the search stopped at options.deadline_ms before finding one)")
     evidence: dict[str, float] = Field(description="the evidence the score was computed from: edge_support, "
                                        "unexplained, colour_edge, polarity, region, region_low, in_image, "
                                        "generic (fractions; see docs/API.md), distinct_px (pixels); with "
@@ -364,6 +364,11 @@ class PlaneCalibrationInfo(BaseModel):
         "order of its stable poses), 0.08 above the highest a wrong pose in that family reached, where its "
         "scenes held at least 4 wrong poses in it a scene; null entries read agreement_min; null until "
         "calibrated")
+    agreement_min_place: float | None = Field(
+        None, description="the agreement a pose on a plane must reach to be found where no other candidate "
+        "at its place (silhouette IoU >= 0.4) agrees more (verdict reason rival_at_place where one does): "
+        "0.08 above the highest a wrong pose away from every copy reached in its scenes; null when "
+        "uncalibrated, or when in its scenes a wrong pose was the best at a copy's place there")
     scenes: int | None = Field(description="rendered scenes it was calibrated on (null until calibrated)")
     error: str | None = Field(None, description="why it failed (status failed), else null")
 

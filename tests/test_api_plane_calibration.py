@@ -92,6 +92,9 @@ def test_a_ready_part_is_calibrated_in_the_background_and_an_estimate_on_a_plane
     else:  # too few wrong candidates to say how high a wrong one reads: not calibrated
         assert info["agreement_min"] is None and info["agreement_min_by_rest"] == []
     assert info["agreement_min_by_rest"] == kept["agreement_min_by_rest"]
+    # a place point lies under the part's own point, as kept
+    assert info["agreement_min_place"] == kept["agreement_min_place"]
+    assert info["agreement_min_place"] is None or info["agreement_min_place"] < info["agreement_min"]
     # the floor, a margin under every right candidate's agreement (none with too few of them), as kept
     assert info["agreement_floor"] == kept["agreement_floor"]
     assert info["agreement_along"] == kept["agreement_along"] in AGREEMENT_EVIDENCE
@@ -112,4 +115,4 @@ def test_without_scenes_no_calibration_is_made_and_get_says_not_requested(tmp_pa
         info = c.get(f"/models/{r.json()['id']}").json()["plane_calibration"]
         assert info == {"status": "not_requested", "progress": 0.0, "agreement_min": None, "wrong_max": None,
                         "agreement_floor": None, "agreement_along": None, "agreement_min_by_rest": None,
-                        "scenes": None, "error": None}
+                        "agreement_min_place": None, "scenes": None, "error": None}

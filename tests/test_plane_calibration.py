@@ -8,6 +8,7 @@ Scenes: the L-shaped block of tests/conftest.py among look-alike shapes, drawn b
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -21,6 +22,7 @@ from service.vision.geometry.plane import Plane, R_cam_rest, rest_gap_mm
 from service.vision.pipeline import estimate
 from service.vision.pipeline.calibration_scenes import _part_alike, scene
 from service.vision.pipeline.part import rest_family
+from service.vision.pipeline.place import SAME_PLACE_IOU, outagreed
 from service.vision.pipeline.plane_calibration import (
     ALONG_MIN_GAIN,
     MARGIN,
@@ -30,8 +32,10 @@ from service.vision.pipeline.plane_calibration import (
     RIGHT_PX,
     PlaneRecord,
     calibrated,
+    place_point,
     plane_records,
 )
+from service.vision.pipeline.types import Checked
 
 RESTING_MM = 1e-6  # a copy's lowest point lies on the table
 CONTRAST_GREY = 4.0  # a copy's pixels differ from the table's around it by more than the noise
@@ -106,6 +110,65 @@ def test_each_resting_family_has_its_own_point_where_its_scenes_hold_enough_wron
     # records of no known family (-1) give no family a point
     assert calibrated([rec(r.evidence["edge_agreement"], r.error_px, -1) for r in [*wrong, *right]],
                       scenes=scenes).agreement_min_by_rest == ()
+
+
+def _placed(agreement, error_px, scene, place, overlap):
+    ev = {"edge_agreement": agreement, "polarity": 1.0, "distinct_px": 2.0}
+    return PlaneRecord(error_px, "low_score", ev, 0, scene, place, overlap)
+
+
+def test_the_place_point_reads_the_wrong_poses_away_from_every_copy():
+    scenes = 2
+    n = MIN_WRONG_PER_SCENE * scenes
+    elsewhere = [_placed(0.40 + 0.001 * k, 80.0, k % scenes, -1, 0.0) for k in range(n)]
+    # each copy's flips read 0.6 at its place, its truth 0.7 there
+    flips = [_placed(0.60, 40.0, s, p, 0.6) for s in range(scenes) for p in range(2)]
+    truths = [_placed(0.70, 1.0, s, p, 0.9) for s in range(scenes) for p in range(2)]
+    records = [*elsewhere, *flips, *truths]
+    top_elsewhere = 0.40 + 0.001 * (n - 1)
+    assert place_point(records, MARGIN, "edge_agreement") == pytest.approx(top_elsewhere + MARGIN)
+    cal = calibrated(records, scenes=scenes)
+    assert cal.agreement_min == pytest.approx(0.60 + MARGIN)  # the flips set the full point
+    assert cal.agreement_min_place == pytest.approx(top_elsewhere + MARGIN)
+    assert cal.agreement.place_point == cal.agreement_min_place
+    # one copy whose flip outagreed its truth there: no place point
+    outagreeing = [*records, _placed(0.75, 40.0, 1, 1, 0.5)]
+    assert place_point(outagreeing, MARGIN, "edge_agreement") is None
+    assert calibrated(outagreeing, scenes=scenes).agreement_min_place is None
+    # a flip under the place point is no reason to drop it; records that do not say where they lie give none
+    assert place_point([*records, _placed(0.45, 40.0, 1, 1, 0.5)], MARGIN, "edge_agreement") is not None
+    assert place_point([*records, PlaneRecord(80.0, "low_score", {"edge_agreement": 0.1})], MARGIN,
+                       "edge_agreement") is None
+
+
+def test_a_pose_reaching_only_the_place_point_is_found_unless_a_rival_at_its_place_agrees_more():
+    at = PlaneAgreement(0.70, None, "edge_agreement", (), 0.50)
+    ev = {"edge_agreement": 0.60, "polarity": 1.0, "distinct_px": 2.0, "edge_support": 0.0,
+          "unexplained": 1.0, "colour_edge": 0.0, "region_low": 0.0, "region_global": 0.0, "coherence": 0.0,
+          "shading_r2": 0.0, "shading_std": 0.0, "generic": 1.0, "region": 0.0}
+    on_plane = {"plane_gap_mm": 0.0, "plane_tolerance_mm": 5.0}
+    v = decide(ev, **on_plane, agreement=at)
+    assert v.found and v.evidence["at_place_point"] == 1.0
+    assert v.score == pytest.approx(agreement_score(ev, PlaneAgreement(0.50, None)))
+    full = decide(ev | {"edge_agreement": 0.75}, **on_plane, agreement=at)
+    assert full.found and "at_place_point" not in full.evidence  # found on its own point: no contest
+    assert not decide(ev | {"edge_agreement": 0.45}, **on_plane, agreement=at).found
+    assert "at_place_point" not in decide(ev, **on_plane, agreement=replace(at, place_point=None)).evidence
+
+    def checked(verdict):
+        return Checked(None, None, verdict)
+
+    c = checked(v)
+    assert outagreed(c, [checked(decide(ev | {"edge_agreement": 0.55}, **on_plane, agreement=at))],
+                     "edge_agreement") is c
+    lost = outagreed(c, [checked(decide(ev | {"edge_agreement": 0.65}, **on_plane, agreement=at))],
+                     "edge_agreement")
+    assert not lost.verdict.found and lost.verdict.reason == "rival_at_place"
+    assert lost.verdict.evidence["rival_agreement"] == pytest.approx(0.65)
+    # a pose found on its own point holds against any rival
+    f = checked(full)
+    assert outagreed(f, [checked(decide(ev | {"edge_agreement": 0.9}, **on_plane, agreement=at))],
+                     "edge_agreement") is f
 
 
 def test_a_pose_on_a_plane_is_in_the_resting_family_it_was_turned_from():
@@ -224,6 +287,8 @@ def test_calibration_records_the_copies_it_finds_as_right_and_the_estimate_reads
     assert all(0 <= r.rest < len(bank.R_rest_obj) for r in records)  # each in a resting family of the part
     right = [r for r in records if r.error_px < RIGHT_PX]
     assert right, "the calibration scene's copies are among the checked candidates"
+    # a right pose covers the copy it is right for: the record says which, and by how much
+    assert all(r.scene == 0 and r.place >= 0 and r.overlap >= SAME_PLACE_IOU for r in right)
     # the same scene, estimated with the lowest agreement a right candidate read: it is found there
     sc = scene(bank, np.random.default_rng([7, 0]))
     a = min(material_free(r.evidence) for r in right)

@@ -35,7 +35,8 @@ def _method(policy: Policy) -> str:
 
 def _record(row: dict) -> PlaneRecord:
     """A kept row (rows kept before the record lost its ``agreement``, the evidence's, carry it too)."""
-    return PlaneRecord(row["error_px"], row["reason"], row["evidence"], row["rest"])
+    return PlaneRecord(row["error_px"], row["reason"], row["evidence"], row["rest"], row.get("scene", -1),
+                       row.get("place", -1), row.get("overlap", 0.0))
 
 
 def plane_calibration(bank: TemplateBank, model: str, mesh_path: Path | None, scenes: int,

@@ -71,9 +71,10 @@ MIN_DISTINCT_PX = 1.0
 # The reasons a verdict gives.
 REASONS = ("found", "no_candidate", "outside_distance_range", "outside_image", "off_plane", "low_support",
            "interior_edges", "region_mismatch", "shading_mismatch", "generic_outline", "low_score",
-           "deadline", "appearance_mismatch", "edges_disagree")
+           "deadline", "appearance_mismatch", "edges_disagree", "rival_at_place")
 # "deadline": the search stopped early (``deadline_ms``) before a candidate was found; the pipeline
-# sets it (``decide`` judges one hypothesis and never returns it).
+# sets it (``decide`` judges one hypothesis and never returns it); so is "rival_at_place": a pose found only
+# at its part's place point, refused since another candidate at its place agrees more (``pipeline/place``).
 # A rejected pose is said to fail on the evidence furthest below a true pose's typical value (medians
 # over the truth hypotheses of the tuning sets): the reason names the one a person should look at.
 TYPICAL_RIGHT = {"edge_support": 0.9, "unexplained": 0.1, "colour_edge": 0.95, "region_global": 0.85,
@@ -145,6 +146,15 @@ class PlaneAgreement:
     # the point of a pose in each resting family (``part.rest_family``), where its scenes said how high a
     # wrong pose in it reads; None (or no entry): ``point``
     points_by_rest: tuple[float | None, ...] = ()
+    # the point a pose reaches to be found if no other candidate at its place agrees more
+    # (``pipeline/place``): wrong poses away from every copy read lower than those at one; None: none
+    place_point: float | None = None
+
+    def at_place(self) -> PlaneAgreement | None:
+        """The operating point at the place point, where it lies under the pose's own; else None."""
+        if self.place_point is None or self.point is None or self.place_point >= self.point:
+            return None
+        return replace(self, point=self.place_point)
 
     def at_rest(self, family: int) -> PlaneAgreement:
         """The operating point of a pose in resting family ``family``."""
@@ -193,14 +203,17 @@ def decide(ev: dict | None, *, z_mm: float | None = None,
     not found ("off_plane", the gap in the evidence as ``plane_gap_mm``). ``agreement``: with a plane,
     the part's calibrated agreement: the score is then the higher of the verification score and
     ``agreement_score``, and a pose scoring enough but reading less than its floor is not found
-    ("edges_disagree")."""
+    ("edges_disagree"); a pose that scores enough only at the part's place point is found with
+    ``at_place_point`` 1 in its evidence (the pipeline holds it against the candidates at its place)."""
     if ev is None:
         return Verdict(False, 0.0, "no_candidate")
     score = verification_score(ev, weights)
     # (a record made before the agreement was measured is judged as it was then)
     calibrated = plane_gap_mm is not None and "edge_agreement" in ev and agreement is not None
+    at_place = None
     if calibrated:
         score = max(score, agreement_score(ev, agreement))
+        at_place = agreement.at_place()
     # (a part without taught colours lacks their evidence: reported as given)
     evidence = {k: float(ev[k]) for k in FEATURES if k in ev} | {"in_image": float(ev.get("in_image", 1.0))}
     if distance_range_mm is not None and z_mm is not None and not (
@@ -212,7 +225,11 @@ def decide(ev: dict | None, *, z_mm: float | None = None,
         evidence["plane_gap_mm"] = float(plane_gap_mm)
         if plane_tolerance_mm is not None and abs(plane_gap_mm) > plane_tolerance_mm:
             return Verdict(False, score, "off_plane", evidence)
-    if score >= (MIN_SCORE if min_score is None else min_score):
+    threshold = MIN_SCORE if min_score is None else min_score
+    if score < threshold and at_place is not None and agreement_score(ev, at_place) >= threshold:
+        score = agreement_score(ev, at_place)
+        evidence["at_place_point"] = 1.0
+    if score >= threshold:
         # (a pose under the operating point keeps the reason its evidence gives: only a would-be-found
         # one is refused for its edges)
         floor = agreement.floor if calibrated else None

@@ -25,8 +25,9 @@ from service.vision.pipeline.estimate import (
     judged_range,
     misscaled_request,
 )
-from service.vision.pipeline.instances import SORTS, silhouette_iou, sort_instances, verify_instances
+from service.vision.pipeline.instances import SORTS, sort_instances, verify_instances
 from service.vision.pipeline.part import mirror_planes_of, resting_rotations
+from service.vision.pipeline.place import silhouette_iou
 from service.vision.pipeline.policy import (
     DEFAULT_DISTANCE_RANGE_MM,
     DEFAULT_POLICY,

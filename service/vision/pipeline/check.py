@@ -25,7 +25,7 @@ from service.vision.geometry.plane import Plane, rest_gap_mm
 from service.vision.model.appearance import Appearance
 from service.vision.model.edge_points import edge_points_of
 from service.vision.model.mirror import twin_poses
-from service.vision.pipeline import timing
+from service.vision.pipeline import place, timing
 from service.vision.pipeline.part import mirror_planes_of, rest_family, shown_edges
 from service.vision.pipeline.policy import DEFAULT_POLICY, Policy
 from service.vision.pipeline.types import Checked, PoseCandidate, RefinedPose
@@ -300,20 +300,50 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
                       ) -> list[Checked]:
     """Refine and verify the best ``policy.n_verify`` candidates, best verification first. Stops at the
     first found one: the search ranks by chamfer cost (over the local background's), and on a clean frame
-    the first is the truth; and before a check the ``deadline`` leaves no time for."""
+    the first is the truth; and before a check the ``deadline`` leaves no time for. A pose found only at
+    its part's place point holds against the candidates at its place (``_held_at_place``)."""
+    def check(cand: PoseCandidate) -> Checked:
+        return check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm,
+                               distance_range_mm=distance_range_mm, min_score=min_score,
+                               n_channels=n_channels, plane=plane, plane_tolerance_mm=plane_tolerance_mm,
+                               deadline=deadline, appearance=appearance, policy=policy, agreement=agreement)
+
     out: list[Checked] = []
-    for cand in cands[:policy.n_verify]:
+    done: set[int] = set()
+    for k, cand in enumerate(cands[:policy.n_verify]):
+        if k in done:
+            continue
         if not deadline.allows_first(timing.CHECK_MS.high):
             break
-        c = check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm,
-                            distance_range_mm=distance_range_mm, min_score=min_score, n_channels=n_channels,
-                            plane=plane, plane_tolerance_mm=plane_tolerance_mm, deadline=deadline,
-                            appearance=appearance, policy=policy, agreement=agreement)
-        out.append(c)
-        if c.verdict.found:
+        c = check(cand)
+        now = _held_at_place(bank, c, out, cands, k + 1, done, check, intr, (grey.shape[1], grey.shape[0]),
+                             deadline, policy, agreement.along if agreement is not None else "edge_agreement")
+        out += now
+        if any(x.verdict.found for x in now):
             break
     out.sort(key=lambda c: (c.verdict.found, c.verdict.score), reverse=True)
     return out
+
+
+def _held_at_place(bank: TemplateBank, c: Checked, before: list[Checked], cands: list[PoseCandidate],
+                   start: int, done: set[int], check: Callable[[PoseCandidate], Checked], intr: Intrinsics,
+                   size: tuple[int, int], deadline: Deadline, policy: Policy, along: str) -> list[Checked]:
+    """``[c]``, or if ``c`` is found only at its part's place point: it and the next ``policy.place_rivals``
+    candidates proposed at its place (checked now, their indices added to ``done``), each found only if no
+    other of them nor of ``before`` at its place agrees more (``place.outagreed``)."""
+    if not place.at_place_point_only(c):
+        return [c]
+    memo: dict = {}
+    ahead = place.upcoming_at(bank, c, cands, start, done, intr, size, memo, scan=policy.place_rival_scan,
+                              n=policy.place_rivals)
+    group = [c]
+    for j in ahead:
+        if not deadline.allows_first(timing.CHECK_MS.high):
+            break
+        done.add(j)
+        group.append(check(cands[j]))
+    rivals = place.rivals_at(bank, c, before, intr, size, memo)
+    return [place.outagreed(g, rivals + [h for h in group if h is not g], along) for g in group]
 
 
 def polish_appearance(bank: TemplateBank, pose: Pose, frame: ColourFrame, intr: Intrinsics,

@@ -9,13 +9,14 @@ from service.vision.bank import TemplateBank
 from service.vision.deadline import NO_DEADLINE, Deadline
 from service.vision.estimate.evidence import ColourFrame
 from service.vision.estimate.plane import PLANE_TOLERANCE_MM
-from service.vision.estimate.verdict import PlaneAgreement
+from service.vision.estimate.verdict import PlaneAgreement, material_free
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
 from service.vision.geometry.plane import Plane, centre_height_mm
 from service.vision.geometry.render import rasterise_roi
-from service.vision.pipeline import timing
+from service.vision.pipeline import place, timing
 from service.vision.pipeline.check import Checker
+from service.vision.pipeline.place import silhouette_iou
 from service.vision.pipeline.policy import DEFAULT_POLICY, Policy
 from service.vision.pipeline.types import Checked, PoseCandidate
 
@@ -40,24 +41,26 @@ def verify_instances(bank: TemplateBank, cands: list[PoseCandidate], grey: np.nd
     Found instances explain their pixels (``judge``'s ``others_depth_mm``): candidates checked after
     one is found are judged with it, and a rejected candidate is judged again (its evidence only: the
     refinement does not change) once an instance is found after it: a copy touching another looked
-    like a part on a background of its own colour until that one was found."""
+    like a part on a background of its own colour until that one was found.
+
+    A pose found only at its part's place point holds against the candidates at its place
+    (``Scene.holds_place``)."""
     check = Checker(bank, grey, frame, intr, distance_mm, n_channels,
                     dict(distance_range_mm=distance_range_mm, min_score=min_score, plane=plane,
                          plane_tolerance_mm=plane_tolerance_mm, appearance=appearance,
                          agreement=agreement), deadline, policy)
     scene = Scene(check, max_instances)
-    for cand in cands:
+    for k, cand in enumerate(cands):
         if scene.full():
             break
-        if scene.overlaps_found(cand.pose):
+        if k in scene.done or scene.overlaps_found(cand.pose):
             continue
         if not deadline.allows_first(timing.CHECK_MS.high):
             break
-        others = scene.others if scene.found else None
-        c = check.twin_checked(check(cand, others), others)
+        c = scene.checked(cand)
         if not c.verdict.found:
             scene.rejected.append(c)
-        elif scene.distinct(c):
+        elif scene.distinct(c) and scene.holds_place(c, cands, k + 1):
             scene.add(c)
             scene.rejudge_rejected()
     scene.mutual()
@@ -79,6 +82,9 @@ class Scene:
         self.others = np.full(self.frame.shape, np.inf, np.float32)
         self.size = (self.frame.shape[1], self.frame.shape[0])
         self.silhouettes: dict = {}  # silhouette_iou's memo: each pose rasterised once
+        self.done: set[int] = set()  # candidates checked ahead of their turn, as rivals at a place
+        agreement = check.judge_kw.get("agreement")
+        self.along = agreement.along if agreement is not None else "edge_agreement"
 
     def full(self) -> bool:
         return len(self.found) >= self.max_instances
@@ -91,14 +97,55 @@ class Scene:
         return all(silhouette_iou(self.bank, c.refined.pose, f.refined.pose, self.intr, self.size,
                                   memo=self.silhouettes) <= self.policy.instance_iou for f in self.found)
 
+    def checked(self, cand: PoseCandidate) -> Checked:
+        others = self.others if self.found else None
+        return self.check.twin_checked(self.check(cand, others), others)
+
+    def holds_place(self, c: Checked, cands: list[PoseCandidate], start: int) -> bool:
+        """Whether found ``c`` is found: a pose found only at its part's place point (``place``) also
+        needs to agree more than every candidate at its place, the rejected ones and the next
+        ``policy.place_rivals`` proposed there (checked now, then skipped). Refused, ``c`` joins the
+        rejected, and a rival found that agrees more is added."""
+        if not place.at_place_point_only(c):
+            return True
+        rivals = place.rivals_at(self.bank, c, self.rejected, self.intr, self.size, self.silhouettes)
+        ahead = place.upcoming_at(self.bank, c, cands, start, self.done, self.intr, self.size,
+                                  self.silhouettes, scan=self.policy.place_rival_scan,
+                                  n=self.policy.place_rivals)
+        fresh = []
+        for j in ahead:
+            if not self.deadline.allows_first(timing.CHECK_MS.high):
+                break
+            self.done.add(j)
+            fresh.append(self.checked(cands[j]))
+        judged = place.outagreed(c, rivals + fresh, self.along)
+        if judged.verdict.found:
+            self.rejected += [r for r in fresh if not r.verdict.found]
+            return True
+        self.rejected.append(judged)
+        for r in sorted(fresh, key=lambda r: -material_free(r.verdict.evidence, self.along)):
+            held = place.outagreed(r, rivals + [judged] + [f for f in fresh if f is not r], self.along)
+            if held.verdict.found and self.distinct(held):
+                self.add(held)
+            else:
+                self.rejected.append(held)
+        return False
+
     def add(self, c: Checked) -> None:
         self.found.append(c)
         paint_depth(self.others, self.bank, c.refined.pose, self.intr)
 
     def add_checked(self, c: Checked, others_depth_mm: np.ndarray) -> None:
         """Add a candidate found on being judged again, after its twin check (which can replace it by
-        its mirror twin, in the same place)."""
-        self.add(self.check.twin_checked(c, others_depth_mm))
+        its mirror twin, in the same place), unless it is found only at its place point and a rejected
+        candidate at its place agrees more (then it stays rejected)."""
+        c = self.check.twin_checked(c, others_depth_mm)
+        rivals = place.rivals_at(self.bank, c, self.rejected, self.intr, self.size, self.silhouettes)
+        judged = place.outagreed(c, rivals, self.along)
+        if judged.verdict.found:
+            self.add(judged)
+        else:
+            self.rejected.append(judged)
 
     def rejudged(self, c: Checked, others: np.ndarray) -> Checked:
         """``c`` judged again with the parts in ``others`` explaining their pixels, if its rejection
@@ -171,35 +218,3 @@ def sort_instances(found: list[Checked], bank: TemplateBank, sort: str, plane: P
             raise ValueError("sort 'height' needs a plane")
         return sorted(found, key=lambda c: -centre_height_mm(bank, c.refined.pose, plane))
     raise ValueError(f"unknown sort {sort!r}: one of {SORTS}")
-
-
-def silhouette_iou(bank: TemplateBank, a: Pose, b: Pose, intr: Intrinsics,
-                   image_size: tuple[int, int], *, memo: dict | None = None) -> float:
-    """Intersection over union of the silhouettes of the model at poses ``a`` and ``b`` in the image
-    (``image_size`` = (w, h); the project's rasteriser, pixel centres). ``memo``: a dict kept for one
-    frame's poses, each rasterised only the first time it is asked about."""
-    ma, na, (ua, va) = _silhouette(bank, a, intr, image_size, memo)
-    mb, nb, (ub, vb) = _silhouette(bank, b, intr, image_size, memo)
-    if na == 0 or nb == 0:
-        return 0.0
-    u0, v0 = max(ua, ub), max(va, vb)
-    u1, v1 = min(ua + ma.shape[1], ub + mb.shape[1]), min(va + ma.shape[0], vb + mb.shape[0])
-    if u1 <= u0 or v1 <= v0:
-        return 0.0
-    inter = int((ma[v0 - va:v1 - va, u0 - ua:u1 - ua] & mb[v0 - vb:v1 - vb, u0 - ub:u1 - ub]).sum())
-    return inter / float(na + nb - inter)
-
-
-def _silhouette(bank: TemplateBank, pose: Pose, intr: Intrinsics, image_size: tuple[int, int],
-                memo: dict | None) -> tuple[np.ndarray, int, tuple[int, int]]:
-    """(mask of the silhouette's window, its pixel count, the window's (u0, v0)) of the model at
-    ``pose`` (``rasterise_roi``), from ``memo`` (keyed by the pose object, which it keeps) if there."""
-    hit = memo.get(id(pose)) if memo is not None else None
-    if hit is not None and hit[0] is pose:
-        return hit[1]
-    _, face, uv0 = rasterise_roi(bank.vertices_mm, bank.faces, pose, intr.K, image_size)
-    mask = face >= 0
-    out = (mask, int(mask.sum()), uv0)
-    if memo is not None:
-        memo[id(pose)] = (pose, out)
-    return out

@@ -10,6 +10,11 @@ along every visible edge, or along the outline alone where that lets more of the
 their point: a smooth moulding's creases seldom show under one light, and dilute what its outline says.
 A resting family whose scenes hold enough wrong poses in it has its own point (look-alikes fit an allen
 key in one of its lying poses better than in the other).
+Most of the wrong poses that set the point lie at a copy's place: the part flipped or spun on itself. Away
+from every copy a wrong pose reads lower, so a part has a second point, the place point: ``margin`` above
+the highest wrong pose away from every copy. A pose reaching only it is found if no other candidate at its
+place agrees more (``pipeline/place``), and the part has the place point only if in its scenes the
+best-agreeing candidate at every copy's place that reached it was right.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from service.vision.estimate.verdict import AGREEMENT_EVIDENCE, PlaneAgreement, 
 from service.vision.pipeline.calibration_scenes import scene
 from service.vision.pipeline.estimate import estimate
 from service.vision.pipeline.part import rest_family
+from service.vision.pipeline.place import SAME_PLACE_IOU, silhouette_iou
 from service.vision.pipeline.policy import DEFAULT_POLICY, Policy
 from service.vision.pipeline.teach import pose_error_px
 
@@ -61,6 +67,9 @@ class PlaneRecord:
     reason: str
     evidence: dict
     rest: int = -1  # the resting family the candidate's pose is in (``part.rest_family``); -1: not known
+    scene: int = -1  # the calibration scene it was judged in; -1: not known
+    place: int = -1  # the copy its silhouette overlaps most (index in the scene's poses); -1: none
+    overlap: float = 0.0  # that silhouette IoU
 
 
 def plane_records(bank: TemplateBank, n_scenes: int, seed: int = 0,
@@ -77,11 +86,15 @@ def plane_records(bank: TemplateBank, n_scenes: int, seed: int = 0,
         sc = scene(bank, np.random.default_rng([seed, i]))
         est = estimate(bank, sc.bgr, sc.intr, plane=sc.plane, max_instances=max(1, len(sc.poses)),
                        min_score=_NEVER, policy=policy)
+        size, memo = (sc.bgr.shape[1], sc.bgr.shape[0]), {}
         for c in est.checked:
             err = min((pose_error_px(bank, c.refined.pose, q, sc.intr, sc.bgr.shape[1], policy)
                        for q in sc.poses), default=math.inf)
+            iou = [silhouette_iou(bank, c.refined.pose, q, sc.intr, size, memo=memo) for q in sc.poses]
+            place = int(np.argmax(iou)) if iou and max(iou) > 0.0 else -1
             out.append(PlaneRecord(float(err), c.verdict.reason, c.verdict.evidence,
-                                   rest_family(bank, c.refined.pose.R, sc.plane.normal)))
+                                   rest_family(bank, c.refined.pose.R, sc.plane.normal), i, place,
+                                   float(iou[place]) if place >= 0 else 0.0))
     return out
 
 
@@ -99,12 +112,15 @@ class PlaneCalibration:
     # each resting family's agreement to reach, where its scenes had enough wrong candidates in it
     # (``MIN_WRONG_PER_REST_SCENE``); None: ``agreement_min``
     agreement_min_by_rest: tuple[float | None, ...] = ()
+    # the agreement a pose no other candidate at its place outagrees must reach (``place_point``); None:
+    # none (not calibrated, or a wrong pose was its place's best there)
+    agreement_min_place: float | None = None
 
     @property
     def agreement(self) -> PlaneAgreement:
         """The operating point as the verdict takes it."""
         return PlaneAgreement(self.agreement_min, self.agreement_floor, self.agreement_along,
-                              self.agreement_min_by_rest)
+                              self.agreement_min_by_rest, self.agreement_min_place)
 
 
 def calibrated(records: list[PlaneRecord], scenes: int, margin: float = MARGIN,
@@ -137,9 +153,30 @@ def _calibrated_along(records: list[PlaneRecord], scenes: int, margin: float, al
     # every right candidate, an outline a plain shape has too or not: the floor holds for all of them
     every_right = [material_free(r.evidence, along) for r in records if r.error_px < RIGHT_PX]
     floor = min(every_right) - margin if len(every_right) >= MIN_RIGHT_PER_SCENE * scenes else None
+    place = place_point(records, margin, along) if agreement_min is not None else None
     return PlaneCalibration(agreement_min, top, reached, len(right), len(wrong), scenes, floor, along,
-                            by_rest)
+                            by_rest, place if place is not None and place < agreement_min else None)
 
+
+def place_point(records: list[PlaneRecord], margin: float, along: str) -> float | None:
+    """``margin`` above the highest agreement of a wrong candidate away from every copy (silhouette IoU
+    under ``SAME_PLACE_IOU``); None if the records do not say where they lie, or if at some copy's place
+    the best-agreeing candidate reaching that point was wrong: there a flip of the part on itself
+    outagrees the truth, and only the full point keeps it out."""
+    if any(r.scene < 0 for r in records):
+        return None
+    judged = [r for r in records if r.reason not in REFUSED_FOR_PLACE and distinct(r.evidence)]
+    elsewhere = [material_free(r.evidence, along) for r in judged
+                 if r.error_px >= WRONG_PX and r.overlap < SAME_PLACE_IOU]
+    point = max(elsewhere, default=0.0) + margin
+    best: dict[tuple[int, int], tuple[float, PlaneRecord]] = {}
+    for r in judged:
+        read = material_free(r.evidence, along)
+        if r.overlap >= SAME_PLACE_IOU and read > best.get((r.scene, r.place), (-1.0, r))[0]:
+            best[(r.scene, r.place)] = (read, r)
+    if any(read >= point and r.error_px >= WRONG_PX for read, r in best.values()):
+        return None
+    return point
 
 def _points_by_rest(wrong: list[PlaneRecord], scenes: int, margin: float, along: str
                     ) -> tuple[float | None, ...]:

@@ -80,6 +80,10 @@ class Policy:
     # explaining their pixels: two touching copies can each fail alone for the other's pixels
     mutual_min_score: float = 0.85
     mutual_explainer_min_score: float = 0.3
+    # a pose found only at its part's place point is held against this many more candidates proposed at its
+    # place (``pipeline/place``), looked for among the next ``place_rival_scan`` proposals
+    place_rivals: int = 3
+    place_rival_scan: int = 40
 
     # -- taught parts
     # region proposals for a part with taught colours: they hold its true poses on real photos, and the
