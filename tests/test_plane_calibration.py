@@ -15,20 +15,28 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.vision.estimate.verdict import MIN_SCORE, PlaneAgreement, agreement_score, decide, material_free
+from service.vision.estimate.verdict import (
+    MIN_SCORE,
+    PlaneAgreement,
+    agreement_score,
+    decide,
+    distinct,
+    material_free,
+)
 from service.vision.geometry.camera import project
 from service.vision.geometry.frames import Rx, Rz
 from service.vision.geometry.plane import Plane, R_cam_rest, rest_gap_mm
 from service.vision.pipeline import estimate
 from service.vision.pipeline.calibration_scenes import _part_alike, scene
 from service.vision.pipeline.part import rest_family
-from service.vision.pipeline.place import SAME_PLACE_IOU, outagreed
+from service.vision.pipeline.place import SAME_PLACE_IOU, outagreed, rivals_at
 from service.vision.pipeline.plane_calibration import (
     ALONG_MIN_GAIN,
     MARGIN,
     MIN_RIGHT_PER_SCENE,
     MIN_WRONG_PER_REST_SCENE,
     MIN_WRONG_PER_SCENE,
+    REFUSED_FOR_PLACE,
     RIGHT_PX,
     PlaneRecord,
     calibrated,
@@ -38,6 +46,7 @@ from service.vision.pipeline.plane_calibration import (
 from service.vision.pipeline.types import Checked
 
 RESTING_MM = 1e-6  # a copy's lowest point lies on the table
+UNREACHABLE = 2.0  # an agreement no pose reads
 CONTRAST_GREY = 4.0  # a copy's pixels differ from the table's around it by more than the noise
 
 
@@ -295,6 +304,18 @@ def test_calibration_records_the_copies_it_finds_as_right_and_the_estimate_reads
     out = estimate(bank, sc.bgr, sc.intr, plane=sc.plane, max_instances=len(sc.poses),
                    agreement=PlaneAgreement(a, None))
     assert out.found
+    # the same read as a place point only (the part's own point out of reach): what is found there is the
+    # best-agreeing candidate at its place, each rival there checked and refused
+    out = estimate(bank, sc.bgr, sc.intr, plane=sc.plane, max_instances=len(sc.poses),
+                   agreement=PlaneAgreement(UNREACHABLE, None, place_point=a))
+    at_place = [c for c in out.checked if c.verdict.found and "at_place_point" in c.verdict.evidence]
+    assert at_place, "a copy is found at the place point alone"
+    size, memo = (sc.bgr.shape[1], sc.bgr.shape[0]), {}
+    for c in at_place:
+        for r in rivals_at(bank, c, out.checked, sc.intr, size, memo):
+            assert not r.verdict.found
+            assert material_free(r.verdict.evidence) <= material_free(c.verdict.evidence) or not distinct(
+                r.verdict.evidence) or r.verdict.reason in REFUSED_FOR_PLACE
 
 
 @pytest.mark.parametrize("up_axis", [2, 0])
