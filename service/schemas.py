@@ -246,8 +246,9 @@ class VerdictJSON(BaseModel):
                          "candidate when nothing is found")
     reason: str = Field(description="found | no_candidate | outside_distance_range | outside_image | "
                         "off_plane | low_support | interior_edges | region_mismatch | shading_mismatch | "
-                        "appearance_mismatch | generic_outline | low_score | edges_disagree | rival_at_place | "
-                        "deadline (the search stopped at options.deadline_ms before finding one)")
+                        "appearance_mismatch | generic_outline | low_score | edges_disagree | "
+                        "rival_at_place | deadline (the search stopped at options.deadline_ms before finding "
+                        "one)")
     evidence: dict[str, float] = Field(description="the evidence the score was computed from: edge_support, "
                                        "unexplained, colour_edge, polarity, region, region_low, in_image, "
                                        "generic (fractions; see docs/API.md), distinct_px (pixels); with "
