@@ -226,9 +226,11 @@ def decide(ev: dict | None, *, z_mm: float | None = None,
         if plane_tolerance_mm is not None and abs(plane_gap_mm) > plane_tolerance_mm:
             return Verdict(False, score, "off_plane", evidence)
     threshold = MIN_SCORE if min_score is None else min_score
-    if score < threshold and at_place is not None and agreement_score(ev, at_place) >= threshold:
-        score = agreement_score(ev, at_place)
-        evidence["at_place_point"] = 1.0
+    if score < threshold and at_place is not None:
+        place_score = agreement_score(ev, at_place)
+        if place_score >= threshold:
+            score = place_score
+            evidence["at_place_point"] = 1.0
     if score >= threshold:
         # (a pose under the operating point keeps the reason its evidence gives: only a would-be-found
         # one is refused for its edges)

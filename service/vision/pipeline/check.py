@@ -301,7 +301,7 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
     """Refine and verify the best ``policy.n_verify`` candidates, best verification first. Stops at the
     first found one: the search ranks by chamfer cost (over the local background's), and on a clean frame
     the first is the truth; and before a check the ``deadline`` leaves no time for. A pose found only at
-    its part's place point holds against the candidates at its place (``_held_at_place``)."""
+    its part's place point holds against the candidates at its place (``place.contest``)."""
     def check(cand: PoseCandidate) -> Checked:
         return check_candidate(bank, cand, grey, frame, intr, distance_mm=distance_mm,
                                distance_range_mm=distance_range_mm, min_score=min_score,
@@ -315,35 +315,16 @@ def verify_candidates(bank: TemplateBank, cands: list[PoseCandidate], grey: np.n
             continue
         if not deadline.allows_first(timing.CHECK_MS.high):
             break
-        c = check(cand)
-        now = _held_at_place(bank, c, out, cands, k + 1, done, check, intr, (grey.shape[1], grey.shape[0]),
-                             deadline, policy, agreement.along if agreement is not None else "edge_agreement")
+        now = [check(cand)]
+        if place.at_place_point_only(now[0]):
+            now = place.contest(bank, now[0], out, cands, k + 1, done, check, intr,
+                                (grey.shape[1], grey.shape[0]), {}, deadline, scan=policy.place_rival_scan,
+                                n=policy.place_rivals, along=agreement.along)
         out += now
         if any(x.verdict.found for x in now):
             break
     out.sort(key=lambda c: (c.verdict.found, c.verdict.score), reverse=True)
     return out
-
-
-def _held_at_place(bank: TemplateBank, c: Checked, before: list[Checked], cands: list[PoseCandidate],
-                   start: int, done: set[int], check: Callable[[PoseCandidate], Checked], intr: Intrinsics,
-                   size: tuple[int, int], deadline: Deadline, policy: Policy, along: str) -> list[Checked]:
-    """``[c]``, or if ``c`` is found only at its part's place point: it and the next ``policy.place_rivals``
-    candidates proposed at its place (checked now, their indices added to ``done``), each found only if no
-    other of them nor of ``before`` at its place agrees more (``place.outagreed``)."""
-    if not place.at_place_point_only(c):
-        return [c]
-    memo: dict = {}
-    ahead = place.upcoming_at(bank, c, cands, start, done, intr, size, memo, scan=policy.place_rival_scan,
-                              n=policy.place_rivals)
-    group = [c]
-    for j in ahead:
-        if not deadline.allows_first(timing.CHECK_MS.high):
-            break
-        done.add(j)
-        group.append(check(cands[j]))
-    rivals = place.rivals_at(bank, c, before, intr, size, memo)
-    return [place.outagreed(g, rivals + [h for h in group if h is not g], along) for g in group]
 
 
 def polish_appearance(bank: TemplateBank, pose: Pose, frame: ColourFrame, intr: Intrinsics,

@@ -108,27 +108,19 @@ class Scene:
         rejected, and a rival found that agrees more is added."""
         if not place.at_place_point_only(c):
             return True
-        rivals = place.rivals_at(self.bank, c, self.rejected, self.intr, self.size, self.silhouettes)
-        ahead = place.upcoming_at(self.bank, c, cands, start, self.done, self.intr, self.size,
-                                  self.silhouettes, scan=self.policy.place_rival_scan,
-                                  n=self.policy.place_rivals)
-        fresh = []
-        for j in ahead:
-            if not self.deadline.allows_first(timing.CHECK_MS.high):
-                break
-            self.done.add(j)
-            fresh.append(self.checked(cands[j]))
-        judged = place.outagreed(c, rivals + fresh, self.along)
+        judged, *fresh = place.contest(self.bank, c, self.rejected, cands, start, self.done, self.checked,
+                                       self.intr, self.size, self.silhouettes, self.deadline,
+                                       scan=self.policy.place_rival_scan, n=self.policy.place_rivals,
+                                       along=self.along)
         if judged.verdict.found:
             self.rejected += [r for r in fresh if not r.verdict.found]
             return True
         self.rejected.append(judged)
         for r in sorted(fresh, key=lambda r: -material_free(r.verdict.evidence, self.along)):
-            held = place.outagreed(r, rivals + [judged] + [f for f in fresh if f is not r], self.along)
-            if held.verdict.found and self.distinct(held):
-                self.add(held)
+            if r.verdict.found and self.distinct(r):
+                self.add(r)
             else:
-                self.rejected.append(held)
+                self.rejected.append(r)
         return False
 
     def add(self, c: Checked) -> None:

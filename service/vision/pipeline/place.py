@@ -5,16 +5,18 @@ flipped or spun on itself; the truth there agrees more than they do."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import replace
 
 import numpy as np
 
 from service.vision.bank import TemplateBank
+from service.vision.deadline import Deadline
 from service.vision.estimate.verdict import distinct, material_free
 from service.vision.geometry.camera import Intrinsics
 from service.vision.geometry.frames import Pose
 from service.vision.geometry.render import rasterise_roi
+from service.vision.pipeline import timing
 from service.vision.pipeline.types import Checked, PoseCandidate
 
 # Two poses whose silhouettes overlap at least this much (IoU) lie at one place: in the calibration
@@ -46,6 +48,24 @@ def upcoming_at(bank: TemplateBank, c: Checked, cands: list[PoseCandidate], star
                                             memo=memo) >= SAME_PLACE_IOU:
             out.append(j)
     return out
+
+
+def contest(bank: TemplateBank, c: Checked, before: list[Checked], cands: list[PoseCandidate], start: int,
+            done: set[int], check: Callable[[PoseCandidate], Checked], intr: Intrinsics,
+            size: tuple[int, int], memo: dict, deadline: Deadline, *, scan: int, n: int, along: str
+            ) -> list[Checked]:
+    """``c`` (found only at its place point) and the next ``n`` candidates proposed at its place
+    (``upcoming_at`` from ``start``; checked now while the deadline allows, their indices added to
+    ``done``), each judged by ``outagreed`` against the others and the candidates of ``before`` at its
+    place."""
+    group = [c]
+    for j in upcoming_at(bank, c, cands, start, done, intr, size, memo, scan=scan, n=n):
+        if not deadline.allows_first(timing.CHECK_MS.high):
+            break
+        done.add(j)
+        group.append(check(cands[j]))
+    rivals = rivals_at(bank, c, before, intr, size, memo)
+    return [outagreed(g, rivals + [h for h in group if h is not g], along) for g in group]
 
 
 def outagreed(c: Checked, rivals: list[Checked], along: str) -> Checked:
